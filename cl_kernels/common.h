@@ -1,0 +1,162 @@
+/* common.h: structs shared with the host and small maths helpers used by every kernel.
+ *
+ * Every struct here is mirrored by a NumPy dtype in clscatter/structs.py; the test
+ * tests/test_structs.py builds a kernel that reports sizeof/offsetof and compares.
+ * Only float4/int fields are used (float3 is 16 bytes in OpenCL and a trap for hosts).
+ *
+ * Coordinates on the device are always the *normalised* frame (scene centred at the
+ * origin, longest side ~1; see clscatter/scene/frame.py), so fixed epsilons are
+ * meaningful and float32 keeps ~1e-7 relative precision everywhere.
+ */
+#ifndef CLSCATTER_COMMON_H
+#define CLSCATTER_COMMON_H
+
+#define PI_F 3.14159265358979323846f
+#define INV_4PI_F 0.07957747154594767f
+#define RAY_EPS 2e-5f          /* offset along the normal when leaving a surface (normalised units) */
+#define T_INF 1e30f
+
+/* ---- Materials ---- */
+#define MAT_DIFFUSE 0
+#define MAT_MIRROR 1
+#define MAT_DIELECTRIC 2
+#define MAT_BLACK 3
+
+typedef struct {
+    float4 color;            /* diffuse albedo, or mirror reflectance (rgb) */
+    float4 interior_sigma_a; /* dielectric: absorption inside (rgb, per normalised unit) */
+    float4 interior_sigma_s; /* dielectric: scattering inside (rgb, per normalised unit) */
+    float ior;
+    int type;
+    int pad0, pad1;
+} Material;
+
+/* ---- Lights ---- */
+#define LIGHT_POINT 0
+#define LIGHT_SPOT 1
+#define LIGHT_DIRECTIONAL 2
+
+typedef struct {
+    float4 position;   /* point and spot */
+    float4 direction;  /* unit: spot axis, or the direction a directional light travels */
+    float4 power;      /* rgb intensity (point, spot; W/sr) or irradiance (directional; W/m^2) */
+    float cos_cutoff;  /* spot: cos of the cone half-angle; -2 for the others */
+    int type;
+    int pad0, pad1;
+} Light;
+
+/* ---- Medium: homogeneous, optionally bounded by an axis-aligned box ---- */
+typedef struct {
+    float4 sigma_s;    /* rgb, per normalised unit */
+    float4 sigma_a;
+    float4 kappa;      /* extinction sigma_s + sigma_a */
+    float4 bmin;       /* bounds; +-T_INF when unbounded */
+    float4 bmax;
+    float g;           /* Henyey-Greenstein asymmetry */
+    int present;       /* 0: no medium anywhere */
+    int bounded;
+    float t_far;       /* unbounded: path length after which min transmittance < threshold */
+} Medium;
+
+/* ---- Camera (pinhole) ---- */
+typedef struct {
+    float4 origin;
+    float4 forward;    /* unit */
+    float4 right;      /* scaled by tan(fov_x/2): dir = forward + sx*right + sy*up, sx,sy in [-1,1] */
+    float4 up;         /* scaled by tan(fov_y/2) */
+    int width;
+    int height;
+    int spp;           /* samples per pixel */
+    int spp_side;      /* >0: spp == side*side, stratified grid; 0: jittered random */
+} Camera;
+
+/* ---- BVH (built on the host, clscatter/accel/bvh.py), depth-first layout ----
+ * Leaf (count > 0): triangles [left_first, left_first + count) of the reordered arrays.
+ * Interior (count == 0): left child is this node + 1, right child is left_first. */
+typedef struct {
+    float bmin[3];
+    int left_first;
+    float bmax[3];
+    int count;
+} BVHNode;
+
+/* ---- View segments: the shared product of the view-path tracer ----
+ * A straight piece of a camera path lying in the medium. weight = path throughput
+ * (specular bounces, dielectric absorption) * medium transmittance from the eye to a,
+ * divided by the pixel's sample count, so a method's per-segment radiance estimates sum
+ * directly into pixels. */
+typedef struct {
+    float4 a;          /* start (xyz) */
+    float4 b;          /* end (xyz) */
+    float4 weight;     /* rgb */
+    int pixel;         /* y * width + x */
+    int depth;         /* specular bounces before this segment */
+    int pad0, pad1;
+} ViewSegment;
+
+/* ---- Small helpers ---- */
+float4 vec3(float x, float y, float z) { return (float4)(x, y, z, 0.0f); }
+float dot3(float4 a, float4 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+float4 cross3(float4 a, float4 b) {
+    return (float4)(a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x, 0.0f);
+}
+float length3(float4 a) { return sqrt(dot3(a, a)); }
+float4 normalize3(float4 a) {
+    float l = length3(a);
+    return l > 0.0f ? a / l : (float4)(0.0f);
+}
+float4 exp3(float4 a) { return (float4)(exp(a.x), exp(a.y), exp(a.z), 0.0f); }
+
+/* Transmittance exp(-kappa * t) for rgb kappa. */
+float4 transmittance(float4 kappa, float t) { return exp3(-kappa * t); }
+
+/* Henyey-Greenstein phase function, normalised over the sphere; cos_theta is between
+ * the light's travel direction and the direction towards the camera. */
+float hg_phase(float cos_theta, float g) {
+    float denom = 1.0f + g * g - 2.0f * g * cos_theta;
+    return INV_4PI_F * (1.0f - g * g) / (denom * sqrt(denom));
+}
+
+/* Ray/box slab test: [t0, t1] of the ray inside the box, clamped to [tmin, tmax].
+ * Returns 0 when the intersection is empty. inv_d may hold +-inf. */
+int ray_box(float4 o, float4 inv_d, float4 bmin, float4 bmax, float tmin, float tmax,
+                   float *t0, float *t1) {
+    float4 ta = (bmin - o) * inv_d;
+    float4 tb = (bmax - o) * inv_d;
+    float4 lo = fmin(ta, tb), hi = fmax(ta, tb);
+    /* NaN (0 * inf when o lies on a slab plane) is dropped by fmin/fmax */
+    float a = fmax(fmax(lo.x, lo.y), fmax(lo.z, tmin));
+    float b = fmin(fmin(hi.x, hi.y), fmin(hi.z, tmax));
+    *t0 = a;
+    *t1 = b;
+    return a <= b;
+}
+
+float4 safe_inv_dir(float4 d) {
+    return (float4)(1.0f / d.x, 1.0f / d.y, 1.0f / d.z, 0.0f);
+}
+
+/* Medium interval along a ray: the part of [tmin, tmax] inside the medium bounds. */
+int medium_interval(__global const Medium *m, float4 o, float4 d, float tmin, float tmax,
+                           float *t0, float *t1) {
+    if (!m->present) return 0;
+    if (!m->bounded) { *t0 = tmin; *t1 = fmin(tmax, tmin + m->t_far); return *t0 < *t1; }
+    return ray_box(o, safe_inv_dir(d), m->bmin, m->bmax, tmin, tmax, t0, t1);
+}
+
+/* ---- Random numbers: PCG hash, stateless per (pixel, sample, dimension) ---- */
+uint pcg_hash(uint v) {
+    uint state = v * 747796405u + 2891336453u;
+    uint word = ((state >> ((state >> 28u) + 4u)) ^ state) * 277803737u;
+    return (word >> 22u) ^ word;
+}
+typedef struct { uint s; } Rng;
+Rng rng_seed(uint a, uint b, uint c) {
+    Rng r; r.s = pcg_hash(a ^ pcg_hash(b ^ pcg_hash(c))); return r;
+}
+float rng_next(Rng *r) {
+    r->s = pcg_hash(r->s);
+    return (float)(r->s >> 8) * (1.0f / 16777216.0f);
+}
+
+#endif

@@ -1,0 +1,326 @@
+"""OpenCL platform/device choice, program building with a binary cache, buffer tracking.
+
+Choosing a device
+    ``--device`` (CLI) or the ``CLSCATTER_DEVICE`` environment variable name a device as
+    ``P:D`` (platform and device index, as ``clscatter devices`` lists them) or as a
+    case-insensitive substring of ``"platform name / device name"``. An explicit choice
+    is honoured or refused with an error; it never falls back silently. Without one, the
+    first device (GPUs before others) that builds and correctly runs ``probe.cl`` is
+    used; platforms or devices that fail (the PyPI PoCL wheel on some CPUs, say) are
+    skipped and ``clscatter devices`` shows why.
+
+Programs
+    Kernels live in ``cl_kernels/`` (found beside the package in a checkout, or as the
+    installed ``clscatter.cl_kernels`` package) and are built with ``-I`` to that folder.
+    Built binaries are cached in ``$CLSCATTER_CACHE_DIR`` (default
+    ``~/.cache/clscatter/kernels``), keyed by every kernel source, the build options and
+    the device/driver identity, so a second run does not recompile.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .errors import DeviceError, KernelBuildError
+
+ENV_DEVICE = "CLSCATTER_DEVICE"
+ENV_CACHE = "CLSCATTER_CACHE_DIR"
+
+
+def kernel_dir() -> Path:
+    """The folder holding the .cl sources (checkout first, then the installed package)."""
+    here = Path(__file__).resolve().parent
+    checkout = here.parent / "cl_kernels"
+    if (checkout / "common.h").is_file():
+        return checkout
+    installed = here / "cl_kernels"
+    if (installed / "common.h").is_file():
+        return installed
+    try:
+        import importlib.resources as res
+        p = Path(str(res.files("clscatter.cl_kernels")))
+        if (p / "common.h").is_file():
+            return p
+    except (ModuleNotFoundError, TypeError):
+        pass
+    raise DeviceError("cannot find the cl_kernels folder (neither in the checkout nor installed)")
+
+
+def _cl():
+    try:
+        import pyopencl as cl
+    except ImportError as e:  # pragma: no cover - dependency missing
+        raise DeviceError(f"pyopencl is not importable: {e}") from e
+    return cl
+
+
+@dataclass
+class DeviceInfo:
+    """One OpenCL device as listed by ``clscatter devices``."""
+
+    platform_index: int
+    device_index: int
+    platform: str
+    name: str
+    kind: str
+    ok: bool = False
+    reason: str = ""
+    handle: object = field(default=None, repr=False)
+
+    @property
+    def label(self) -> str:
+        return f"{self.platform_index}:{self.device_index} {self.platform} / {self.name}"
+
+
+def _probe(device) -> str:
+    """Build and run probe.cl on ``device``; return '' when it works, else the reason."""
+    cl = _cl()
+    try:
+        ctx = cl.Context([device])
+        queue = cl.CommandQueue(ctx)
+        src = (kernel_dir() / "probe.cl").read_text()
+        prog = cl.Program(ctx, src).build(options=["-I", str(kernel_dir())], cache_dir=False)
+        a = np.arange(16, dtype=np.float32)
+        mf = cl.mem_flags
+        a_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
+        o_buf = cl.Buffer(ctx, mf.WRITE_ONLY, a.nbytes)
+        prog.probe(queue, a.shape, None, a_buf, o_buf)
+        out = np.empty_like(a)
+        cl.enqueue_copy(queue, out, o_buf)
+        queue.finish()
+    except Exception as e:  # any failure makes the device unusable; report why
+        msg = str(e).strip().splitlines()
+        return f"{type(e).__name__}: {msg[0] if msg else ''}"[:300]
+    expect = a * a + 6.0
+    if not np.allclose(out, expect, rtol=1e-5, atol=1e-5):
+        return "probe kernel ran but returned wrong values"
+    return ""
+
+
+def list_devices(probe: bool = True) -> tuple[list[DeviceInfo], list[str]]:
+    """All platforms' devices, probed; plus messages for platforms that failed outright."""
+    cl = _cl()
+    infos: list[DeviceInfo] = []
+    problems: list[str] = []
+    try:
+        platforms = cl.get_platforms()
+    except Exception as e:
+        raise DeviceError(f"no OpenCL platform found ({e}); install pocl-opencl-icd") from e
+    for pi, plat in enumerate(platforms):
+        try:
+            pname = plat.name.strip()
+            devices = plat.get_devices()
+        except Exception as e:
+            problems.append(f"platform {pi}: skipped ({type(e).__name__}: {e})")
+            continue
+        for di, dev in enumerate(devices):
+            try:
+                kind = cl.device_type.to_string(dev.type)
+            except Exception:
+                kind = "?"
+            info = DeviceInfo(pi, di, pname, dev.name.strip(), kind, handle=dev)
+            if probe:
+                info.reason = _probe(dev)
+                info.ok = not info.reason
+            infos.append(info)
+    return infos, problems
+
+
+def _matches(info: DeviceInfo, spec: str) -> bool:
+    spec = spec.strip()
+    if ":" in spec and all(p.strip().isdigit() for p in spec.split(":", 1)):
+        p, d = (int(x) for x in spec.split(":", 1))
+        return (info.platform_index, info.device_index) == (p, d)
+    return spec.lower() in f"{info.platform} / {info.name}".lower()
+
+
+def choose_device(spec: str | None = None) -> DeviceInfo:
+    """The device to use: ``spec``, else ``$CLSCATTER_DEVICE``, else the first that works."""
+    spec = spec or os.environ.get(ENV_DEVICE) or None
+    infos, problems = list_devices(probe=False)
+    if spec:
+        chosen = [i for i in infos if _matches(i, spec)]
+        if not chosen:
+            listing = "; ".join(i.label for i in infos) or "none"
+            raise DeviceError(f"device '{spec}' not found (available: {listing})")
+        info = chosen[0]
+        info.reason = _probe(info.handle)
+        info.ok = not info.reason
+        if not info.ok:
+            raise DeviceError(f"device '{info.label}' fails its probe: {info.reason}")
+        return info
+    cl = _cl()
+    ordered = sorted(infos, key=lambda i: 0 if i.handle.type & cl.device_type.GPU else 1)
+    reasons = list(problems)
+    for info in ordered:
+        info.reason = _probe(info.handle)
+        info.ok = not info.reason
+        if info.ok:
+            return info
+        reasons.append(f"{info.label}: {info.reason}")
+    raise DeviceError("no working OpenCL device" + (": " + "; ".join(reasons) if reasons else
+                      " (install pocl-opencl-icd)"))
+
+
+class Engine:
+    """An OpenCL context + queue on one device, with cached programs and tracked buffers.
+
+    ``bytes_peak`` is the largest total of live device buffers allocated through this
+    engine (plus host arrays registered with :meth:`note_host`); renders report it as
+    ``peak_bytes``.
+    """
+
+    def __init__(self, info: DeviceInfo):
+        cl = _cl()
+        self.cl = cl
+        self.info = info
+        self.device = info.handle
+        self.ctx = cl.Context([self.device])
+        self.queue = cl.CommandQueue(self.ctx)
+        self._programs: dict[tuple, object] = {}
+        self._kernels: dict[tuple, object] = {}
+        self._sizes: dict[int, int] = {}
+        self.bytes_live = 0
+        self.bytes_peak = 0
+
+    @property
+    def name(self) -> str:
+        return f"{self.info.platform} / {self.info.name}"
+
+    # ---- programs ----
+    def program(self, name: str, defines: dict[str, object] | None = None):
+        """Build (or fetch from cache) ``cl_kernels/<name>.cl`` with ``-D`` defines."""
+        opts = ["-I", str(kernel_dir()), "-cl-fp32-correctly-rounded-divide-sqrt"]
+        for k, v in sorted((defines or {}).items()):
+            opts.append(f"-D{k}={v}")
+        key = (name, tuple(opts))
+        if key not in self._programs:
+            self._programs[key] = self._build(name, opts)
+        return self._programs[key]
+
+    def kernel(self, program: str, kernel: str, defines: dict[str, object] | None = None):
+        """A kernel object, created once per (program, defines, kernel name)."""
+        key = (program, tuple(sorted((defines or {}).items())), kernel)
+        if key not in self._kernels:
+            self._kernels[key] = self.cl.Kernel(self.program(program, defines), kernel)
+        return self._kernels[key]
+
+    def _cache_key(self, name: str, opts: Sequence[str]) -> str:
+        h = hashlib.sha256()
+        kd = kernel_dir()
+        for p in sorted(list(kd.glob("*.cl")) + list(kd.glob("*.h"))):
+            h.update(p.name.encode())
+            h.update(p.read_bytes())
+        h.update(name.encode())
+        h.update(" ".join(o for o in opts if o != str(kd)).encode())
+        d = self.device
+        for part in (d.platform.name, d.platform.version, d.name, d.version, d.driver_version,
+                     self.cl.VERSION_TEXT):
+            h.update(str(part).encode())
+        return h.hexdigest()[:32]
+
+    def _build(self, name: str, opts: list[str]):
+        cl = self.cl
+        path = kernel_dir() / f"{name}.cl"
+        if not path.is_file():
+            raise KernelBuildError(f"kernel source {path} does not exist")
+        cache = Path(os.environ.get(ENV_CACHE) or Path.home() / ".cache" / "clscatter" / "kernels")
+        key = self._cache_key(name, opts)
+        binfile = cache / f"{name}-{key}.bin"
+        if binfile.is_file():
+            try:
+                prog = cl.Program(self.ctx, [self.device], [binfile.read_bytes()])
+                return prog.build(options=opts)
+            except Exception:
+                pass  # stale or foreign binary: rebuild from source below
+        prog = cl.Program(self.ctx, path.read_text())
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                prog = prog.build(options=opts, cache_dir=False)
+        except cl.RuntimeError as e:
+            raise KernelBuildError(f"building {path.name} failed:\n{e}") from e
+        try:
+            cache.mkdir(parents=True, exist_ok=True)
+            tmp = binfile.with_suffix(".tmp")
+            tmp.write_bytes(prog.binaries[0])
+            tmp.replace(binfile)
+        except OSError:
+            pass  # a read-only cache only costs rebuilds
+        return prog
+
+    # ---- buffers ----
+    def _track(self, buf, nbytes: int):
+        self._sizes[id(buf)] = nbytes
+        self.bytes_live += nbytes
+        self.bytes_peak = max(self.bytes_peak, self.bytes_live)
+        return buf
+
+    def to_device(self, array: np.ndarray, writable: bool = False):
+        """Copy a host array into a new device buffer (at least 1 byte)."""
+        mf = self.cl.mem_flags
+        arr = np.ascontiguousarray(array)
+        if arr.nbytes == 0:
+            arr = np.zeros(1, np.int32) if arr.dtype.itemsize < 4 else np.zeros(1, arr.dtype)
+        flags = (mf.READ_WRITE if writable else mf.READ_ONLY) | mf.COPY_HOST_PTR
+        return self._track(self.cl.Buffer(self.ctx, flags, hostbuf=arr), arr.nbytes)
+
+    def empty(self, nbytes: int):
+        """A new uninitialised read-write device buffer."""
+        nbytes = max(int(nbytes), 4)
+        return self._track(self.cl.Buffer(self.ctx, self.cl.mem_flags.READ_WRITE, nbytes), nbytes)
+
+    def zeros(self, nbytes: int):
+        """A new device buffer filled with zero bytes."""
+        buf = self.empty(nbytes)
+        self.cl.enqueue_fill_buffer(self.queue, buf, np.zeros(1, np.uint32), 0, max(int(nbytes), 4))
+        return buf
+
+    def read(self, buf, shape, dtype) -> np.ndarray:
+        """Copy a device buffer back into a new host array of ``shape`` and ``dtype``."""
+        out = np.empty(shape, dtype)
+        if out.nbytes:
+            self.cl.enqueue_copy(self.queue, out, buf)
+            self.queue.finish()
+        return out
+
+    def free(self, *bufs) -> None:
+        """Release device buffers now (and stop counting them as live)."""
+        for b in bufs:
+            n = self._sizes.pop(id(b), 0)
+            self.bytes_live -= n
+            try:
+                b.release()
+            except Exception:
+                pass
+
+    def note_host(self, nbytes: int) -> None:
+        """Count a transient host working set towards the peak."""
+        self.bytes_peak = max(self.bytes_peak, self.bytes_live + int(nbytes))
+
+    def reset_peak(self) -> None:
+        self.bytes_peak = self.bytes_live
+
+    def launch(self, kernel, global_size: int | Sequence[int], *args) -> None:
+        """Enqueue ``kernel`` over ``global_size`` work-items (driver-chosen group size)."""
+        gs = (int(global_size),) if np.isscalar(global_size) else tuple(int(g) for g in global_size)
+        if min(gs) <= 0:
+            return
+        kernel(self.queue, gs, None, *args)
+
+
+_ENGINES: dict[str | None, Engine] = {}
+
+
+def get_engine(spec: str | None = None) -> Engine:
+    """The process-wide engine for a device spec (see :func:`choose_device`)."""
+    spec = spec or os.environ.get(ENV_DEVICE) or None
+    if spec not in _ENGINES:
+        _ENGINES[spec] = Engine(choose_device(spec))
+    return _ENGINES[spec]

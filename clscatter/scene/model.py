@@ -1,0 +1,140 @@
+"""The scene model: plain dataclasses filled by the TOML loader (``loader.py``).
+
+Everything is in *scene units* and world space, as the scene file says (float64 on the
+host). Shapes are already triangulated and transformed: an :class:`Object` holds a
+triangle mesh. Conversion to the normalised device frame happens later, in
+``clscatter/scene/frame.py``; nothing here knows about OpenCL.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+RGB = np.ndarray  # shape (3,), float64
+
+
+@dataclass
+class Camera:
+    origin: np.ndarray
+    target: np.ndarray
+    up: np.ndarray
+    fov: float = 45.0           # full field of view, degrees, along fov_axis
+    fov_axis: str = "x"         # "x" or "y"
+    width: int = 512
+    height: int = 384
+    spp: int = 4                # a square number is stratified n x n
+
+
+@dataclass
+class Medium:
+    sigma_s: RGB
+    sigma_a: RGB
+    g: float = 0.0
+    bounds: tuple[np.ndarray, np.ndarray] | None = None   # (min, max); None = unbounded
+
+    @property
+    def kappa(self) -> RGB:
+        """Extinction coefficient sigma_s + sigma_a (rgb)."""
+        return self.sigma_s + self.sigma_a
+
+
+@dataclass
+class Light:
+    type: str                   # "point" | "spot" | "directional"
+    power: RGB                  # intensity (W/sr) for point/spot, irradiance (W/m^2) for directional
+    position: np.ndarray | None = None
+    direction: np.ndarray | None = None   # unit; spot axis, or directional travel direction
+    cutoff_angle: float = 0.0   # spot half-angle, degrees
+
+
+@dataclass
+class Material:
+    name: str
+    type: str                   # "diffuse" | "mirror" | "dielectric" | "black"
+    albedo: RGB = field(default_factory=lambda: np.full(3, 0.5))
+    reflectance: RGB = field(default_factory=lambda: np.ones(3))
+    ior: float = 1.5
+    interior_sigma_a: RGB = field(default_factory=lambda: np.zeros(3))
+    interior_sigma_s: RGB = field(default_factory=lambda: np.zeros(3))
+
+    @property
+    def color(self) -> RGB:
+        """The colour the device needs: albedo (diffuse) or reflectance (mirror)."""
+        return self.reflectance if self.type == "mirror" else self.albedo
+
+
+@dataclass
+class Object:
+    """A triangle mesh in world space with one material.
+
+    ``normals`` are per-vertex shading normals (unit) for smooth shapes (meshed spheres,
+    meshes that carry them); None means flat shading with face normals.
+    """
+
+    shape: str                  # "mesh" | "sphere" | "box" | "quad"
+    material: Material
+    vertices: np.ndarray        # (V, 3) float64
+    faces: np.ndarray           # (F, 3) int64
+    normals: np.ndarray | None = None
+    key: str = ""               # e.g. "objects[2]", for messages
+
+
+@dataclass
+class Volume:
+    """A graded-index refractive volume for the voxel pipeline (stored, not yet rendered)."""
+
+    ior: float
+    sigma_s: RGB
+    sigma_a: RGB
+    resolution: int = 128
+    mesh: Object | None = None
+    grid: np.ndarray | None = None
+    grid_bounds: tuple[np.ndarray, np.ndarray] | None = None
+    key: str = ""
+
+
+@dataclass
+class RenderSettings:
+    method: str = "auto"
+    max_depth: int = 16
+    seed: int = 0
+    params: dict[str, dict[str, Any]] = field(default_factory=dict)  # [render.<method>] tables
+
+
+@dataclass
+class Scene:
+    camera: Camera
+    medium: Medium | None = None
+    lights: list[Light] = field(default_factory=list)
+    materials: dict[str, Material] = field(default_factory=dict)
+    objects: list[Object] = field(default_factory=list)
+    volumes: list[Volume] = field(default_factory=list)
+    render: RenderSettings = field(default_factory=RenderSettings)
+    source: str = "<memory>"    # file path or "builtin:NAME"
+
+    def bbox(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Bounding box of all objects and volumes (the contract's 'scene bounding box')."""
+        pts = [o.vertices for o in self.objects if len(o.vertices)]
+        for v in self.volumes:
+            if v.mesh is not None and len(v.mesh.vertices):
+                pts.append(v.mesh.vertices)
+            elif v.grid_bounds is not None:
+                pts.append(np.array(v.grid_bounds))
+        if not pts:
+            return None
+        allp = np.concatenate(pts)
+        return allp.min(axis=0), allp.max(axis=0)
+
+    def scene_extent(self) -> float:
+        """Longest side of :meth:`bbox` (1.0 when the scene has no geometry); relative radii
+        and step sizes in ``[render.*]`` tables are multiples of this."""
+        bb = self.bbox()
+        if bb is None:
+            return 1.0
+        ext = float(np.max(bb[1] - bb[0]))
+        return ext if ext > 0 else 1.0
+
+    def triangle_count(self) -> int:
+        return int(sum(len(o.faces) for o in self.objects))

@@ -1,0 +1,62 @@
+"""NumPy dtypes mirroring the C structs of ``cl_kernels/common.h``.
+
+One place for each host/device struct. ``tests/test_structs.py`` compiles a kernel that
+reports ``sizeof`` and ``offsetof`` for every struct and checks them against these
+dtypes, so the two declarations cannot drift apart silently.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+F4 = (np.float32, 4)
+
+# Material.type values (MAT_* in common.h)
+MAT_DIFFUSE, MAT_MIRROR, MAT_DIELECTRIC, MAT_BLACK = 0, 1, 2, 3
+MATERIAL_TYPES = {"diffuse": MAT_DIFFUSE, "mirror": MAT_MIRROR,
+                  "dielectric": MAT_DIELECTRIC, "black": MAT_BLACK}
+
+# Light.type values (LIGHT_* in common.h)
+LIGHT_POINT, LIGHT_SPOT, LIGHT_DIRECTIONAL = 0, 1, 2
+LIGHT_TYPES = {"point": LIGHT_POINT, "spot": LIGHT_SPOT, "directional": LIGHT_DIRECTIONAL}
+
+MATERIAL = np.dtype([
+    ("color", *F4), ("interior_sigma_a", *F4), ("interior_sigma_s", *F4),
+    ("ior", np.float32), ("type", np.int32), ("pad0", np.int32), ("pad1", np.int32),
+], align=True)
+
+LIGHT = np.dtype([
+    ("position", *F4), ("direction", *F4), ("power", *F4),
+    ("cos_cutoff", np.float32), ("type", np.int32), ("pad0", np.int32), ("pad1", np.int32),
+], align=True)
+
+MEDIUM = np.dtype([
+    ("sigma_s", *F4), ("sigma_a", *F4), ("kappa", *F4), ("bmin", *F4), ("bmax", *F4),
+    ("g", np.float32), ("present", np.int32), ("bounded", np.int32), ("t_far", np.float32),
+], align=True)
+
+CAMERA = np.dtype([
+    ("origin", *F4), ("forward", *F4), ("right", *F4), ("up", *F4),
+    ("width", np.int32), ("height", np.int32), ("spp", np.int32), ("spp_side", np.int32),
+], align=True)
+
+BVH_NODE = np.dtype([
+    ("bmin", np.float32, 3), ("left_first", np.int32),
+    ("bmax", np.float32, 3), ("count", np.int32),
+], align=True)
+
+VIEW_SEGMENT = np.dtype([
+    ("a", *F4), ("b", *F4), ("weight", *F4),
+    ("pixel", np.int32), ("depth", np.int32), ("pad0", np.int32), ("pad1", np.int32),
+], align=True)
+
+# name in common.h -> dtype; used by the layout test
+ALL = {"Material": MATERIAL, "Light": LIGHT, "Medium": MEDIUM, "Camera": CAMERA,
+       "BVHNode": BVH_NODE, "ViewSegment": VIEW_SEGMENT}
+
+
+def vec4(xyz, w: float = 0.0) -> np.ndarray:
+    """A float32 4-vector from an xyz triple (the w lane padded)."""
+    v = np.zeros(4, np.float32)
+    v[:3] = np.asarray(xyz, dtype=np.float64)
+    v[3] = w
+    return v
