@@ -144,6 +144,16 @@ int medium_interval(__global const Medium *m, float4 o, float4 d, float tmin, fl
     return ray_box(o, safe_inv_dir(d), m->bmin, m->bmax, tmin, tmax, t0, t1);
 }
 
+/* Length of [tmin, tmax] along a ray that lies inside the medium (no t_far cut: this is
+ * for transmittance, e.g. a light path or the rest of a view segment). */
+float medium_path_length(__global const Medium *m, float4 o, float4 d, float tmin, float tmax) {
+    if (!m->present) return 0.0f;
+    if (!m->bounded) return fmax(tmax - tmin, 0.0f);
+    float t0, t1;
+    if (!ray_box(o, safe_inv_dir(d), m->bmin, m->bmax, tmin, tmax, &t0, &t1)) return 0.0f;
+    return t1 - t0;
+}
+
 /* ---- Random numbers: PCG hash, stateless per (pixel, sample, dimension) ---- */
 uint pcg_hash(uint v) {
     uint state = v * 747796405u + 2891336453u;

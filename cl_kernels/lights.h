@@ -1,0 +1,39 @@
+/* lights.h: light arriving at a point, shared by surface shading (paths.cl) and the
+ * medium methods (raymarch.cl, ...). One place for the light models of SCENE_FORMAT.md:
+ * point and spot lights give intensity I (W/sr) -> I / d^2; a spot is a hard-edged cone
+ * of uniform intensity; a directional light gives irradiance E on a facing surface. */
+#ifndef CLSCATTER_LIGHTS_H
+#define CLSCATTER_LIGHTS_H
+#include "common.h"
+#include "bvh.h"
+
+/* Unoccluded, unattenuated irradiance (on a surface facing the light) at x, with wi the
+ * unit direction from x towards the light and dist the distance (T_INF: directional). */
+float4 light_arrival(__global const Light *L, float4 x, float4 *wi, float *dist) {
+    if (L->type == LIGHT_DIRECTIONAL) {
+        *wi = -L->direction;
+        *dist = T_INF;
+        return L->power;
+    }
+    float4 to = L->position - x;
+    to.w = 0.0f;
+    float d2 = fmax(dot3(to, to), 1e-20f);
+    float d = sqrt(d2);
+    *wi = to / d;
+    *dist = d;
+    if (L->type == LIGHT_SPOT && dot3(-*wi, L->direction) < L->cos_cutoff) return (float4)(0.0f);
+    return L->power / d2;
+}
+
+/* Fraction of that light reaching x: 0 when a surface blocks the way (every surface,
+ * glass included, occludes direct light; caustics are the caustic methods' job), else
+ * the medium's transmittance along the part of the light path inside its bounds. */
+float4 light_transmission(__global const BVHNode *nodes, __global const float4 *tris,
+                          __global const Medium *m, float4 x, float4 wi, float dist, float tmin) {
+    float tmax = dist < T_INF ? dist * (1.0f - 1e-5f) : T_INF;
+    if (bvh_any(nodes, tris, x, wi, tmin, tmax)) return (float4)(0.0f);
+    float len = medium_path_length(m, x, wi, 0.0f, dist);
+    return len > 0.0f ? transmittance(m->kappa, len) : (float4)(1.0f, 1.0f, 1.0f, 0.0f);
+}
+
+#endif

@@ -1,0 +1,147 @@
+"""The ``clscatter`` command line (contract: SCENE_FORMAT.md, "Command-line contract").
+
+    clscatter                                   render the built-in demo scene
+    clscatter render [SCENE] -o OUT [-o OUT2] [--method M] [--set key=value ...]
+                     [--stats FILE.json] [--device SPEC] [--exposure EV]
+    clscatter diff A B [--heatmap FILE.png] [--json]
+    clscatter devices
+    clscatter scenes [--dump NAME]
+
+SCENE is a TOML file or ``builtin:NAME`` (``clscatter scenes`` lists them). Errors the
+user can fix print one line naming the key or file and exit with status 2.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from .errors import ClscatterError
+
+DEMO_OUTPUT = "clscatter-demo.png"
+IMAGE_SUFFIXES = (".exr", ".npy", ".pfm", ".png")
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2 (argparse prints usage too)
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="clscatter", description="Single scattering in participating media, on OpenCL.")
+    sub = p.add_subparsers(dest="command", parser_class=_Parser)
+
+    r = sub.add_parser("render", help="render a scene to image files")
+    r.add_argument("scene", nargs="?", default=None,
+                   help="scene TOML file or builtin:NAME (default: the built-in demo)")
+    r.add_argument("-o", "--output", action="append", default=None, metavar="OUT",
+                   help="output image (.exr .npy .pfm .png); repeatable "
+                        f"(default: {DEMO_OUTPUT})")
+    r.add_argument("--method", default=None, help="override render.method")
+    r.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a scene key (dotted path, TOML value); repeatable")
+    r.add_argument("--stats", default=None, metavar="FILE.json", help="write run statistics")
+    r.add_argument("--device", default=None, help="OpenCL device: P:D or a name substring")
+    r.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops (default 0)")
+    r.add_argument("--no-progress", action="store_true", help="never show progress bars")
+
+    d = sub.add_parser("diff", help="compare two images")
+    d.add_argument("a")
+    d.add_argument("b", help="the reference")
+    d.add_argument("--heatmap", default=None, metavar="FILE.png")
+    d.add_argument("--json", action="store_true", help="print one JSON object")
+
+    v = sub.add_parser("devices", help="list OpenCL platforms and devices")
+    v.add_argument("--device", default=None, help="show which device this spec chooses")
+
+    s = sub.add_parser("scenes", help="list built-in scenes")
+    s.add_argument("--dump", default=None, metavar="NAME", help="print a built-in scene as TOML")
+    return p
+
+
+def _cmd_render(args: argparse.Namespace) -> int:
+    from .image import write_image
+    from .render import render
+    from .scene import DEFAULT_BUILTIN, load_scene
+    from .stats import write_json
+
+    outputs = args.output or [DEMO_OUTPUT]
+    for o in outputs:
+        if Path(o).suffix.lower() not in IMAGE_SUFFIXES:
+            raise ClscatterError(f"{o}: unsupported output format (use {', '.join(IMAGE_SUFFIXES)})")
+        if not Path(o).resolve().parent.is_dir():
+            raise ClscatterError(f"{o}: output folder does not exist")
+    scene = load_scene(args.scene or f"builtin:{DEFAULT_BUILTIN}", args.overrides)
+    result = render(scene, method=args.method, device=args.device,
+                    show_progress=not args.no_progress)
+    for o in outputs:
+        write_image(o, result.image, exposure=args.exposure)
+    if args.stats:
+        write_json(args.stats, result.stats)
+    st = result.stats
+    print(f"{scene.source}: {st['width']}x{st['height']} by {st['method']} in "
+          f"{st['seconds_total']:.2f} s -> {', '.join(outputs)}")
+    return 0
+
+
+def _cmd_diff(args: argparse.Namespace) -> int:
+    from .image import diff_command
+    return diff_command(args.a, args.b, heatmap_path=args.heatmap, as_json=args.json)
+
+
+def _cmd_devices(args: argparse.Namespace) -> int:
+    from .device import choose_device, list_devices
+    infos, problems = list_devices(probe=True)
+    for msg in problems:
+        print(msg)
+    for i in infos:
+        state = "ok" if i.ok else f"unusable: {i.reason}"
+        print(f"{i.label} [{i.kind}] {state}")
+    chosen = choose_device(args.device)
+    print(f"chosen: {chosen.label}")
+    return 0
+
+
+def _cmd_scenes(args: argparse.Namespace) -> int:
+    from .scene import BUILTIN, DEFAULT_BUILTIN, builtin_toml
+    if args.dump:
+        if args.dump not in BUILTIN:
+            raise ClscatterError(f"scenes --dump: no built-in scene '{args.dump}' "
+                                 f"(one of {', '.join(sorted(BUILTIN))})")
+        sys.stdout.write(builtin_toml(args.dump))
+        return 0
+    for name in sorted(BUILTIN):
+        mark = " (default)" if name == DEFAULT_BUILTIN else ""
+        doc = (BUILTIN[name].__doc__ or "").strip().splitlines()
+        print(f"builtin:{name}{mark}  {doc[0] if doc else ''}")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point; returns the exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv:
+        argv = ["render"]
+    parser = _build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    handlers = {"render": _cmd_render, "diff": _cmd_diff, "devices": _cmd_devices,
+                "scenes": _cmd_scenes}
+    try:
+        return handlers[args.command](args)
+    except ClscatterError as e:
+        text = str(e)
+        if e.exit_status == 2:
+            text = " ".join(text.split())  # user errors: exactly one line
+        print(f"clscatter: error: {text}", file=sys.stderr)
+        return e.exit_status
+    except KeyboardInterrupt:
+        print("clscatter: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

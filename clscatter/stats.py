@@ -1,0 +1,77 @@
+"""Run statistics (``--stats FILE.json``) and progress bars."""
+from __future__ import annotations
+
+import json
+import math
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Iterator
+
+from tqdm import tqdm
+
+
+class Stats:
+    """Seconds per stage plus named counters, serialised as the ``--stats`` JSON object.
+
+    Required keys (SCENE_FORMAT.md): method, device, seconds_total, stages, peak_bytes,
+    width, height. Methods add their own counters with :meth:`set`.
+    """
+
+    def __init__(self) -> None:
+        self._t0 = time.perf_counter()
+        self.stages: dict[str, float] = {}
+        self.values: dict[str, Any] = {}
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        """Time a block; repeated stages of one name add up."""
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.stages[name] = self.stages.get(name, 0.0) + time.perf_counter() - t
+
+    def set(self, **values: Any) -> None:
+        self.values.update(values)
+
+    def add(self, key: str, amount: float) -> None:
+        self.values[key] = self.values.get(key, 0) + amount
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dict(self.values)
+        d.setdefault("method", "")
+        d.setdefault("device", "")
+        d.setdefault("peak_bytes", 0)
+        d["seconds_total"] = time.perf_counter() - self._t0
+        d["stages"] = dict(self.stages)
+        return _json_safe(d)
+
+    def write(self, path: str | Path) -> None:
+        write_json(path, self.to_dict())
+
+
+def write_json(path: str | Path, obj: Any) -> None:
+    """Write ``obj`` as indented JSON, atomically (temp file + rename); inf/nan as strings."""
+    p = Path(path)
+    tmp = p.with_name(p.name + ".tmp")
+    tmp.write_text(json.dumps(_json_safe(obj), indent=2, sort_keys=True) + "\n")
+    tmp.replace(p)
+
+
+def _json_safe(v: Any) -> Any:
+    if isinstance(v, dict):
+        return {str(k): _json_safe(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_json_safe(x) for x in v]
+    if hasattr(v, "item") and callable(v.item):  # numpy scalar
+        v = v.item()
+    if isinstance(v, float) and not math.isfinite(v):
+        return str(v)
+    return v
+
+
+def progress(total: int, desc: str, enabled: bool = True) -> tqdm:
+    """A progress bar that appears only after a second of work and only on a terminal."""
+    return tqdm(total=total, desc=desc, disable=None if enabled else True, delay=1.0,
+                leave=False, unit="it", dynamic_ncols=True)

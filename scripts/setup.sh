@@ -1,0 +1,28 @@
+#!/usr/bin/env bash
+# One-time (idempotent) set-up on a Debian machine: PoCL, the OpenCL CPU device, from
+# Debian's pocl-opencl-icd, and clscatter with its test dependencies in ./.venv (which
+# reuses already-installed system packages). Prints nothing when all is in place.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+SUDO=""
+[ "$(id -u)" = 0 ] || SUDO="sudo"
+if ! dpkg -s pocl-opencl-icd >/dev/null 2>&1 || ! dpkg -s ocl-icd-libopencl1 >/dev/null 2>&1; then
+  echo "setup: installing PoCL (pocl-opencl-icd) from Debian" >&2
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq pocl-opencl-icd ocl-icd-libopencl1 >/dev/null
+fi
+PY=${PYTHON:-python3}
+if [ ! -x .venv/bin/python ]; then
+  if ! $PY -m venv --system-site-packages .venv 2>/dev/null; then
+    echo "setup: installing python3-venv from Debian" >&2
+    rm -rf .venv
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq python3-venv >/dev/null
+    $PY -m venv --system-site-packages .venv
+  fi
+fi
+if ! .venv/bin/python -c "import clscatter, pyopencl, trimesh, skimage, scipy, tqdm, OpenEXR, pytest" 2>/dev/null \
+   || [ pyproject.toml -nt .venv/.installed ]; then
+  echo "setup: installing clscatter and its dependencies into .venv" >&2
+  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]"
+  touch .venv/.installed
+fi
