@@ -84,14 +84,17 @@ typedef struct {
  * A straight piece of a camera path lying in the medium. weight = path throughput
  * (specular bounces, dielectric absorption) * medium transmittance from the eye to a,
  * divided by the pixel's sample count, so a method's per-segment radiance estimates sum
- * directly into pixels. */
+ * directly into pixels. (sample, branch) identifies a segment independently of its
+ * position in the buffer (segments are appended in no fixed order), so methods seed
+ * their random numbers with it and stay deterministic. */
 typedef struct {
     float4 a;          /* start (xyz) */
     float4 b;          /* end (xyz) */
     float4 weight;     /* rgb */
     int pixel;         /* y * width + x */
     int depth;         /* specular bounces before this segment */
-    int pad0, pad1;
+    int sample;        /* camera sample index (pixel * spp + k) */
+    int branch;        /* which branch of that sample's path tree (0 = primary ray) */
 } ViewSegment;
 
 /* ---- Small helpers ---- */

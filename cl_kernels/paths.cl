@@ -25,6 +25,7 @@ typedef struct {
     float4 o, d, thr;
     int depth;
     int inside;   /* index of the dielectric material the path is inside, or -1 */
+    int id;       /* branch number within this sample's path tree (0: the camera ray) */
 } Branch;
 
 /* Unpolarised Fresnel reflectance for a dielectric interface; eta = n_i / n_t.
@@ -97,7 +98,9 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
     stack[0].thr = (float4)(inv_spp, inv_spp, inv_spp, 0.0f);
     stack[0].depth = 0;
     stack[0].inside = -1;
+    stack[0].id = 0;
     top = 1;
+    int next_id = 1;
 
     float4 radiance = (float4)(0.0f), escape = (float4)(0.0f);
     while (top > 0) {
@@ -120,8 +123,8 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
                     sg.weight = br.thr;
                     sg.pixel = pixel;
                     sg.depth = br.depth;
-                    sg.pad0 = 0;
-                    sg.pad1 = 0;
+                    sg.sample = s;
+                    sg.branch = br.id;
                     segs[idx] = sg;
                 }
             }
@@ -165,6 +168,7 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
         r.d = refl_d;
         r.depth = br.depth + 1;
         r.inside = br.inside;
+        r.id = next_id++;
 
         if (mat->type == MAT_MIRROR) {
             r.thr = br.thr * mat->color;
@@ -184,6 +188,7 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
         tr.d = normalize3(eta * br.d + (eta * cos_i - cos_t) * nf);
         tr.depth = br.depth + 1;
         tr.inside = front ? mi : -1;
+        tr.id = next_id++;
         if (dot3(tr.d, gf) >= 0.0f) tr.thr = (float4)(0.0f); /* shading-normal artefact */
         float lim = MIN_THROUGHPUT * inv_spp;
         int keep_r = fmax(r.thr.x, fmax(r.thr.y, r.thr.z)) > lim;

@@ -36,7 +36,7 @@ __kernel void raymarch(__global const BVHNode *nodes, __global const float4 *tri
     float4 result = (float4)(0.0f);
     if (len <= 0.0f) { out[gid] = result; return; }
     float4 w = ab / len;
-    Rng rng = rng_seed(seed, (uint)si, 0x5ca77e3u);
+    Rng rng = rng_seed(seed, (uint)sg.sample, (uint)sg.branch ^ 0x5ca77e3u);
 
     for (int li = 0; li < num_lights; ++li) {
         __global const Light *L = &lights[li];

@@ -188,6 +188,7 @@ class Engine:
         self._sizes: dict[int, int] = {}
         self.bytes_live = 0
         self.bytes_peak = 0
+        self.builds = {"source": 0, "cache": 0}   # how programs were obtained
 
     @property
     def name(self) -> str:
@@ -235,8 +236,9 @@ class Engine:
         binfile = cache / f"{name}-{key}.bin"
         if binfile.is_file():
             try:
-                prog = cl.Program(self.ctx, [self.device], [binfile.read_bytes()])
-                return prog.build(options=opts)
+                prog = cl.Program(self.ctx, [self.device], [binfile.read_bytes()]).build(options=opts)
+                self.builds["cache"] += 1
+                return prog
             except Exception:
                 pass  # stale or foreign binary: rebuild from source below
         prog = cl.Program(self.ctx, path.read_text())
@@ -246,6 +248,7 @@ class Engine:
                 prog = prog.build(options=opts, cache_dir=False)
         except cl.RuntimeError as e:
             raise KernelBuildError(f"building {path.name} failed:\n{e}") from e
+        self.builds["source"] += 1
         try:
             cache.mkdir(parents=True, exist_ok=True)
             tmp = binfile.with_suffix(".tmp")

@@ -132,6 +132,8 @@ def trace_view_paths(ps: PreparedScene, stats: Stats | None = None, show_progres
             bar.update(n)
     eng.free(out_surf, out_esc, segs, count)
     segments = np.concatenate(seg_parts) if seg_parts else np.zeros(0, structs.VIEW_SEGMENT)
+    # the kernel appends in no fixed order: sort so that runs are reproducible
+    segments = segments[np.lexsort((segments["branch"], segments["sample"]))]
     eng.note_host(surface.nbytes + escaped.nbytes + segments.nbytes)
     stats.set(view_segments=int(len(segments)), camera_samples=int(total))
     surf_img = surface[:, :3].reshape(h * w, spp, 3).sum(axis=1).reshape(h, w, 3)

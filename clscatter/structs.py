@@ -46,7 +46,7 @@ BVH_NODE = np.dtype([
 
 VIEW_SEGMENT = np.dtype([
     ("a", *F4), ("b", *F4), ("weight", *F4),
-    ("pixel", np.int32), ("depth", np.int32), ("pad0", np.int32), ("pad1", np.int32),
+    ("pixel", np.int32), ("depth", np.int32), ("sample", np.int32), ("branch", np.int32),
 ], align=True)
 
 # name in common.h -> dtype; used by the layout test

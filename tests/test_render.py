@@ -223,6 +223,7 @@ def test_raymarch_kernel_segments_against_quadrature(engine):
     weight = rng.uniform(0.2, 1.0, (n, 3))
     segs["weight"][:, :3] = weight
     segs["pixel"] = np.arange(n)
+    segs["sample"] = np.arange(n)
     from clscatter.stats import Stats
     img = RayMarch({"steps": 64}).render_medium(ps, ViewPaths(None, None, segs), Stats(), False)
     ps.release()

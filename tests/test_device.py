@@ -1,0 +1,101 @@
+"""Device choice survives broken platforms, honours explicit choices, builds with a
+binary cache and reports build errors with the compiler log."""
+from __future__ import annotations
+
+import pyopencl as cl
+import pytest
+
+from clscatter import device as dev
+from clscatter.errors import DeviceError, KernelBuildError
+
+
+class _BrokenPlatform:
+    """Stands in for the PyPI PoCL wheel on this CPU: listing devices fails."""
+    name = "Broken Platform"
+
+    def get_devices(self):
+        raise cl.RuntimeError("clGetDeviceIDs failed: unknown target CPU 'generic'")
+
+
+class _BadDevice:
+    """A device that lists fine but cannot build the probe."""
+    name = "Bad Device"
+    type = cl.device_type.CPU
+
+
+class _HalfBrokenPlatform:
+    name = "Half Broken"
+
+    def get_devices(self):
+        return [_BadDevice()]
+
+
+@pytest.fixture
+def with_broken_platforms(monkeypatch):
+    real = cl.get_platforms()
+    monkeypatch.setattr(cl, "get_platforms", lambda: [_BrokenPlatform(), _HalfBrokenPlatform(), *real])
+    monkeypatch.delenv(dev.ENV_DEVICE, raising=False)
+    return real
+
+
+def test_real_device_probes_ok():
+    infos, _ = dev.list_devices()
+    assert any(i.ok for i in infos)
+
+
+def test_broken_platforms_are_skipped_with_reasons(with_broken_platforms):
+    infos, problems = dev.list_devices()
+    assert any("unknown target CPU" in p and "platform 0" in p for p in problems)
+    bad = [i for i in infos if i.name == "Bad Device"]
+    assert bad and not bad[0].ok and bad[0].reason
+    chosen = dev.choose_device()
+    assert chosen.ok and chosen.platform_index >= 2
+
+
+def test_explicit_choice_is_honoured_or_refused(with_broken_platforms, monkeypatch):
+    assert dev.choose_device("2:0").platform_index == 2
+    name = with_broken_platforms[0].get_devices()[0].name.strip()
+    assert dev.choose_device(name[:12].lower()).name == name
+    with pytest.raises(DeviceError, match="not found"):
+        dev.choose_device("no-such-device")
+    # an explicit choice of a failing device is an error, never a silent fallback
+    with pytest.raises(DeviceError, match="fails its probe"):
+        dev.choose_device("1:0")
+    monkeypatch.setenv(dev.ENV_DEVICE, "no-such-device")
+    with pytest.raises(DeviceError, match="no-such-device"):
+        dev.choose_device()
+
+
+def test_binary_cache_skips_recompilation(tmp_path, monkeypatch):
+    monkeypatch.setenv(dev.ENV_CACHE, str(tmp_path))
+    info = dev.choose_device()
+    e1 = dev.Engine(info)
+    e1.program("probe", {"CACHE_TEST": 1})
+    assert e1.builds == {"source": 1, "cache": 0}
+    assert len(list(tmp_path.glob("probe-*.bin"))) == 1
+    e2 = dev.Engine(info)
+    e2.program("probe", {"CACHE_TEST": 1})
+    assert e2.builds == {"source": 0, "cache": 1}
+    e2.program("probe", {"CACHE_TEST": 2})          # other options: another binary
+    assert e2.builds == {"source": 1, "cache": 1}
+    assert len(list(tmp_path.glob("probe-*.bin"))) == 2
+
+
+def test_build_error_carries_the_compiler_log(tmp_path, monkeypatch):
+    (tmp_path / "common.h").write_text((dev.kernel_dir() / "common.h").read_text())
+    (tmp_path / "broken.cl").write_text('#include "common.h"\n__kernel void k(__global float *a) '
+                                        '{ a[0] = undefined_symbol_xyz; }\n')
+    e = dev.Engine(dev.choose_device())
+    monkeypatch.setattr(dev, "kernel_dir", lambda: tmp_path)
+    monkeypatch.setenv(dev.ENV_CACHE, str(tmp_path / "cache"))
+    with pytest.raises(KernelBuildError, match="undefined_symbol_xyz"):
+        e.program("broken")
+
+
+def test_buffers_are_tracked(engine):
+    import numpy as np
+    before = engine.bytes_live
+    b = engine.to_device(np.zeros(1000, np.float32))
+    assert engine.bytes_live == before + 4000 and engine.bytes_peak >= before + 4000
+    engine.free(b)
+    assert engine.bytes_live == before
