@@ -97,6 +97,20 @@ typedef struct {
     int branch;        /* which branch of that sample's path tree (0 = primary ray) */
 } ViewSegment;
 
+/* ---- Light segments: the product of the light-path tracer (light_paths.cl) ----
+ * A straight piece of a lighting ray inside the medium. flux is the rgb flux (W) the
+ * ray carries at a (emitted flux per ray, times specular weights and attenuation up to
+ * a); along the segment it decays as exp(-kappa s). */
+typedef struct {
+    float4 a;
+    float4 b;
+    float4 flux;
+    int light;         /* index of the emitting light */
+    int depth;         /* specular bounces before this segment */
+    int ray;           /* lighting ray index within its light */
+    int branch;        /* which branch of that ray's path tree (0 = straight from the light) */
+} LightSegment;
+
 /* ---- Small helpers ---- */
 float4 vec3(float x, float y, float z) { return (float4)(x, y, z, 0.0f); }
 float dot3(float4 a, float4 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }

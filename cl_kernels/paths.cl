@@ -15,30 +15,12 @@
 #include "common.h"
 #include "bvh.h"
 #include "lights.h"
+#include "specular.h"
 
 #ifndef PATH_STACK
 #define PATH_STACK 16
 #endif
 #define MIN_THROUGHPUT 1e-4f
-
-typedef struct {
-    float4 o, d, thr;
-    int depth;
-    int inside;   /* index of the dielectric material the path is inside, or -1 */
-    int id;       /* branch number within this sample's path tree (0: the camera ray) */
-} Branch;
-
-/* Unpolarised Fresnel reflectance for a dielectric interface; eta = n_i / n_t.
- * Returns 1 on total internal reflection and sets *cos_t otherwise. */
-float fresnel_dielectric(float cos_i, float eta, float *cos_t) {
-    float sin2_t = eta * eta * fmax(0.0f, 1.0f - cos_i * cos_i);
-    if (sin2_t >= 1.0f) { *cos_t = 0.0f; return 1.0f; }
-    float ct = sqrt(1.0f - sin2_t);
-    *cos_t = ct;
-    float rs = (eta * cos_i - ct) / (eta * cos_i + ct);
-    float rp = (cos_i - eta * ct) / (cos_i + eta * ct);
-    return 0.5f * (rs * rs + rp * rp);
-}
 
 /* Primary ray direction for sample k of pixel (px, py); stratified when spp is square. */
 float4 camera_dir(__global const Camera *cam, int px, int py, int k, Rng *rng) {
@@ -99,6 +81,7 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
     stack[0].depth = 0;
     stack[0].inside = -1;
     stack[0].id = 0;
+    stack[0].pad = 0;
     top = 1;
     int next_id = 1;
 
@@ -128,79 +111,28 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
                     segs[idx] = sg;
                 }
             }
-            if (found) br.thr *= transmittance(medium->kappa,
-                                               medium_path_length(medium, br.o, br.d, 0.0f, t_hit));
-        } else if (br.inside >= 0 && found) {
-            br.thr *= transmittance(materials[br.inside].interior_sigma_a, t_hit);
         }
+        if (found) br.thr *= branch_attenuation(medium, materials, &br, t_hit);
         if (!found) {
             escape += br.thr;
             continue;
         }
 
         /* ---- surface interaction ---- */
-        float4 v0 = tris[3 * hit.tri], v1 = tris[3 * hit.tri + 1], v2 = tris[3 * hit.tri + 2];
-        float4 p = br.o + hit.t * br.d;
-        p.w = 0.0f;
-        float4 ng = normalize3(cross3(v1 - v0, v2 - v0));
-        float4 ns = normalize3((1.0f - hit.u - hit.v) * normals[3 * hit.tri] +
-                               hit.u * normals[3 * hit.tri + 1] + hit.v * normals[3 * hit.tri + 2]);
-        if (dot3(ns, ns) == 0.0f) ns = ng;
-        if (dot3(ns, ng) < 0.0f) ns = -ns;
-        int front = dot3(br.d, ng) < 0.0f;          /* arriving from the side ng points to */
-        float4 nf = front ? ns : -ns;                /* shading normal facing the ray */
-        float4 gf = front ? ng : -ng;                /* geometric normal facing the ray */
+        SurfaceFrame f = surface_frame(tris, normals, &hit, br.o, br.d);
         int mi = tri_mat[hit.tri];
         __global const Material *mat = &materials[mi];
-
         if (mat->type == MAT_DIFFUSE) {
-            radiance += br.thr * shade_diffuse(nodes, tris, lights, num_lights, medium, p, nf, gf,
-                                               mat->color);
+            radiance += br.thr * shade_diffuse(nodes, tris, lights, num_lights, medium, f.p, f.nf,
+                                               f.gf, mat->color);
             continue;
         }
         if (mat->type == MAT_BLACK || br.depth >= max_depth) continue;
-
-        float cos_i = fmax(-dot3(br.d, nf), 0.0f);
-        float4 refl_d = normalize3(br.d + 2.0f * cos_i * nf);
-        if (dot3(refl_d, gf) <= 0.0f) refl_d = normalize3(br.d + 2.0f * (-dot3(br.d, gf)) * gf);
-        Branch r;
-        r.o = p + gf * RAY_EPS;
-        r.d = refl_d;
-        r.depth = br.depth + 1;
-        r.inside = br.inside;
-        r.id = next_id++;
-
-        if (mat->type == MAT_MIRROR) {
-            r.thr = br.thr * mat->color;
-            if (fmax(r.thr.x, fmax(r.thr.y, r.thr.z)) > MIN_THROUGHPUT * inv_spp && top < PATH_STACK)
-                stack[top++] = r;
-            continue;
-        }
-
-        /* dielectric: Fresnel split into reflection and refraction (TIR: reflection only) */
-        float eta = front ? 1.0f / mat->ior : mat->ior;
-        float cos_t;
-        float F = fresnel_dielectric(cos_i, eta, &cos_t);
-        r.thr = br.thr * F;
-        Branch tr;
-        tr.thr = br.thr * (1.0f - F);
-        tr.o = p - gf * RAY_EPS;
-        tr.d = normalize3(eta * br.d + (eta * cos_i - cos_t) * nf);
-        tr.depth = br.depth + 1;
-        tr.inside = front ? mi : -1;
-        tr.id = next_id++;
-        if (dot3(tr.d, gf) >= 0.0f) tr.thr = (float4)(0.0f); /* shading-normal artefact */
-        float lim = MIN_THROUGHPUT * inv_spp;
-        int keep_r = fmax(r.thr.x, fmax(r.thr.y, r.thr.z)) > lim;
-        int keep_t = F < 1.0f && fmax(tr.thr.x, fmax(tr.thr.y, tr.thr.z)) > lim;
-        /* push the weaker branch first so the stronger one is followed next */
-        int t_first = F >= 0.5f;
-        if (t_first) {
-            if (keep_t && top < PATH_STACK) stack[top++] = tr;
-            if (keep_r && top < PATH_STACK) stack[top++] = r;
-        } else {
-            if (keep_r && top < PATH_STACK) stack[top++] = r;
-            if (keep_t && top < PATH_STACK) stack[top++] = tr;
+        Branch kids[2];
+        int n = specular_children(mat, mi, &br, &f, MIN_THROUGHPUT * inv_spp, kids);
+        for (int c = 0; c < n && top < PATH_STACK; ++c) {
+            kids[c].id = next_id++;
+            stack[top++] = kids[c];
         }
     }
     surface[gid] = radiance;

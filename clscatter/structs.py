@@ -49,9 +49,15 @@ VIEW_SEGMENT = np.dtype([
     ("pixel", np.int32), ("depth", np.int32), ("sample", np.int32), ("branch", np.int32),
 ], align=True)
 
+LIGHT_SEGMENT = np.dtype([
+    ("a", *F4), ("b", *F4), ("flux", *F4),
+    ("light", np.int32), ("depth", np.int32), ("ray", np.int32), ("branch", np.int32),
+], align=True)
+
 # name in common.h -> dtype; used by the layout test
 ALL = {"Material": MATERIAL, "Light": LIGHT, "Medium": MEDIUM, "Camera": CAMERA,
-       "BVHNode": BVH_NODE, "ViewSegment": VIEW_SEGMENT}
+       "BVHNode": BVH_NODE, "ViewSegment": VIEW_SEGMENT,
+       "LightSegment": LIGHT_SEGMENT}
 
 
 def vec4(xyz, w: float = 0.0) -> np.ndarray:

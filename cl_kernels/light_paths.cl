@@ -1,0 +1,119 @@
+/* light_paths.cl: lighting rays from one light through specular chains.
+ *
+ * One work-item per lighting ray. Directions (point: the sphere; spot: its cone) or
+ * start positions (directional: a rectangle facing the light that covers the region of
+ * interest) come from a Hammersley point set with a per-light random rotation
+ * (Cranley-Patterson), so N rays are stratified for any N. Every ray carries the same
+ * flux, flux_per_ray = emitted power / N, computed on the host (clscatter/light_paths.py).
+ * Mirrors and dielectrics split the ray deterministically (specular.h); diffuse and black
+ * surfaces end it (single scattering: no diffuse bounce lights the medium). Every
+ * straight piece inside the medium is appended to the LightSegment buffer.
+ */
+#include "common.h"
+#include "bvh.h"
+#include "specular.h"
+
+#ifndef PATH_STACK
+#define PATH_STACK 16
+#endif
+
+float radical_inverse2(uint i) {
+    i = (i << 16) | (i >> 16);
+    i = ((i & 0x55555555u) << 1) | ((i & 0xAAAAAAAAu) >> 1);
+    i = ((i & 0x33333333u) << 2) | ((i & 0xCCCCCCCCu) >> 2);
+    i = ((i & 0x0F0F0F0Fu) << 4) | ((i & 0xF0F0F0F0u) >> 4);
+    i = ((i & 0x00FF00FFu) << 8) | ((i & 0xFF00FF00u) >> 8);
+    return (float)(i >> 8) * (1.0f / 16777216.0f);
+}
+
+/* Any unit vectors t, b completing n to an orthonormal basis (Duff et al. 2017). */
+void basis(float4 n, float4 *t, float4 *b) {
+    float s = n.z >= 0.0f ? 1.0f : -1.0f;
+    float a = -1.0f / (s + n.z);
+    float c = n.x * n.y * a;
+    *t = (float4)(1.0f + s * n.x * n.x * a, s * c, -s * n.x, 0.0f);
+    *b = (float4)(c, s + n.y * n.y * a, -n.y, 0.0f);
+}
+
+__kernel void trace_light(__global const BVHNode *nodes, __global const float4 *tris,
+                          __global const float4 *normals, __global const int *tri_mat,
+                          __global const Material *materials,
+                          __global const Light *lights, int light_index,
+                          __global const Medium *medium, int max_depth, uint seed,
+                          int ray_offset, int num_rays, int rays_total, float4 flux_per_ray,
+                          float4 rect_origin, float4 rect_u, float4 rect_v,
+                          __global LightSegment *segs, int max_segs,
+                          volatile __global int *seg_count) {
+    int gid = get_global_id(0);
+    if (gid >= num_rays) return;
+    int ray = ray_offset + gid;
+    __global const Light *L = &lights[light_index];
+    Rng rot = rng_seed(seed, (uint)light_index, 0x9e3779b9u);   /* same rotation for all rays */
+    float u = (ray + 0.5f) / rays_total + rng_next(&rot);
+    float v = radical_inverse2((uint)ray) + rng_next(&rot);
+    u -= floor(u);
+    v -= floor(v);
+
+    Branch stack[PATH_STACK];
+    Branch first;
+    if (L->type == LIGHT_DIRECTIONAL) {
+        first.o = rect_origin + u * rect_u + v * rect_v;
+        first.d = L->direction;
+    } else {
+        float z = L->type == LIGHT_SPOT ? 1.0f - u * (1.0f - L->cos_cutoff) : 1.0f - 2.0f * u;
+        float r = sqrt(fmax(0.0f, 1.0f - z * z));
+        float phi = 2.0f * PI_F * v;
+        float4 axis = L->type == LIGHT_SPOT ? L->direction : (float4)(0.0f, 0.0f, 1.0f, 0.0f);
+        float4 t, b;
+        basis(axis, &t, &b);
+        first.o = L->position;
+        first.d = normalize3(r * cos(phi) * t + r * sin(phi) * b + z * axis);
+    }
+    first.o.w = 0.0f;
+    first.thr = flux_per_ray;
+    first.depth = 0;
+    first.inside = -1;
+    first.id = 0;
+    first.pad = 0;
+    stack[0] = first;
+    int top = 1, next_id = 1;
+    float min_flux = 1e-4f * fmax(flux_per_ray.x, fmax(flux_per_ray.y, flux_per_ray.z));
+
+    while (top > 0) {
+        Branch br = stack[--top];
+        Hit hit;
+        int found = bvh_closest(nodes, tris, br.o, br.d, 0.0f, T_INF, &hit);
+        float t_hit = found ? hit.t : T_INF;
+        if (br.inside < 0 && medium->present) {
+            float t0, t1;
+            if (medium_interval(medium, br.o, br.d, 0.0f, t_hit, &t0, &t1) && t1 > t0) {
+                int idx = atomic_inc(seg_count);
+                if (idx < max_segs) {
+                    LightSegment sg;
+                    sg.a = br.o + t0 * br.d;
+                    sg.b = br.o + t1 * br.d;
+                    sg.a.w = 0.0f;
+                    sg.b.w = 0.0f;
+                    sg.flux = br.thr;   /* the medium starts at t0: vacuum before it */
+                    sg.light = light_index;
+                    sg.depth = br.depth;
+                    sg.ray = ray;
+                    sg.branch = br.id;
+                    segs[idx] = sg;
+                }
+            }
+        }
+        if (!found || br.depth >= max_depth) continue;
+        int mi = tri_mat[hit.tri];
+        __global const Material *mat = &materials[mi];
+        if (mat->type != MAT_MIRROR && mat->type != MAT_DIELECTRIC) continue;
+        br.thr *= branch_attenuation(medium, materials, &br, t_hit);
+        SurfaceFrame f = surface_frame(tris, normals, &hit, br.o, br.d);
+        Branch kids[2];
+        int n = specular_children(mat, mi, &br, &f, min_flux, kids);
+        for (int c = 0; c < n && top < PATH_STACK; ++c) {
+            kids[c].id = next_id++;
+            stack[top++] = kids[c];
+        }
+    }
+}

@@ -1,0 +1,169 @@
+"""Light paths: lighting rays from every light through specular chains -> segment buffers.
+
+:func:`trace_light_paths` runs ``light_paths.cl`` (one work-item per lighting ray) and
+returns the :data:`~clscatter.structs.LIGHT_SEGMENT` pieces inside the medium, each with
+the flux it carries at its start. The caustic methods (``lsg``, ``vpm``) consume them.
+
+Emission, in the normalised frame (so fluxes are in normalised units, consistent with
+the frame's rescaled intensities; radiance estimates come out unchanged):
+
+* point light, intensity I: power 4 pi I, directions stratified over the sphere;
+* spot light: power 2 pi (1 - cos cutoff) I, directions stratified over the cone;
+* directional light, irradiance E: rays start on a rectangle facing the light that
+  covers the medium bounds and the geometry; power E * area.
+
+Rays are shared among lights in proportion to their power; every ray of a light carries
+the same flux, power / rays.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Iterator
+
+import numpy as np
+
+from . import structs
+from .paths import PreparedScene
+from .stats import Stats, progress
+
+
+@dataclass
+class Emission:
+    power: np.ndarray          # rgb, normalised units
+    rect: np.ndarray           # (3, 4) float32: origin, u, v (directional lights only)
+
+
+def _region(ps: PreparedScene) -> tuple[np.ndarray, np.ndarray]:
+    """Box (normalised frame) that lighting rays must cover: medium bounds and geometry."""
+    boxes = []
+    if ps.medium["bounded"]:
+        boxes.append((ps.medium["bmin"][:3], ps.medium["bmax"][:3]))
+    root = ps.bvh.nodes[0]
+    if np.all(root["bmin"] <= root["bmax"]):
+        boxes.append((root["bmin"], root["bmax"]))
+    if not boxes:
+        return np.full(3, -1.0), np.full(3, 1.0)
+    lo = np.min([b[0] for b in boxes], axis=0).astype(np.float64)
+    hi = np.max([b[1] for b in boxes], axis=0).astype(np.float64)
+    return lo, hi
+
+
+def emission(ps: PreparedScene, index: int) -> Emission:
+    """Emitted power of light ``index`` and, for a directional light, its start rectangle."""
+    L = ps.lights[index]
+    I = L["power"][:3].astype(np.float64)
+    rect = np.zeros((3, 4), np.float32)
+    if L["type"] == structs.LIGHT_POINT:
+        return Emission(4 * math.pi * I, rect)
+    if L["type"] == structs.LIGHT_SPOT:
+        return Emission(2 * math.pi * (1 - float(L["cos_cutoff"])) * I, rect)
+    d = L["direction"][:3].astype(np.float64)
+    d /= np.linalg.norm(d)
+    e1 = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(d, e1)
+    lo, hi = _region(ps)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    c1, c2, cd = corners @ e1, corners @ e2, corners @ d
+    pad = 1e-3 * float(np.max(hi - lo))
+    origin = (c1.min() - pad) * e1 + (c2.min() - pad) * e2 + (cd.min() - pad) * d
+    u = (c1.max() - c1.min() + 2 * pad) * e1
+    v = (c2.max() - c2.min() + 2 * pad) * e2
+    rect[0, :3], rect[1, :3], rect[2, :3] = origin, u, v
+    area = float(np.linalg.norm(u) * np.linalg.norm(v))
+    return Emission(I * area, rect)
+
+
+def ray_counts(ps: PreparedScene, num_rays: int) -> np.ndarray:
+    """Lighting rays per light, proportional to emitted power (largest remainder)."""
+    if ps.num_lights == 0:
+        return np.zeros(0, np.int64)
+    p = np.array([emission(ps, i).power.mean() for i in range(ps.num_lights)])
+    if p.sum() <= 0:
+        return np.zeros(ps.num_lights, np.int64)
+    share = p / p.sum() * num_rays
+    counts = np.floor(share).astype(np.int64)
+    rest = num_rays - counts.sum()
+    counts[np.argsort(-(share - counts))[:rest]] += 1
+    counts[(counts == 0) & (p > 0)] = 1
+    return counts
+
+
+@dataclass
+class LightPaths:
+    segments: np.ndarray        # structs.LIGHT_SEGMENT
+    rays: np.ndarray            # rays traced per light
+    flux_per_ray: np.ndarray    # (lights, 3)
+
+
+def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = None,
+                      show_progress: bool = True, rays_per_launch: int = 1 << 16,
+                      chunk: tuple[int, int] | None = None) -> LightPaths:
+    """Trace ``num_rays`` lighting rays (shared among lights by power).
+
+    ``chunk = (k, n)`` traces only the k-th of n equal parts of every light's rays (the
+    same rays a full trace would give), so callers can bound memory and sum results.
+    """
+    stats = stats or Stats()
+    eng = ps.engine
+    counts = ray_counts(ps, num_rays)
+    kern = eng.kernel("light_paths", "trace_light")
+    parts: list[np.ndarray] = []
+    fluxes = np.zeros((ps.num_lights, 3))
+    launch = max(1, int(rays_per_launch))
+    cap = launch * 2
+    segs = eng.empty(cap * structs.LIGHT_SEGMENT.itemsize) if ps.has_medium else None
+    count_buf = eng.empty(4)
+    seed = np.uint32((ps.scene.render.seed * 2654435761 + 11) & 0xFFFFFFFF)
+    total = int(counts.sum())
+    with stats.stage("light_paths"), progress(total, "light paths", show_progress) as bar:
+        for li in range(ps.num_lights):
+            n_li = int(counts[li])
+            em = emission(ps, li)
+            flux = em.power / max(n_li, 1)
+            fluxes[li] = flux
+            if n_li == 0 or not ps.has_medium:
+                continue
+            lo, hi = 0, n_li
+            if chunk is not None:
+                k, n = chunk
+                lo, hi = n_li * k // n, n_li * (k + 1) // n
+            start = lo
+            while start < hi:
+                m = min(launch, hi - start)
+                while True:
+                    eng.cl.enqueue_fill_buffer(eng.queue, count_buf, np.zeros(1, np.int32), 0, 4)
+                    eng.launch(kern, m, ps.buf["nodes"], ps.buf["tris"], ps.buf["normals"],
+                               ps.buf["tri_mat"], ps.buf["materials"], ps.buf["lights"],
+                               np.int32(li), ps.buf["medium"], np.int32(ps.scene.render.max_depth),
+                               seed, np.int32(start), np.int32(m), np.int32(n_li),
+                               structs.vec4(flux), em.rect[0], em.rect[1], em.rect[2],
+                               segs, np.int32(cap), count_buf)
+                    got = int(eng.read(count_buf, 1, np.int32)[0])
+                    if got <= cap:
+                        break
+                    eng.free(segs)
+                    cap = int(got * 1.25) + 16
+                    segs = eng.empty(cap * structs.LIGHT_SEGMENT.itemsize)
+                if got:
+                    parts.append(eng.read(segs, got, structs.LIGHT_SEGMENT))
+                start += m
+                bar.update(m)
+    eng.free(count_buf)
+    if segs is not None:
+        eng.free(segs)
+    out = np.concatenate(parts) if parts else np.zeros(0, structs.LIGHT_SEGMENT)
+    out = out[np.lexsort((out["branch"], out["ray"], out["light"]))]
+    eng.note_host(out.nbytes)
+    stats.add("light_rays", int(total if chunk is None else sum(
+        int(c) * (chunk[0] + 1) // chunk[1] - int(c) * chunk[0] // chunk[1] for c in counts)))
+    stats.add("light_segments", int(len(out)))
+    return LightPaths(out, counts, fluxes)
+
+
+def iter_light_chunks(ps: PreparedScene, num_rays: int, chunks: int, stats: Stats | None = None,
+                      show_progress: bool = True) -> Iterator[LightPaths]:
+    """The lighting rays of :func:`trace_light_paths` in ``chunks`` parts, one at a time."""
+    for k in range(max(1, chunks)):
+        yield trace_light_paths(ps, num_rays, stats, show_progress, chunk=(k, max(1, chunks)))
