@@ -20,7 +20,7 @@ CONTRACT_METHODS = ("auto", "lsg", "epipolar", "voxel", "raymarch", "vpm", "raym
 
 # modules imported to populate the registry; a method whose module does not exist yet
 # is simply absent (its name is still reserved)
-_MODULES = ("raymarch",)
+_MODULES = ("raymarch", "lsg", "vpm", "epipolar")
 
 _REGISTRY: dict[str, type] = {}
 
@@ -33,7 +33,12 @@ def register(cls: type) -> type:
 
 def _load_all() -> None:
     for m in _MODULES:
-        importlib.import_module(f"{__name__}.{m}")
+        name = f"{__name__}.{m}"
+        try:
+            importlib.import_module(name)
+        except ModuleNotFoundError as e:
+            if e.name != name:  # a real missing dependency inside the module: report it
+                raise
 
 
 def available() -> list[str]:
