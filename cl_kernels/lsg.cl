@@ -1,0 +1,126 @@
+/* lsg.cl: line space gathering (Sun et al. 2010, sections 3-4).
+ *
+ * lsg_gather: one work-item per view segment. The view line is the 6-D hyperplane
+ * w = (m_v, u_v) (moment in the Plücker frame); a stackless depth-first walk of the
+ * perfect 8-ary tree (clscatter/accel/linetree.py) visits every node whose box meets the
+ * slab |P . w| <= r' (|P . w| = d sin theta <= d, so nothing within r is culled), tests
+ * each point of a visited leaf against the same slab, then the surviving pairs with the
+ * exact segment-to-segment distance, and adds the cylinder-kernel estimate of lsg.h for
+ * every pair closer than r.
+ *
+ * exhaustive = 1: the same per-pair code for every (view, light) pair, no culling: the
+ * reference the tree must reproduce exactly (tests/test_lsg.py).
+ *
+ * The kernel adds its estimate into out[view] (so chunks of lighting rays sum), writes
+ * (exact tests, valid pairs) to counts[view - view_offset] (one launch's views) and,
+ * when max_pairs > 0, appends every valid (view, light id) pair to pairs (tests compare
+ * the sets).
+ */
+#include "common.h"
+#include "lsg.h"
+
+typedef struct {
+    float4 a, u;      /* view segment start, unit direction (normalised frame) */
+    float len;
+    int index;        /* global view segment index */
+} ViewQuery;
+
+/* Exact test of one pair: count, record, and return its estimate (0 beyond r). */
+float4 test_pair(__global const LsgLine *L, int line_id, const ViewQuery *q, float r,
+                 float min_sin, float4 kappa, float g, int2 *cnt,
+                 __global int2 *pairs, volatile __global int *pair_count, int max_pairs) {
+    float4 la = L->a;
+    float llen = la.w;
+    la.w = 0.0f;
+    float s, t;
+    cnt->x += 1;
+    if (seg_seg_dist2(la, L->u, llen, q->a, q->u, q->len, &s, &t) >= r * r) return (float4)(0.0f);
+    cnt->y += 1;
+    if (max_pairs > 0) {
+        int k = atomic_inc(pair_count);
+        if (k < max_pairs) pairs[k] = (int2)(q->index, line_id);
+    }
+    return lsg_pair(L, q->a, q->u, q->len, r, min_sin, kappa, g);
+}
+
+int load_query(__global const ViewSegment *views, int vi, ViewQuery *q) {
+    ViewSegment v = views[vi];
+    float4 ab = v.b - v.a;
+    ab.w = 0.0f;
+    float len = length3(ab);
+    q->a = v.a;
+    q->a.w = 0.0f;
+    q->u = len > 0.0f ? ab / len : (float4)(0.0f);
+    q->len = len;
+    q->index = vi;
+    return len > 0.0f;
+}
+
+/* Range of P . w over a node's 6-D box against [-thr, thr]. */
+int node_near(__global const LineNode *nd, const float *w, float thr) {
+    float lo = 0.0f, hi = 0.0f;
+    for (int i = 0; i < 6; ++i) {
+        float x = w[i] * nd->lo[i], y = w[i] * nd->hi[i];
+        lo += fmin(x, y);
+        hi += fmax(x, y);
+    }
+    return lo <= thr && hi >= -thr;
+}
+
+__kernel void lsg_gather(__global const LineNode *nodes, __global const int2 *leaf_ranges,
+                         int first_leaf, __global const LsgLine *lines,
+                         __global const float8 *points,
+                         __global const int *line_ids, int num_lines, float max_m1,
+                         __global const ViewSegment *views, int view_offset, int num_views,
+                         float4 pl_centre, float pl_inv_scale, float radius, float min_sin,
+                         __global const Medium *medium, int exhaustive,
+                         __global float4 *out, __global int2 *counts,
+                         __global int2 *pairs, volatile __global int *pair_count, int max_pairs) {
+    int gid = get_global_id(0);
+    if (gid >= num_views) return;
+    int vi = view_offset + gid;
+    ViewQuery q;
+    int2 cnt = (int2)(0, 0);
+    float4 acc = (float4)(0.0f);
+    if (load_query(views, vi, &q)) {
+        float4 kappa = medium->kappa;
+        float g = medium->g;
+        if (exhaustive) {
+            /* the reference: every pair, no culling */
+            for (int i = 0; i < num_lines; ++i)
+                acc += test_pair(&lines[i], line_ids[i], &q, radius, min_sin, kappa, g, &cnt,
+                                 pairs, pair_count, max_pairs);
+        } else {
+            /* the view line as a hyperplane in the Plücker frame: w = (m_v, u_v) */
+            float4 mv = cross3((q.a - pl_centre) * pl_inv_scale, q.u);
+            float w[6] = {mv.x, mv.y, mv.z, q.u.x, q.u.y, q.u.z};
+            float thr = lsg_threshold(radius, pl_inv_scale, mv, max_m1);
+            /* stackless depth-first walk: children 8g+1..8g+8, parent (g-1)/8 */
+            int gnode = 0;
+            while (1) {
+                if (node_near(&nodes[gnode], w, thr)) {
+                    if (gnode < first_leaf) {
+                        gnode = 8 * gnode + 1;        /* descend to the first child */
+                        continue;
+                    }
+                    int2 rg = leaf_ranges[gnode - first_leaf];
+                    for (int i = rg.x; i < rg.y; ++i) {
+                        float8 P = points[i];
+                        float side = P.s0 * w[0] + P.s1 * w[1] + P.s2 * w[2]  /* +-d' sin theta */
+                                   + P.s3 * w[3] + P.s4 * w[4] + P.s5 * w[5];
+                        if (fabs(side) > thr) continue;
+                        acc += test_pair(&lines[i], line_ids[i], &q, radius, min_sin, kappa, g,
+                                         &cnt, pairs, pair_count, max_pairs);
+                    }
+                }
+                /* next node: climb while this is the last of its 8 siblings */
+                while (gnode != 0 && (gnode & 7) == 0) gnode = (gnode - 1) >> 3;
+                if (gnode == 0) break;
+                gnode += 1;
+            }
+        }
+        acc *= medium->sigma_s * views[vi].weight;
+    }
+    out[vi] += acc;
+    counts[gid] = cnt;          /* per launch */
+}

@@ -1,0 +1,197 @@
+"""Line space hierarchy for line space gathering: Plücker points in a perfect 8-ary tree.
+
+Plücker coordinates (Sun et al. 2010, section 4.1)
+    A line through ``p`` with unit direction ``u`` is the 6-D point ``P = (u, m)`` with
+    moment ``m = p x u`` (independent of which ``p`` on the line). Two lines
+    ``(u1, m1)``, ``(u2, m2)`` satisfy the *side relation*
+
+        u1 . m2 + m1 . u2 = (p1 - p2) . (u1 x u2),   so   |u1 . m2 + m1 . u2| = d sin(theta)
+
+    with ``d`` the distance between the lines and ``theta`` their angle. With unit
+    directions this is the paper's eq. (13)-(15) with ``c = 1``: the view line, written
+    as the hyperplane ``w = (m_v, u_v)`` through the 6-D origin, has ``|P . w| = d sin
+    theta <= d``. Hence **a lighting line with |P . w| > r is farther than r from the view
+    line**, and so is every segment on it: the plane query culls only pairs that cannot
+    be within r. Over a 6-D box ``[lo, hi]`` the linear function ``P . w`` ranges over
+    ``[sum_i min(w_i lo_i, w_i hi_i), sum_i max(w_i lo_i, w_i hi_i)]`` (exactly), so a
+    node is culled when that interval misses ``[-r, r]``. The kernel widens ``r`` by a
+    float32 rounding allowance (``cl_kernels/lsg.h``, ``lsg_threshold``).
+
+Normalisation (:class:`PluckerFrame`)
+    The moments are formed in a frame centred on the region where pairs can occur and
+    scaled to ``[-1, 1]``: ``p' = (p - centre) / scale``. Moments of the lines that matter
+    are then O(1), like the directions, so the 6 coordinates have comparable ranges for
+    the median splits and the float32 rounding of ``u . m_v + m . u_v`` (terms of size
+    |m| that cancel to ``d sin theta``) stays far below ``r``. Distances scale by
+    ``1 / scale`` (``r' = r / scale``).
+
+Canonical sign
+    ``(u, m)`` and ``(-u, -m)`` are the same unoriented line. Points are stored with the
+    sign that makes the dominant axis of the whole set (largest mean |u_k|) non-negative,
+    so nearly identical lines of opposite orientation land next to each other instead of
+    at antipodes of the 6-D set (smaller boxes, better culling). This is safe for the
+    plane query because the test uses ``|P . w|``, which is invariant under ``P -> -P``;
+    the segments themselves keep their orientation for the radiance estimate.
+
+The tree (:func:`build_linetree`, paper section 4.3)
+    A balanced kd-tree with median splits on the axis of largest extent, ``3 L`` levels
+    deep, where ``L`` is the largest integer with ``8^L * leaf_size <= N``; every three
+    kd levels are collapsed into one, giving a *perfect* 8-ary tree with ``8^L`` leaves.
+    kd node ``j`` of level ``k`` owns the points ``[j N // 2^k, (j + 1) N // 2^k)`` of the
+    final order; these ranges nest exactly (``2 j N // 2^(k+1) = j N // 2^k``), so 8-ary
+    node ``j`` of level ``l`` is kd node ``j`` of level ``3 l`` and no padding is needed:
+    every leaf holds ``floor`` or ``ceil`` of ``N / 8^L`` points, i.e. between
+    ``leaf_size`` and ``8 leaf_size`` (fewer only when ``N < leaf_size``: then the
+    root is the only leaf). Nodes are stored breadth-first (heap order): level ``l``
+    starts at ``(8^l - 1) / 7``; node ``g`` has children ``8 g + 1 .. 8 g + 8``, parent
+    ``(g - 1) // 8``, and a next sibling ``g + 1`` unless ``g % 8 == 0``. Each node holds
+    its 12-float 6-D box; leaves also get an index range into the points, which are
+    sorted by leaf.
+
+    Build cost: one ``argsort`` of all N points per kd level (node index + the value on
+    the node's split axis, scaled into [0, 1), as one float64 key, so every node of a
+    level is split at once); ``np.minimum.reduceat`` for the boxes. No Python loop runs
+    over points or nodes.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# ``LineNode`` in cl_kernels/lsg.h: 12 floats of 6-D bounds
+LINE_NODE = np.dtype([("lo", np.float32, 6), ("hi", np.float32, 6)], align=True)
+
+
+@dataclass(frozen=True)
+class PluckerFrame:
+    """The frame the Plücker moments are formed in: ``p' = (p - centre) / scale``."""
+
+    centre: np.ndarray
+    scale: float
+
+    @staticmethod
+    def for_box(lo, hi) -> "PluckerFrame":
+        """Centre of the box, half its longest side (so the box maps into [-1, 1]^3)."""
+        lo = np.asarray(lo, np.float64)
+        hi = np.asarray(hi, np.float64)
+        half = 0.5 * float(np.max(hi - lo))
+        if not np.isfinite(half) or half <= 0:
+            half = 1.0
+        return PluckerFrame(0.5 * (lo + hi), half)
+
+
+def plucker(a, u, frame: PluckerFrame) -> np.ndarray:
+    """``(N, 6)`` float64 Plücker points ``(u, m)`` of lines through ``a`` along unit ``u``,
+    the moment ``m = ((a - centre) / scale) x u`` taken in ``frame``."""
+    a = np.asarray(a, np.float64)
+    u = np.asarray(u, np.float64)
+    m = np.cross((a - frame.centre) / frame.scale, u)
+    return np.concatenate([u, m], axis=1)
+
+
+def canonical_signs(u) -> np.ndarray:
+    """+-1 per line: the sign that makes the set's dominant direction axis non-negative."""
+    u = np.asarray(u, np.float64)
+    if len(u) == 0:
+        return np.ones(0, np.float32)
+    axis = int(np.argmax(np.abs(u).sum(axis=0)))
+    return np.where(u[:, axis] < 0, -1.0, 1.0).astype(np.float32)
+
+
+@dataclass
+class LineTree:
+    """A perfect 8-ary tree over 6-D points (see the module docstring)."""
+
+    nodes: np.ndarray        # LINE_NODE, breadth-first, (8^(levels+1) - 1) / 7 nodes
+    leaf_ranges: np.ndarray  # (8^levels, 2) int32: [start, end) into the sorted points
+    order: np.ndarray        # (N,) int64: sorted position -> input index
+    levels: int              # L: leaves are at 8-ary level L (0: the root is the leaf)
+
+    @property
+    def first_leaf(self) -> int:
+        return (8 ** self.levels - 1) // 7
+
+    @property
+    def num_leaves(self) -> int:
+        return 8 ** self.levels
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.nodes.nbytes + self.leaf_ranges.nbytes + self.order.nbytes)
+
+
+def tree_levels(n: int, leaf_size: int) -> int:
+    """L = the largest integer with 8^L * leaf_size <= n (0 for small n)."""
+    leaf_size = max(1, int(leaf_size))
+    levels = 0
+    while 8 ** (levels + 1) * leaf_size <= n:
+        levels += 1
+    return levels
+
+
+def _ranges(n: int, parts: int) -> np.ndarray:
+    """Start indices ``j n // parts`` (int64), j = 0..parts-1."""
+    return (np.arange(parts, dtype=np.int64) * n) // parts
+
+
+def build_linetree(points, leaf_size: int = 4) -> LineTree:
+    """Balanced median-split kd-tree over ``points`` (N, 6), collapsed to a perfect 8-ary
+    tree. ``points`` should be the float32 values the kernel reads: the boxes are computed
+    from them exactly, so every stored point lies inside its nodes' boxes."""
+    pts = np.ascontiguousarray(points, np.float32)
+    n = len(pts)
+    if n == 0:
+        nodes = np.zeros(1, LINE_NODE)
+        nodes["lo"], nodes["hi"] = 1e30, -1e30     # empty box: always culled
+        return LineTree(nodes, np.zeros((1, 2), np.int32), np.zeros(0, np.int64), 0)
+    levels = tree_levels(n, leaf_size)
+    order = np.arange(n, dtype=np.int64)
+    cur = pts.copy()                     # the points in the current order
+    # ---- kd levels: split every node of a level at its median, all at once ----
+    for k in range(3 * levels):
+        parts = 2 ** k
+        starts = _ranges(n, parts)
+        lo = np.minimum.reduceat(cur, starts, axis=0).astype(np.float64)
+        hi = np.maximum.reduceat(cur, starts, axis=0).astype(np.float64)
+        ext = hi - lo
+        axis = np.argmax(ext, axis=1)                                # split axis per node
+        node = np.repeat(np.arange(parts), np.diff(np.append(starts, n)))
+        val = cur.ravel()[np.arange(n) * 6 + axis[node]].astype(np.float64)
+        span = ext[np.arange(parts), axis]
+        rel = (val - lo[np.arange(parts), axis][node]) / np.where(span > 0, span, 1.0)[node]
+        # node index + position inside the node in [0, 0.5]: one sortable key; the sort
+        # moves points only within their node, so later gathers stay cache-local
+        perm = np.argsort(node + 0.5 * np.clip(rel, 0.0, 1.0))
+        cur = np.take(cur, perm, axis=0)
+        order = np.take(order, perm)
+    # ---- 8-ary levels: boxes of every node, breadth-first ----
+    sorted_pts = cur
+    total = (8 ** (levels + 1) - 1) // 7
+    nodes = np.zeros(total, LINE_NODE)
+    for lvl in range(levels + 1):
+        parts = 8 ** lvl
+        starts = _ranges(n, parts)
+        off = (parts - 1) // 7
+        nodes["lo"][off:off + parts] = np.minimum.reduceat(sorted_pts, starts, axis=0)
+        nodes["hi"][off:off + parts] = np.maximum.reduceat(sorted_pts, starts, axis=0)
+    starts = _ranges(n, 8 ** levels)
+    ranges = np.stack([starts, np.append(starts[1:], n)], axis=1).astype(np.int32)
+    return LineTree(nodes, ranges, order, levels)
+
+
+def box_plane_range(lo, hi, w) -> tuple[np.ndarray, np.ndarray]:
+    """Exact range ``[min, max]`` of ``P . w`` over the 6-D boxes ``[lo, hi]`` (float64;
+    broadcasts): the node test of the gather kernel, for tests and analysis."""
+    lo = np.asarray(lo, np.float64)
+    hi = np.asarray(hi, np.float64)
+    w = np.asarray(w, np.float64)
+    a, b = w * lo, w * hi
+    return np.minimum(a, b).sum(axis=-1), np.maximum(a, b).sum(axis=-1)
+
+
+def plane_of(a, u, frame: PluckerFrame) -> np.ndarray:
+    """The hyperplane coefficients ``w = (m, u)`` of lines (their Plücker coefficients in
+    the paper's eq. 11, up to the permutation that matches :func:`plucker`)."""
+    p = plucker(a, u, frame)
+    return np.concatenate([p[:, 3:], p[:, :3]], axis=1)

@@ -1,0 +1,151 @@
+"""Shape triangulation and transforms: every object becomes a world-space triangle mesh.
+
+Pure geometry, no scene parsing (that is ``loader.py``). Each builder returns
+``(vertices (V,3) float64, faces (F,3) int64, normals (V,3) float64 | None)``; normals
+are per-vertex unit shading normals for smooth shapes, None for flat shading.
+
+* ``sphere``  an icosphere (``subdivisions`` levels, 4 -> 5120 triangles) whose vertices
+  lie exactly on the sphere, with exact normals (p - c) / r.
+* ``box``     12 triangles, outward-facing counter-clockwise winding, flat.
+* ``quad``    2 triangles origin, origin + edge_u, origin + edge_u + edge_v, origin + edge_v
+  (geometric normal edge_u x edge_v; the quad is two-sided anyway), flat.
+* ``mesh``    any file trimesh reads (vertices merged), flat unless ``smooth``.
+
+A transform ``{translate, rotate = [ax, ay, az, degrees], scale}`` is applied in the order
+scale, rotate, translate (M = T R S). Normals go through the inverse transpose of the
+linear part and are renormalised; a mirroring transform (det < 0) flips the winding so
+closed shapes stay outward-facing.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import SceneError
+
+Mesh = tuple[np.ndarray, np.ndarray, "np.ndarray | None"]
+
+# corners of the unit box indexed by bits (x = bit 0, y = bit 1, z = bit 2); each face's
+# triangles wind counter-clockwise seen from outside (normal = (b - a) x (c - a) outward)
+_BOX_FACES = np.array([
+    [0, 4, 6], [0, 6, 2],   # -x
+    [1, 3, 7], [1, 7, 5],   # +x
+    [0, 1, 5], [0, 5, 4],   # -y
+    [2, 6, 7], [2, 7, 3],   # +y
+    [0, 2, 3], [0, 3, 1],   # -z
+    [4, 5, 7], [4, 7, 6],   # +z
+], dtype=np.int64)
+
+
+def _one_line(text: object) -> str:
+    return " ".join(str(text).split())
+
+
+# ---- Transforms -----------------------------------------------------------------------
+
+def rotation_matrix(axis: np.ndarray, degrees: float) -> np.ndarray:
+    """3x3 right-handed rotation by ``degrees`` about ``axis`` (Rodrigues' formula)."""
+    axis = np.asarray(axis, dtype=np.float64)
+    n = float(np.linalg.norm(axis))
+    if n == 0.0:
+        return np.eye(3)
+    x, y, z = axis / n
+    t = math.radians(degrees)
+    c, s = math.cos(t), math.sin(t)
+    C = 1.0 - c
+    return np.array([
+        [c + x * x * C, x * y * C - z * s, x * z * C + y * s],
+        [y * x * C + z * s, c + y * y * C, y * z * C - x * s],
+        [z * x * C - y * s, z * y * C + x * s, c + z * z * C],
+    ])
+
+
+def transform_matrix(translate=(0.0, 0.0, 0.0), rotate=(0.0, 1.0, 0.0, 0.0),
+                     scale=1.0) -> np.ndarray:
+    """4x4 affine matrix M = T R S (scale first, then rotate, then translate)."""
+    S = np.diag(np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,)))
+    R = rotation_matrix(np.asarray(rotate[:3], dtype=np.float64), float(rotate[3]))
+    M = np.eye(4)
+    M[:3, :3] = R @ S
+    M[:3, 3] = np.asarray(translate, dtype=np.float64)
+    return M
+
+
+def apply_transform(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None,
+                    M: np.ndarray) -> Mesh:
+    """Transform a mesh by the affine 4x4 ``M``; normals by the inverse transpose."""
+    A = M[:3, :3]
+    v = vertices @ A.T + M[:3, 3]
+    n = None
+    if normals is not None:
+        n = normals @ np.linalg.inv(A)          # (A^-T n^T)^T = n A^-1
+        n = _normalise_rows(n)
+    f = faces
+    if np.linalg.det(A) < 0.0:                   # mirroring: keep outward winding
+        f = faces[:, ::-1].copy()
+    return v, f, n
+
+
+def _normalise_rows(n: np.ndarray) -> np.ndarray:
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    bad = length[:, 0] == 0.0
+    out = n / np.where(length == 0.0, 1.0, length)
+    out[bad] = (0.0, 0.0, 1.0)                   # isolated vertex: any unit vector will do
+    return out
+
+
+# ---- Builders -------------------------------------------------------------------------
+
+def sphere(center: np.ndarray, radius: float, subdivisions: int = 4) -> Mesh:
+    """Icosphere with vertices exactly on the sphere and exact unit normals."""
+    import trimesh
+
+    ico = trimesh.creation.icosphere(subdivisions=int(subdivisions), radius=1.0)
+    u = np.asarray(ico.vertices, dtype=np.float64)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.asarray(center, dtype=np.float64) + radius * u
+    return v, np.asarray(ico.faces, dtype=np.int64), u.copy()
+
+
+def box(lo: np.ndarray, hi: np.ndarray) -> Mesh:
+    """Axis-aligned box from ``lo`` to ``hi``: 8 vertices, 12 outward-facing triangles."""
+    lo = np.asarray(lo, dtype=np.float64)
+    hi = np.asarray(hi, dtype=np.float64)
+    bits = np.array([[(i >> k) & 1 for k in range(3)] for i in range(8)], dtype=bool)
+    v = np.where(bits, hi, lo)
+    return v, _BOX_FACES.copy(), None
+
+
+def quad(origin: np.ndarray, edge_u: np.ndarray, edge_v: np.ndarray) -> Mesh:
+    """Parallelogram origin + s edge_u + t edge_v, s, t in [0, 1], as two triangles."""
+    o = np.asarray(origin, dtype=np.float64)
+    u = np.asarray(edge_u, dtype=np.float64)
+    w = np.asarray(edge_v, dtype=np.float64)
+    v = np.array([o, o + u, o + u + w, o + w])
+    return v, np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int64), None
+
+
+def load_mesh(path: Path, key: str, smooth: bool = False) -> Mesh:
+    """Load any mesh trimesh reads; SceneError ``key`` naming the file on any failure."""
+    import trimesh
+
+    path = Path(path)
+    if not path.exists():
+        raise SceneError(key, f"mesh file not found: {path}")
+    if not path.is_file():
+        raise SceneError(key, f"mesh path is not a file: {path}")
+    try:
+        mesh = trimesh.load(str(path), force="mesh", process=True)
+    except Exception as exc:  # trimesh raises many kinds; all mean "cannot read this file"
+        raise SceneError(key, _one_line(f"cannot read mesh {path}: {exc}")) from None
+    faces = getattr(mesh, "faces", None)
+    if faces is None or len(faces) == 0:
+        raise SceneError(key, f"mesh {path} has no triangles")
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if not np.all(np.isfinite(v)):
+        raise SceneError(key, f"mesh {path} has non-finite vertex coordinates")
+    n = _normalise_rows(np.asarray(mesh.vertex_normals, dtype=np.float64)) if smooth else None
+    return v, f, n

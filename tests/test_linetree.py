@@ -1,0 +1,171 @@
+"""The line-space hierarchy (clscatter/accel/linetree.py): the perfect 8-ary tree's
+structure, and the Plücker plane-query bound that its culling rests on."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from clscatter.accel.linetree import (PluckerFrame, box_plane_range, build_linetree,
+                                      canonical_signs, plane_of, plucker, tree_levels)
+
+
+def _unit(v):
+    v = np.asarray(v, np.float64)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+# --------------------------------------------------------------------------------------
+# tree structure
+# --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("n, leaf", [(0, 4), (3, 4), (4, 4), (31, 4), (32, 4), (1000, 4),
+                                     (255, 4), (4099, 4), (20000, 4), (5000, 16)])
+def test_tree_is_a_balanced_perfect_8ary_tree(n, leaf):
+    rng = np.random.default_rng(n)
+    pts = (rng.normal(size=(n, 6)) * [1, 2, 3, 0.5, 1e-3, 10]).astype(np.float32)
+    t = build_linetree(pts, leaf)
+    L = tree_levels(n, leaf)
+    assert t.levels == L
+    assert len(t.nodes) == (8 ** (L + 1) - 1) // 7
+    assert t.first_leaf == (8 ** L - 1) // 7 and len(t.leaf_ranges) == 8 ** L
+    if n == 0:
+        assert t.leaf_ranges.tolist() == [[0, 0]]     # one empty leaf
+        return
+    assert np.array_equal(np.sort(t.order), np.arange(n))
+    sizes = t.leaf_ranges[:, 1] - t.leaf_ranges[:, 0]
+    # leaves tile the sorted points; balanced: sizes differ by at most one
+    assert t.leaf_ranges[0, 0] == 0 and t.leaf_ranges[-1, 1] == n
+    assert np.array_equal(t.leaf_ranges[1:, 0], t.leaf_ranges[:-1, 1])
+    assert sizes.max() - sizes.min() <= 1
+    if n >= leaf:
+        assert sizes.min() >= leaf and sizes.max() <= 8 * leaf
+    # every point lies in its leaf's box; every box holds its 8 children's boxes
+    sp = pts[t.order]
+    leaf_of = np.repeat(np.arange(8 ** L), sizes)
+    g = t.first_leaf + leaf_of
+    assert np.all(sp >= t.nodes["lo"][g]) and np.all(sp <= t.nodes["hi"][g])
+    if L:
+        child = np.arange(1, len(t.nodes))
+        parent = (child - 1) // 8
+        assert np.all(t.nodes["lo"][child] >= t.nodes["lo"][parent])
+        assert np.all(t.nodes["hi"][child] <= t.nodes["hi"][parent])
+        # boxes are tight: the root box is exactly the points' bounds
+        assert np.array_equal(t.nodes["lo"][0], pts.min(0))
+        assert np.array_equal(t.nodes["hi"][0], pts.max(0))
+
+
+def test_median_splits_separate_children_on_their_axis():
+    """Each collapsed kd split put the lower half of the values below the upper half:
+    two sibling leaves of one kd split do not overlap on the axis of largest extent of
+    their union (checked for the last kd level, pairs of leaves 2j, 2j+1)."""
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(-1, 1, size=(8 ** 3 * 6, 6)).astype(np.float32)
+    t = build_linetree(pts, 4)
+    lo, hi = t.nodes["lo"][t.first_leaf:], t.nodes["hi"][t.first_leaf:]
+    a, b = slice(0, None, 2), slice(1, None, 2)
+    ulo, uhi = np.minimum(lo[a], lo[b]), np.maximum(hi[a], hi[b])
+    axis = np.argmax(uhi - ulo, axis=1)
+    k = np.arange(len(axis))
+    assert np.all(hi[a][k, axis] <= lo[b][k, axis])
+    # and they are a real partition: the split shrinks the extent on that axis
+    assert np.mean((hi[a][k, axis] - lo[a][k, axis]) < 0.75 * (uhi - ulo)[k, axis]) > 0.9
+
+
+def test_build_is_vectorised_and_quick_for_large_sets():
+    """200k points in a few kd levels per second (no per-point Python): a smoke check of
+    scale (generous bound; not a benchmark)."""
+    import time
+
+    pts = np.random.default_rng(1).normal(size=(200_000, 6)).astype(np.float32)
+    t0 = time.perf_counter()
+    t = build_linetree(pts, 4)
+    assert time.perf_counter() - t0 < 20.0
+    assert t.levels == 5          # 8^5 * 4 <= 200000 < 8^6 * 4
+
+
+# --------------------------------------------------------------------------------------
+# Plücker coordinates and the plane-query bound
+# --------------------------------------------------------------------------------------
+SEEDS = {"random": 1, "near_parallel": 2, "near_intersecting": 3, "far": 4}
+
+
+def _pairs_at_distance(rng, n, d, theta, centre_scale=1.0):
+    """n line pairs with known distance d and angle theta: line 1 through p1 along u1,
+    line 2 through p1 + d nrm along u2, nrm the common perpendicular."""
+    p1 = rng.normal(size=(n, 3)) * centre_scale
+    u1 = _unit(rng.normal(size=(n, 3)))
+    nrm = _unit(np.cross(u1, rng.normal(size=(n, 3))))
+    v = np.cross(nrm, u1)                              # unit, perpendicular to u1 and nrm
+    th = np.broadcast_to(theta, (n,))[:, None]
+    u2 = np.cos(th) * u1 + np.sin(th) * v
+    p2 = p1 + np.broadcast_to(d, (n,))[:, None] * nrm
+    # move the points along their lines: the Plücker point must not care
+    p1 = p1 + rng.uniform(-3, 3, size=(n, 1)) * u1
+    p2 = p2 + rng.uniform(-3, 3, size=(n, 1)) * u2
+    return p1, u1, p2, u2
+
+
+@pytest.mark.parametrize("kind", ["random", "near_parallel", "near_intersecting", "far"])
+def test_side_product_is_distance_times_sine(kind):
+    rng = np.random.default_rng(SEEDS[kind])
+    n = 4000
+    frame = PluckerFrame(np.array([0.3, -0.2, 0.1]), 1.7)
+    d = rng.uniform(0, 0.05, n)
+    theta = rng.uniform(0, np.pi, n)
+    scale = 1.0
+    if kind == "near_parallel":
+        theta = 10.0 ** rng.uniform(-9, -2, n) * rng.choice([-1, 1], n) + rng.choice([0, np.pi], n)
+    elif kind == "near_intersecting":
+        d = 10.0 ** rng.uniform(-12, -4, n)
+    elif kind == "far":
+        scale = 1e3
+    p1, u1, p2, u2 = _pairs_at_distance(rng, n, d, theta, scale)
+    P = plucker(p1, u1, frame)
+    W = plane_of(p2, u2, frame)
+    side = np.einsum("ij,ij->i", P, W)
+    expect = d / frame.scale * np.abs(np.sin(theta))
+    tol = 2e-14 * (1 + scale / frame.scale)     # float64 rounding of terms of size |m|
+    np.testing.assert_allclose(np.abs(side), expect, rtol=1e-9, atol=tol)
+    # the sign of a line does not matter to the bound
+    np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", -P, W)), np.abs(side), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("kind", ["random", "near_parallel", "near_intersecting", "far"])
+def test_plane_query_never_culls_a_line_within_r(kind):
+    """Any 6-D box that holds the Plücker point of a line within r of the view line
+    meets the slab |P . w| <= r' (r' = r / frame scale), for random boxes around the
+    point: boxes of canonical-sign points included."""
+    rng = np.random.default_rng(100 + SEEDS[kind])
+    n = 3000
+    r = 0.01
+    frame = PluckerFrame(np.zeros(3), 0.5)
+    theta = rng.uniform(0, np.pi, n)
+    d = r * rng.uniform(0, 1, n) ** 0.5
+    scale = 1.0
+    if kind == "near_parallel":
+        theta = 10.0 ** rng.uniform(-9, -3, n)
+    elif kind == "near_intersecting":
+        d = r * 10.0 ** rng.uniform(-12, -1, n)
+    elif kind == "far":
+        scale = 300.0
+    p1, u1, p2, u2 = _pairs_at_distance(rng, n, d, theta, scale)
+    P = plucker(p1, u1, frame) * canonical_signs(u1)[:, None]
+    W = plane_of(p2, u2, frame)
+    rr = r / frame.scale
+    for _ in range(5):
+        lo = P - rng.exponential(0.3, size=P.shape) * rng.integers(0, 2, size=P.shape)
+        hi = P + rng.exponential(0.3, size=P.shape) * rng.integers(0, 2, size=P.shape)
+        fmin, fmax = box_plane_range(lo, hi, W)
+        slack = 1e-13 * (1 + scale / frame.scale)
+        assert np.all(fmin <= rr + slack) and np.all(fmax >= -rr - slack)
+    # and the bound is not vacuous: lines farther than r with sin(theta) ~ 1 are culled
+    p1, u1, p2, u2 = _pairs_at_distance(rng, n, 3 * r, np.full(n, np.pi / 2), scale)
+    P = plucker(p1, u1, frame)
+    W = plane_of(p2, u2, frame)
+    fmin, fmax = box_plane_range(P, P, W)
+    assert np.all((fmin > rr) | (fmax < -rr))
+
+
+def test_canonical_signs_follow_the_dominant_axis():
+    u = _unit(np.array([[0.1, 0.9, 0.0], [0.2, -0.8, 0.1], [-0.3, 0.7, 0.2], [0.0, -1.0, 0.0]]))
+    s = canonical_signs(u)
+    assert np.all(s * u[:, 1] > 0)
