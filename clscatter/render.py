@@ -34,19 +34,21 @@ def render(scene: Scene, method: str | None = None, engine: Engine | None = None
     ps = prepare_scene(scene, engine, stats)
     try:
         paths = trace_view_paths(ps, stats, show_progress)
-        chosen, notes = plan(ps, requested)
+        passes, notes = plan(ps, requested)
         cam = scene.camera
         medium = np.zeros((cam.height, cam.width, 3), np.float32)
-        if chosen is not None:
-            cls = get_method(chosen)
-            m = cls(scene.render.params.get(chosen, {}))
-            medium = m.render_medium(ps, paths, stats, show_progress)
+        for p in passes:
+            params = {**scene.render.params.get(p.method, {}), **p.params}
+            m = get_method(p.method)(params)
+            medium = medium + m.render_medium(ps, paths, stats, show_progress)
+        chosen = "+".join(p.method for p in passes) or None
         image = paths.surface + medium
         bad = ~np.isfinite(image)
         if bad.any():
             stats.set(nonfinite_pixels_zeroed=int(bad.any(axis=-1).sum()))
             image = np.where(bad, 0.0, image).astype(np.float32)
         stats.set(method=chosen or "none", requested_method=requested, plan=notes,
+                  passes=[{"method": p.method, "role": p.role} for p in passes],
                   device=engine.name, width=cam.width, height=cam.height, spp=cam.spp,
                   peak_bytes=int(engine.bytes_peak))
     finally:

@@ -260,6 +260,9 @@ class LineSpaceGathering:
     leaf_size            int    4           least points per tree leaf (at most 8x)
     min_sin              float  1e-6        sin(theta) below this counts as parallel
     segments_per_launch  int    65536       view segments per kernel launch (progress)
+    min_light_depth      int    0           gather only lighting segments with at least
+                                            this many specular bounces (1: caustics only,
+                                            as ``auto`` uses it beside a direct method)
     ===================  =====  ==========  =============================================
 
     ``radius``: the scene format's example ``0.001`` suits ~1M rays or more. At the
@@ -283,7 +286,7 @@ class LineSpaceGathering:
 
     NAME = "lsg"
     PARAMS = {"light_rays": 200_000, "radius": 0.003, "max_bytes": 1 << 30, "leaf_size": 4,
-              "min_sin": 1e-6, "segments_per_launch": 65536}
+              "min_sin": 1e-6, "segments_per_launch": 65536, "min_light_depth": 0}
 
     def __init__(self, params: dict | None = None):
         p = dict(self.PARAMS)
@@ -294,9 +297,11 @@ class LineSpaceGathering:
         self.leaf_size = int(p["leaf_size"])
         self.min_sin = float(p["min_sin"])
         self.per_launch = max(1, int(p["segments_per_launch"]))
+        self.min_light_depth = int(p["min_light_depth"])
         for key, ok in (("light_rays", self.light_rays >= 0), ("radius", self.radius > 0),
                         ("max_bytes", self.max_bytes > 0), ("leaf_size", self.leaf_size >= 1),
-                        ("min_sin", 0 <= self.min_sin < 1)):
+                        ("min_sin", 0 <= self.min_sin < 1),
+                        ("min_light_depth", self.min_light_depth >= 0)):
             if not ok:
                 raise SceneError(f"render.lsg.{key}", f"invalid value {p[key]!r}")
 
@@ -348,6 +353,8 @@ class LineSpaceGathering:
             with stats.stage("light_paths"):
                 lp = trace_light_paths(ps, self.light_rays, None, show_progress, chunk=(k, n))
             segs = lp.segments
+            if self.min_light_depth > 0:
+                segs = segs[segs["depth"] >= self.min_light_depth]
             seg_per_ray = max(seg_per_ray, len(segs) / rays)
             need = len(segs) * BYTES_PER_SEGMENT
             if need > budget and rays > 1:   # re-trace this chunk in smaller parts
