@@ -84,23 +84,19 @@ __kernel void trace_light(__global const BVHNode *nodes, __global const float4 *
         Hit hit;
         int found = bvh_closest(nodes, tris, br.o, br.d, 0.0f, T_INF, &hit);
         float t_hit = found ? hit.t : T_INF;
-        if (br.inside < 0 && medium->present) {
-            float t0, t1;
-            if (medium_interval(medium, br.o, br.d, 0.0f, t_hit, &t0, &t1) && t1 > t0) {
-                int idx = atomic_inc(seg_count);
-                if (idx < max_segs) {
-                    LightSegment sg;
-                    sg.a = br.o + t0 * br.d;
-                    sg.b = br.o + t1 * br.d;
-                    sg.a.w = 0.0f;
-                    sg.b.w = 0.0f;
-                    sg.flux = br.thr;   /* the medium starts at t0: vacuum before it */
-                    sg.light = light_index;
-                    sg.depth = br.depth;
-                    sg.ray = ray;
-                    sg.branch = br.id;
-                    segs[idx] = sg;
-                }
+        float4 a, b;
+        if (medium_piece(medium, &br, t_hit, &a, &b)) {
+            int idx = atomic_inc(seg_count);
+            if (idx < max_segs) {
+                LightSegment sg;
+                sg.a = a;
+                sg.b = b;
+                sg.flux = br.thr;
+                sg.light = light_index;
+                sg.depth = br.depth;
+                sg.ray = ray;
+                sg.branch = br.id;
+                segs[idx] = sg;
             }
         }
         if (!found || br.depth >= max_depth) continue;

@@ -93,23 +93,19 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
         float t_hit = found ? hit.t : T_INF;
 
         /* ---- the straight piece in the medium (the medium lies outside all objects) ---- */
-        if (br.inside < 0 && medium->present) {
-            float t0, t1;
-            if (medium_interval(medium, br.o, br.d, 0.0f, t_hit, &t0, &t1) && t1 > t0) {
-                int idx = atomic_inc(seg_count);
-                if (idx < max_segs) {
-                    ViewSegment sg;
-                    sg.a = br.o + t0 * br.d;
-                    sg.b = br.o + t1 * br.d;
-                    sg.a.w = 0.0f;
-                    sg.b.w = 0.0f;
-                    sg.weight = br.thr;
-                    sg.pixel = pixel;
-                    sg.depth = br.depth;
-                    sg.sample = s;
-                    sg.branch = br.id;
-                    segs[idx] = sg;
-                }
+        float4 a, b;
+        if (medium_piece(medium, &br, t_hit, &a, &b)) {
+            int idx = atomic_inc(seg_count);
+            if (idx < max_segs) {
+                ViewSegment sg;
+                sg.a = a;
+                sg.b = b;
+                sg.weight = br.thr;
+                sg.pixel = pixel;
+                sg.depth = br.depth;
+                sg.sample = s;
+                sg.branch = br.id;
+                segs[idx] = sg;
             }
         }
         if (found) br.thr *= branch_attenuation(medium, materials, &br, t_hit);

@@ -103,6 +103,20 @@ int specular_children(__global const Material *mat, int mi, const Branch *br,
     return n;
 }
 
+/* The straight piece [*a, *b] of a branch before t_hit that lies in the medium (outside
+ * every object, inside the medium bounds; cut at t_far when unbounded). Returns 0 when
+ * there is none. Nothing attenuates the branch before *a: outside the bounds is vacuum. */
+int medium_piece(__global const Medium *medium, const Branch *br, float t_hit, float4 *a, float4 *b) {
+    float t0, t1;
+    if (br->inside >= 0 || !medium->present) return 0;
+    if (!medium_interval(medium, br->o, br->d, 0.0f, t_hit, &t0, &t1) || !(t1 > t0)) return 0;
+    *a = br->o + t0 * br->d;
+    *b = br->o + t1 * br->d;
+    a->w = 0.0f;
+    b->w = 0.0f;
+    return 1;
+}
+
 /* Attenuation of a branch over [0, t_hit]: the medium outside objects, or the interior
  * absorption of the dielectric it is inside. */
 float4 branch_attenuation(__global const Medium *medium, __global const Material *materials,

@@ -327,3 +327,37 @@ def get_engine(spec: str | None = None) -> Engine:
     if spec not in _ENGINES:
         _ENGINES[spec] = Engine(choose_device(spec))
     return _ENGINES[spec]
+
+
+class AppendBuffer:
+    """A device buffer that a kernel appends records to through an atomic counter.
+
+    The kernel's last three arguments must be ``(records, capacity, counter)``; it appends
+    with ``idx = atomic_inc(counter)`` and writes only when ``idx < capacity``. After a
+    launch the counter tells how many records it wanted to write; when that is more than
+    fit, the buffer grows and the same launch runs again (kernels are deterministic), so
+    callers never lose records and never need to guess sizes exactly.
+    """
+
+    def __init__(self, engine: Engine, dtype: np.dtype, capacity: int):
+        self.eng = engine
+        self.dtype = np.dtype(dtype)
+        self.capacity = max(1, int(capacity))
+        self.buf = engine.empty(self.capacity * self.dtype.itemsize)
+        self.counter = engine.empty(4)
+
+    def launch(self, kernel, global_size: int, *args) -> np.ndarray:
+        """Run ``kernel(*args, records, capacity, counter)``; return the records appended."""
+        eng = self.eng
+        while True:
+            eng.cl.enqueue_fill_buffer(eng.queue, self.counter, np.zeros(1, np.int32), 0, 4)
+            eng.launch(kernel, global_size, *args, self.buf, np.int32(self.capacity), self.counter)
+            got = int(eng.read(self.counter, 1, np.int32)[0])
+            if got <= self.capacity:
+                return eng.read(self.buf, got, self.dtype) if got else np.zeros(0, self.dtype)
+            eng.free(self.buf)                  # too small: grow and run again
+            self.capacity = int(got * 1.25) + 16
+            self.buf = eng.empty(self.capacity * self.dtype.itemsize)
+
+    def release(self) -> None:
+        self.eng.free(self.buf, self.counter)

@@ -24,6 +24,7 @@ from typing import Iterator
 import numpy as np
 
 from . import structs
+from .device import AppendBuffer
 from .paths import PreparedScene
 from .stats import Stats, progress
 
@@ -112,9 +113,7 @@ def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = No
     parts: list[np.ndarray] = []
     fluxes = np.zeros((ps.num_lights, 3))
     launch = max(1, int(rays_per_launch))
-    cap = launch * 2
-    segs = eng.empty(cap * structs.LIGHT_SEGMENT.itemsize) if ps.has_medium else None
-    count_buf = eng.empty(4)
+    segs = AppendBuffer(eng, structs.LIGHT_SEGMENT, launch * 2) if ps.has_medium else None
     seed = np.uint32((ps.scene.render.seed * 2654435761 + 11) & 0xFFFFFFFF)
     total = int(counts.sum())
     with stats.stage("light_paths"), progress(total, "light paths", show_progress) as bar:
@@ -132,27 +131,15 @@ def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = No
             start = lo
             while start < hi:
                 m = min(launch, hi - start)
-                while True:
-                    eng.cl.enqueue_fill_buffer(eng.queue, count_buf, np.zeros(1, np.int32), 0, 4)
-                    eng.launch(kern, m, ps.buf["nodes"], ps.buf["tris"], ps.buf["normals"],
-                               ps.buf["tri_mat"], ps.buf["materials"], ps.buf["lights"],
-                               np.int32(li), ps.buf["medium"], np.int32(ps.scene.render.max_depth),
-                               seed, np.int32(start), np.int32(m), np.int32(n_li),
-                               structs.vec4(flux), em.rect[0], em.rect[1], em.rect[2],
-                               segs, np.int32(cap), count_buf)
-                    got = int(eng.read(count_buf, 1, np.int32)[0])
-                    if got <= cap:
-                        break
-                    eng.free(segs)
-                    cap = int(got * 1.25) + 16
-                    segs = eng.empty(cap * structs.LIGHT_SEGMENT.itemsize)
-                if got:
-                    parts.append(eng.read(segs, got, structs.LIGHT_SEGMENT))
+                parts.append(segs.launch(
+                    kern, m, ps.buf["nodes"], ps.buf["tris"], ps.buf["normals"], ps.buf["tri_mat"],
+                    ps.buf["materials"], ps.buf["lights"], np.int32(li), ps.buf["medium"],
+                    np.int32(ps.scene.render.max_depth), seed, np.int32(start), np.int32(m),
+                    np.int32(n_li), structs.vec4(flux), em.rect[0], em.rect[1], em.rect[2]))
                 start += m
                 bar.update(m)
-    eng.free(count_buf)
     if segs is not None:
-        eng.free(segs)
+        segs.release()
     out = np.concatenate(parts) if parts else np.zeros(0, structs.LIGHT_SEGMENT)
     out = out[np.lexsort((out["branch"], out["ray"], out["light"]))]
     eng.note_host(out.nbytes)

@@ -14,7 +14,7 @@ import numpy as np
 
 from . import structs
 from .accel.bvh import BVH, build_bvh
-from .device import Engine
+from .device import AppendBuffer, Engine
 from .scene.frame import Frame, camera_struct, light_structs, medium_struct, triangle_soup
 from .scene.model import Scene
 from .stats import Stats, progress
@@ -101,36 +101,25 @@ def trace_view_paths(ps: PreparedScene, stats: Stats | None = None, show_progres
     surface = np.zeros((total, 4), np.float32)
     escaped = np.zeros((total, 4), np.float32)
     seg_parts: list[np.ndarray] = []
-    cap = chunk * 2 if ps.has_medium else 1
     out_surf = eng.empty(chunk * 16)
     out_esc = eng.empty(chunk * 16)
-    segs = eng.empty(cap * structs.VIEW_SEGMENT.itemsize)
-    count = eng.empty(4)
+    segs = AppendBuffer(eng, structs.VIEW_SEGMENT, chunk * 2 if ps.has_medium else 1)
     seed = np.uint32(ps.scene.render.seed & 0xFFFFFFFF)
     with stats.stage("view_paths"), progress(total, "view paths", show_progress) as bar:
         start = 0
         while start < total:
             n = min(chunk, total - start)
-            while True:
-                eng.cl.enqueue_fill_buffer(eng.queue, count, np.zeros(1, np.int32), 0, 4)
-                eng.launch(kern, n, ps.buf["nodes"], ps.buf["tris"], ps.buf["normals"],
-                           ps.buf["tri_mat"], ps.buf["materials"], ps.buf["lights"],
-                           np.int32(ps.num_lights), ps.buf["medium"], ps.buf["camera"],
-                           np.int32(ps.scene.render.max_depth), seed, np.int32(start), np.int32(n),
-                           out_surf, out_esc, segs, np.int32(cap), count)
-                got = int(eng.read(count, 1, np.int32)[0])
-                if got <= cap:
-                    break
-                eng.free(segs)  # too many segments for the buffer: grow it and run again
-                cap = int(got * 1.25) + 16
-                segs = eng.empty(cap * structs.VIEW_SEGMENT.itemsize)
+            seg_parts.append(segs.launch(
+                kern, n, ps.buf["nodes"], ps.buf["tris"], ps.buf["normals"], ps.buf["tri_mat"],
+                ps.buf["materials"], ps.buf["lights"], np.int32(ps.num_lights), ps.buf["medium"],
+                ps.buf["camera"], np.int32(ps.scene.render.max_depth), seed, np.int32(start),
+                np.int32(n), out_surf, out_esc))
             surface[start:start + n] = eng.read(out_surf, (chunk, 4), np.float32)[:n]
             escaped[start:start + n] = eng.read(out_esc, (chunk, 4), np.float32)[:n]
-            if got:
-                seg_parts.append(eng.read(segs, got, structs.VIEW_SEGMENT))
             start += n
             bar.update(n)
-    eng.free(out_surf, out_esc, segs, count)
+    eng.free(out_surf, out_esc)
+    segs.release()
     segments = np.concatenate(seg_parts) if seg_parts else np.zeros(0, structs.VIEW_SEGMENT)
     # the kernel appends in no fixed order: sort so that runs are reproducible
     segments = segments[np.lexsort((segments["branch"], segments["sample"]))]

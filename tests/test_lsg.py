@@ -4,6 +4,8 @@ the same maths, the kernel normalisation on an analytic beam, and whole renders 
 the airlight quadrature and against ``raymarch``."""
 from __future__ import annotations
 
+from layout import layout_mismatches
+
 import copy
 import math
 from pathlib import Path
@@ -40,23 +42,7 @@ def _unit(v):
 # struct layout (cl_kernels/lsg.h vs clscatter/methods/lsg.py)
 # --------------------------------------------------------------------------------------
 def test_lsg_struct_layouts_match(engine):
-    lines = ['#include "lsg.h"', "__kernel void layout(__global int *out) {"]
-    expected = []
-    for cname, dt in STRUCTS.items():
-        lines.append(f"  {cname} v_{cname};")
-        lines.append(f"  out[{len(expected)}] = (int)sizeof({cname});")
-        expected.append((cname, "sizeof", dt.itemsize))
-        for field in dt.names:
-            lines.append(f"  out[{len(expected)}] = (int)((__private char *)&v_{cname}.{field} - "
-                         f"(__private char *)&v_{cname});")
-            expected.append((cname, field, dt.fields[field][1]))
-    lines.append("}")
-    prog = cl.Program(engine.ctx, "\n".join(lines)).build(options=["-I", str(kernel_dir())])
-    out = cl.Buffer(engine.ctx, cl.mem_flags.WRITE_ONLY, 4 * len(expected))
-    prog.layout(engine.queue, (1,), None, out)
-    got = np.empty(len(expected), np.int32)
-    cl.enqueue_copy(engine.queue, got, out)
-    bad = [(c, f, e, int(g)) for (c, f, e), g in zip(expected, got) if e != g]
+    bad = layout_mismatches(engine, "lsg.h", STRUCTS)
     assert not bad, f"layout mismatches (struct, field, host, device): {bad}"
     assert STRUCTS["LineNode"].itemsize == 48 and STRUCTS["LsgLine"].itemsize == 48
 
