@@ -599,7 +599,6 @@ def directional_slab(o, dirs, light_dir, irradiance, sigma_s, kappa, g, box_min,
     Rays that miss the box give 0. ``light_dir`` is the travel direction (normalised).
     """
     o, w, t_max = _rays(o, dirs, t_max)
-    n = w.shape[0]
     t0, t1, hit = _medium_interval(o, w, t_max, box_min, box_max)
     a, b, ld = _exit_lines(o, w, light_dir, box_min, box_max)
     # crossings of the face lines (j, k)

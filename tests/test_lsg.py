@@ -11,13 +11,11 @@ import math
 from pathlib import Path
 
 import numpy as np
-import pyopencl as cl
 import pytest
 
 import analytic
 from clscatter import structs
 from clscatter.accel.linetree import PluckerFrame
-from clscatter.device import kernel_dir
 from clscatter.image import relmse
 from clscatter.light_paths import trace_light_paths
 from clscatter.methods.lsg import STRUCTS, Gatherer, clip_segments
