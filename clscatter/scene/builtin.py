@@ -142,6 +142,15 @@ BUILTIN: dict[str, Callable[[], dict]] = {
 }
 
 
+def _register_technique_scenes() -> None:
+    """Add the scenes written for each technique (their modules import helpers from here)."""
+    from .builtin_caustics import CAUSTIC_SCENES
+    BUILTIN.update(CAUSTIC_SCENES)
+
+
+_register_technique_scenes()
+
+
 # ---- A tiny TOML writer for the subset the scenes use -----------------------------------
 
 # dicts under these keys are written inline ({ ... }) rather than as [table] headers
