@@ -145,7 +145,9 @@ BUILTIN: dict[str, Callable[[], dict]] = {
 def _register_technique_scenes() -> None:
     """Add the scenes written for each technique (their modules import helpers from here)."""
     from .builtin_caustics import CAUSTIC_SCENES
+    from .builtin_epipolar import EPIPOLAR_SCENES
     BUILTIN.update(CAUSTIC_SCENES)
+    BUILTIN.update(EPIPOLAR_SCENES)
 
 
 _register_technique_scenes()

@@ -1,0 +1,481 @@
+/* epipolar.cl: hierarchical volumetric shadows (Baran et al. 2010) for one light.
+ *
+ * Stages (host: clscatter/epipolar/pipeline.py):
+ *   epi_shadow_map     shadow map, ray traced: orthographic over the medium box along a
+ *                      directional light, perspective over a spot light's cone (Sec. 2.2)
+ *   epi_depth_map      camera depth map at pixel centres (grid lookup only)
+ *   epi_rectify_shadow shadow map -> per light ray of a slice, blocker *beta* (not depth),
+ *                      four sub-samples clustered into weighted modes (Sec. 7)
+ *   epi_rectify_depth  depth map -> per grid view ray of a slice, the gamma range of its
+ *                      part in the medium (Sec. 3; grid lookup)
+ *   epi_integrate      one work-item per slice: the sweep of Fig. 6 over view rays with a
+ *                      Fenwick tree of the SVD terms (Sec. 4-6)
+ *   epi_rectify_image, epi_unrectify   resampling image <-> rectified grid (Sec. 2.2)
+ *
+ * The integrand (Eq. 3) of view ray beta at light ray gamma is factored as
+ *   I(alpha, gamma, beta) = F(alpha, gamma) * sum_n Gamma_n(gamma) B_n(beta) * exp(kappa t_a)
+ * where F carries what depends on the light ray alone (the medium's transmittance from
+ * where the light ray enters the box, the spot cone: the paper's "textured light"),
+ * Gamma_n, B_n come from the truncated SVD of the slice-independent rest
+ * (clscatter/epipolar/svd.py; B_n includes the pure-beta factors phase/sin(beta) and
+ * |ds/dgamma|), and exp(kappa t_a) restores the view transmittance from the segment
+ * start t_a (so results are radiance arriving at the start of the medium segment).
+ */
+#include "common.h"
+#include "bvh.h"
+#include "epipolar.h"
+
+#define EPI_EXP_MAX 80.0f
+
+/* ---- small helpers ---- */
+
+/* linear interpolation in a table of n EPI_NV-vectors sampled uniformly on [lo, hi] */
+void epi_table(__global const float *tab, int n, float lo, float hi, float x, float *out) {
+    float s = (n > 1 && hi > lo) ? (x - lo) / (hi - lo) * (float)(n - 1) : 0.0f;
+    s = clamp(s, 0.0f, (float)(n - 1));
+    int i = min((int)s, n - 2 < 0 ? 0 : n - 2);
+    float f = n > 1 ? s - (float)i : 0.0f;
+    int j = n > 1 ? i + 1 : i;
+    for (int c = 0; c < EPI_NV; ++c)
+        out[c] = (1.0f - f) * tab[i * EPI_NV + c] + f * tab[j * EPI_NV + c];
+}
+
+float epi_kappa(__global const EpiFrame *fr, int c) {
+    return c == 0 ? fr->kappa.x : (c == 1 ? fr->kappa.y : fr->kappa.z);
+}
+
+/* direction of the view ray beta in slice w */
+float4 epi_view_dir(__global const EpiFrame *fr, float4 w, float beta) {
+    return cos(beta) * fr->u + sin(beta) * w;
+}
+
+/* direction of the spot light ray gamma in slice w (from the light outwards) */
+float4 epi_spot_dir(__global const EpiFrame *fr, float4 w, float gamma) {
+    return -cos(gamma) * fr->u + sin(gamma) * w;
+}
+
+/* gamma reached by the view ray beta at distance t (paper, Sec. 3 and 9) */
+float epi_gamma(__global const EpiFrame *fr, float t, float beta) {
+    if (fr->type == LIGHT_SPOT) return atan2(t * sin(beta), fr->D - t * cos(beta));
+    return t * sin(beta);
+}
+
+/* ---- maps ---- */
+
+__kernel void epi_shadow_map(__global const BVHNode *nodes, __global const float4 *tris,
+                             __global const EpiFrame *fr, __global float *out) {
+    int gid = get_global_id(0);
+    int res = fr->sm_res;
+    if (gid >= res * res) return;
+    float4 rect = fr->sm_rect;
+    float x1 = rect.x + ((gid % res) + 0.5f) * (rect.z - rect.x) / res;
+    float x2 = rect.y + ((gid / res) + 0.5f) * (rect.w - rect.y) / res;
+    Hit hit;
+    if (fr->type == LIGHT_DIRECTIONAL) {
+        /* the map stores the blocker's axial coordinate z = (x - eye).u */
+        float4 o = fr->eye + x1 * fr->sm_s1 + x2 * fr->sm_s2 + fr->z_start * fr->u;
+        o.w = 0.0f;
+        out[gid] = bvh_closest(nodes, tris, o, -fr->u, 0.0f, T_INF, &hit) ? fr->z_start - hit.t
+                                                                          : T_INF;
+    } else {
+        /* the map stores the blocker's distance from the light */
+        float4 dir = normalize3(fr->cone + x1 * fr->sm_s1 + x2 * fr->sm_s2);
+        dir.w = 0.0f;
+        out[gid] = bvh_closest(nodes, tris, fr->light, dir, 0.0f, T_INF, &hit) ? hit.t : T_INF;
+    }
+}
+
+/* camera ray through a continuous position in the image (x right, y down, in pixels of
+ * a w x h raster spanning the camera's field of view; the paths.cl convention) */
+float4 epi_camera_dir(__global const Camera *cam, float px, float py, int w, int h) {
+    float fx = 2.0f * px / w - 1.0f;
+    float fy = 1.0f - 2.0f * py / h;
+    return normalize3(cam->forward + fx * cam->right + fy * cam->up);
+}
+
+/* continuous raster position of direction v (w x h raster); 0 when v is behind */
+int epi_project(__global const Camera *cam, float4 v, int w, int h, float *px, float *py) {
+    float z = dot3(v, cam->forward);
+    if (!(z > 0.0f)) return 0;
+    float sx = dot3(v, cam->right) / dot3(cam->right, cam->right) / z;
+    float sy = dot3(v, cam->up) / dot3(cam->up, cam->up) / z;
+    *px = (sx + 1.0f) * 0.5f * w;
+    *py = (1.0f - sy) * 0.5f * h;
+    return 1;
+}
+
+__kernel void epi_depth_map(__global const BVHNode *nodes, __global const float4 *tris,
+                            __global const Camera *cam, int w, int h, __global float *out) {
+    int gid = get_global_id(0);
+    if (gid >= w * h) return;
+    float4 d = epi_camera_dir(cam, (gid % w) + 0.5f, (gid / w) + 0.5f, w, h);
+    Hit hit;
+    out[gid] = bvh_closest(nodes, tris, cam->origin, d, 0.0f, T_INF, &hit) ? hit.t : T_INF;
+}
+
+/* ---- rectification ---- */
+
+/* Shadow-map value seen by the light ray gamma of slice w (nearest texel, as in shadow
+ * mapping): the blocker's axial coordinate z (directional) or its distance r from the
+ * light (spot); T_INF when nothing blocks the light ray. */
+float epi_blocker(__global const EpiFrame *fr, __global const float *smap, float4 w, float gamma) {
+    float x1, x2;
+    if (fr->type == LIGHT_DIRECTIONAL) {
+        /* the light ray through eye + gamma w projects to one point of the map */
+        x1 = gamma * dot3(w, fr->sm_s1);
+        x2 = gamma * dot3(w, fr->sm_s2);
+    } else {
+        float4 l = epi_spot_dir(fr, w, gamma);
+        float la = dot3(l, fr->cone);
+        if (la <= 1e-6f) return T_INF;
+        x1 = dot3(l, fr->sm_s1) / la;
+        x2 = dot3(l, fr->sm_s2) / la;
+    }
+    float4 rect = fr->sm_rect;
+    int res = fr->sm_res;
+    float fx = (x1 - rect.x) / (rect.z - rect.x) * res;
+    float fy = (x2 - rect.y) / (rect.w - rect.y) * res;
+    if (!(fx >= 0.0f && fx < res && fy >= 0.0f && fy < res)) return T_INF;
+    return smap[(int)fy * res + (int)fx];
+}
+
+/* The blocker's slice position (z, rho) and its beta = atan2(rho, z) (paper, Sec. 3: the
+ * value changes in rectification, depth -> beta). */
+float epi_blocker_beta(__global const EpiFrame *fr, float gamma, float v) {
+    if (fr->type == LIGHT_DIRECTIONAL) return atan2(gamma, v);
+    return atan2(v * sin(gamma), fr->D - v * cos(gamma));
+}
+
+/* Sort key increasing with beta along one light ray (directional: beta falls as z
+ * rises; spot: beta rises with r), and the key difference that makes one pixel angle
+ * beta_tol of beta at (gamma, v): d beta / d z = -gamma / (gamma^2 + z^2) and
+ * d beta / d r = D sin(gamma) / t^2 with t the distance from the eye. */
+float epi_mode_key(__global const EpiFrame *fr, float v) {
+    return fr->type == LIGHT_DIRECTIONAL ? -v : v;
+}
+float epi_mode_tol(__global const EpiFrame *fr, float gamma, float v) {
+    if (fr->type == LIGHT_DIRECTIONAL) return fr->beta_tol * (gamma * gamma + v * v) / fmax(gamma, 1e-12f);
+    float z = fr->D - v * cos(gamma), rho = v * sin(gamma);
+    return fr->beta_tol * (z * z + rho * rho) / fmax(fr->D * sin(gamma), 1e-12f);
+}
+
+/* One work-item per (slice, light ray): the termination modes of the light ray.
+ * term[(k*d + i)*EPI_MODES + m] = (beta, frac): at beta, remove the fraction frac of what
+ * is left of the light ray (frac relative to the remainder, so the sweep can scale the
+ * leaf it holds; 1 = the rest). frac = 0 marks an unused entry. Sub-samples are grouped
+ * by depth (one pixel angle of beta apart at most from a mode's first member), so only
+ * one atan2 per mode is needed; a mode's beta is that of its mean gamma and depth. */
+__kernel void epi_rectify_shadow(__global const EpiFrame *fr, __global const EpiSlice *slices,
+                                 int slice0, int nbatch, __global const float *smap,
+                                 __global float2 *term) {
+    int gid = get_global_id(0);
+    int d = fr->d;
+    if (gid >= nbatch * d) return;
+    int kl = gid / d, i = gid % d;
+    __global const EpiSlice *sl = &slices[slice0 + kl];
+    float dg = (sl->gamma_hi - sl->gamma_lo) / d;
+    float g[EPI_MODES], v[EPI_MODES], key[EPI_MODES];
+    int ns = fr->prefilter ? EPI_MODES : 1;
+    for (int s = 0; s < ns; ++s) {
+        float off = fr->prefilter ? (s + 0.5f) / EPI_MODES : 0.5f;
+        g[s] = sl->gamma_lo + (i + off) * dg;
+        v[s] = epi_blocker(fr, smap, sl->w, g[s]);
+        key[s] = v[s] >= 0.5f * T_INF ? INFINITY : epi_mode_key(fr, v[s]);
+    }
+    for (int s = 1; s < ns; ++s)            /* insertion sort by key, at most 4 values */
+        for (int r = s; r > 0 && key[r - 1] > key[r]; --r) {
+            float x = key[r]; key[r] = key[r - 1]; key[r - 1] = x;
+            x = v[r]; v[r] = v[r - 1]; v[r - 1] = x;
+            x = g[r]; g[r] = g[r - 1]; g[r - 1] = x;
+        }
+    __global float2 *out = term + (size_t)gid * EPI_MODES;
+    int m = 0;
+    float left = 1.0f;
+    int s = 0;
+    float prev = -1.0f;
+    while (s < ns && key[s] < INFINITY) {   /* sub-samples that hit nothing stay lit */
+        float tol = epi_mode_tol(fr, g[s], v[s]);
+        int e = s + 1;
+        float sg = g[s], sv = v[s];
+        while (e < ns && key[e] - key[s] <= tol) { sg += g[e]; sv += v[e]; ++e; }
+        float wgt = (float)(e - s) / ns;
+        /* keep the modes in beta order: the sweep applies them in that order */
+        float beta = fmax(epi_blocker_beta(fr, sg / (e - s), sv / (e - s)), prev);
+        prev = beta;
+        out[m++] = (float2)(beta, e == ns ? 1.0f : wgt / left);
+        left -= wgt;
+        s = e;
+    }
+    for (; m < EPI_MODES; ++m) out[m] = (float2)(0.0f, 0.0f);
+}
+
+/* One work-item per (slice, grid view ray): the view ray beta_j of the slice, its medium
+ * interval ending at the depth map's surface (nearest pixel), as (beta, gamma0, gamma1,
+ * t_a) events for epi_integrate. */
+__kernel void epi_rectify_depth(__global const EpiFrame *fr, __global const EpiSlice *slices,
+                                int slice0, int nbatch, __global const Medium *medium,
+                                __global const Camera *cam, __global const float *depth,
+                                int dw, int dh, __global float4 *events) {
+    int gid = get_global_id(0);
+    int R = fr->rays;
+    if (gid >= nbatch * R) return;
+    int kl = gid / R, j = gid % R;
+    __global const EpiSlice *sl = &slices[slice0 + kl];
+    float beta = sl->beta_lo + (j + 0.5f) * (sl->beta_hi - sl->beta_lo) / R;
+    float4 v = epi_view_dir(fr, sl->w, beta);
+    v.w = 0.0f;
+    float t_hit = T_INF, px, py;
+    if (epi_project(cam, v, dw, dh, &px, &py)) {
+        int ix = clamp((int)px, 0, dw - 1), iy = clamp((int)py, 0, dh - 1);
+        t_hit = depth[iy * dw + ix];
+    }
+    float t0, t1;
+    float4 ev = (float4)(beta, 0.0f, 0.0f, 0.0f);
+    if (medium_interval(medium, fr->eye, v, 0.0f, t_hit, &t0, &t1) && t1 > t0) {
+        ev.y = epi_gamma(fr, t0, beta);
+        ev.z = epi_gamma(fr, t1, beta);
+        ev.w = t0;
+    }
+    events[(size_t)slice0 * R + gid] = ev;     /* slice k's rays start at k * R */
+}
+
+/* ---- integration ---- */
+
+/* F(alpha, gamma) per channel: what depends on the light ray alone. Directional: the
+ * light's transmittance from the box face where the light ray enters down to the plane
+ * z = 0 through the eye, exp(-kappa z_exit) (the rest, exp(kappa z), is in the SVD part).
+ * Spot: exp(+kappa r_enter) (the SVD part has exp(-kappa r)) times the fraction of the
+ * light ray's cell [gamma +- dg/2] inside the cone. */
+void epi_light_factor(__global const EpiFrame *fr, __global const EpiSlice *sl, float gamma,
+                      float dg, float *F) {
+    float x = 0.0f, sign = -1.0f, cov = 1.0f;
+    float t0, t1;
+    if (fr->type == LIGHT_DIRECTIONAL) {
+        float4 o = fr->eye + gamma * sl->w;
+        ray_box(o, safe_inv_dir(fr->u), fr->bmin, fr->bmax, -T_INF, T_INF, &t0, &t1);
+        x = t1;                                      /* z_exit, defined even for a miss */
+    } else {
+        float a = fmax(gamma - 0.5f * dg, sl->cone_lo), b = fmin(gamma + 0.5f * dg, sl->cone_hi);
+        cov = dg > 0.0f ? clamp((b - a) / dg, 0.0f, 1.0f) : 0.0f;
+        sign = 1.0f;
+        if (fr->bounded) {
+            float4 l = epi_spot_dir(fr, sl->w, gamma);
+            ray_box(fr->light, safe_inv_dir(l), fr->bmin, fr->bmax, 0.0f, T_INF, &t0, &t1);
+            x = t0;                                  /* r_enter >= 0 */
+        }
+    }
+    for (int c = 0; c < EPI_NCH; ++c)
+        F[c] = cov * exp(clamp(sign * epi_kappa(fr, c) * x, -EPI_EXP_MAX, EPI_EXP_MAX));
+}
+
+/* lower bound: first event of [0, n) whose beta is >= b */
+int epi_lower_bound(__global const float4 *ev, int n, float b) {
+    int lo = 0, hi = n;
+    while (lo < hi) {
+        int mid = (lo + hi) >> 1;
+        if (ev[mid].x < b) lo = mid + 1; else hi = mid;
+    }
+    return lo;
+}
+
+/* One work-item per slice (paper, Fig. 6). Events of slice k are
+ * events[ev_off[k] .. ev_off[k+1]), sorted by beta, each
+ * (beta, gamma0, gamma1, t_a); out gets, per event and channel,
+ *   exp(kappa t_a) * sum_n B_n(beta) * (Q_n(gamma1) - Q_n(gamma0))
+ * with Q_n the prefix sums of F * Gamma_n * dgamma over the light rays still lit.
+ * Scratch: tree/leaf [nbatch][d][EPI_NV], cnt [events of the batch + nbatch],
+ * sorted [nbatch][d * EPI_MODES]. work[k] = (tree updates, tree queries) for --stats. */
+__kernel void epi_integrate(__global const EpiFrame *fr, __global const EpiSlice *slices,
+                            int slice0, int nbatch, __global const float2 *term,
+                            __global const int *ev_off, __global const float4 *events,
+                            __global const float *gtab, int n_g, float g_lo, float g_hi,
+                            __global const float *btab, int n_b, float b_lo, float b_hi,
+                            __global float *tree, __global float *leaf, __global int *cnt_all,
+                            __global int2 *sorted_all, __global float4 *out,
+                            __global int2 *work) {
+    int kl = get_global_id(0);
+    if (kl >= nbatch) return;
+    int k = slice0 + kl;
+    int d = fr->d;
+    __global const EpiSlice *sl = &slices[k];
+    __global float *T = tree + (size_t)kl * d * EPI_NV;
+    __global float *L = leaf + (size_t)kl * d * EPI_NV;
+    float dg = (sl->gamma_hi - sl->gamma_lo) / d;
+
+    /* ---- the tree: b[i] = F(alpha, gamma_i) Gamma(gamma_i) dgamma (Sec. 6, textured light) ---- */
+    for (int i = 0; i < d; ++i) {
+        float g = sl->gamma_lo + (i + 0.5f) * dg;
+        float G[EPI_NV], F[EPI_NCH];
+        epi_table(gtab, n_g, g_lo, g_hi, g, G);
+        epi_light_factor(fr, sl, g, dg, F);
+        for (int c = 0; c < EPI_NCH; ++c)
+            for (int n = 0; n < EPI_NT; ++n) {
+                float v = G[c * EPI_NT + n] * F[c] * dg;
+                L[i * EPI_NV + c * EPI_NT + n] = v;
+                T[i * EPI_NV + c * EPI_NT + n] = v;
+            }
+    }
+    fw_build(T, d);
+
+    /* ---- termination lists: bucket the modes by the first event at or after them ---- */
+    int e0 = ev_off[k];
+    int ne = ev_off[k + 1] - ev_off[k];
+    __global const float4 *ev = events + e0;
+    __global int *cnt = cnt_all + (ev_off[k] - ev_off[slice0]) + kl;     /* ne + 1 buckets */
+    __global int2 *srt = sorted_all + (size_t)kl * d * EPI_MODES;
+    __global const float2 *tm = term + (size_t)kl * d * EPI_MODES;
+    for (int q = 0; q <= ne; ++q) cnt[q] = 0;
+    for (int i = 0; i < d * EPI_MODES; ++i)
+        if (tm[i].y > 0.0f) cnt[epi_lower_bound(ev, ne, tm[i].x)] += 1;
+    int run = 0;
+    for (int q = 0; q <= ne; ++q) { int c = cnt[q]; cnt[q] = run; run += c; }
+    for (int i = 0; i < d * EPI_MODES; ++i)     /* stable: modes of a ray stay in beta order */
+        if (tm[i].y > 0.0f) {
+            int q = epi_lower_bound(ev, ne, tm[i].x);
+            srt[cnt[q]++] = (int2)(i / EPI_MODES, as_int(tm[i].y));
+        }
+    /* now cnt[q] is the end of bucket q */
+
+    /* ---- the sweep over view rays, away from the light ---- */
+    int p = 0, queries = 0;
+    for (int q = 0; q < ne; ++q) {
+        for (int end = cnt[q]; p < end; ++p)
+            fw_scale_leaf(T, L, d, srt[p].x, as_float(srt[p].y));
+        float4 e = ev[q];
+        float a0[EPI_NV], a1[EPI_NV], B[EPI_NV];
+        for (int c = 0; c < EPI_NV; ++c) { a0[c] = 0.0f; a1[c] = 0.0f; }
+        if (e.z > e.y && dg > 0.0f) {
+            fw_query(T, L, d, (e.y - sl->gamma_lo) / dg, a0);
+            fw_query(T, L, d, (e.z - sl->gamma_lo) / dg, a1);
+            queries += 2;
+        }
+        epi_table(btab, n_b, b_lo, b_hi, e.x, B);
+        float r[3] = {0.0f, 0.0f, 0.0f};
+        for (int c = 0; c < EPI_NCH; ++c) {
+            float s = 0.0f;
+            for (int n = 0; n < EPI_NT; ++n) s += B[c * EPI_NT + n] * (a1[c * EPI_NT + n] - a0[c * EPI_NT + n]);
+            /* radiance is >= 0; float cancellation of the signed SVD terms is not */
+            r[c] = fmax(s, 0.0f) * exp(fmin(epi_kappa(fr, c) * e.w, EPI_EXP_MAX));
+        }
+        out[e0 + q] = (float4)(r[0], r[1], r[2], 0.0f);
+    }
+    work[k] = (int2)(p, queries);
+}
+
+/* ---- resampling between the image and the rectified grid ---- */
+
+/* slices k0, k1 around angle phi and the weight f of k1 (phis sorted, unwrapped; the
+ * same code as geometry.Slices.bracket: a full fan wraps, an open fan is cut in the
+ * middle of its gap and clamps at its ends) */
+void epi_bracket(__global const float *phis, int n, int full, float phi, int *k0, int *k1,
+                 float *f) {
+    float two_pi = 2.0f * PI_F;
+    float base = full ? phis[0] : phis[0] - 0.5f * (two_pi - (phis[n - 1] - phis[0]));
+    float x = base + fmod(fmod(phi - base, two_pi) + two_pi, two_pi);
+    int lo = 0, hi = n;                     /* lo = number of phis <= x */
+    while (lo < hi) {
+        int mid = (lo + hi) >> 1;
+        if (phis[mid] <= x) lo = mid + 1; else hi = mid;
+    }
+    int i = lo - 1;
+    int first = i < 0, last = i == n - 1;
+    i = clamp(i, 0, n - 1);
+    int j = min(i + 1, n - 1);
+    float nxt = phis[j];
+    if (full && last) { j = 0; nxt = phis[0] + two_pi; }
+    float gap = nxt - phis[i];
+    *k0 = i;
+    *k1 = j;
+    *f = gap > 0.0f ? clamp((x - phis[i]) / gap, 0.0f, 1.0f) : 0.0f;
+    if (!full && (first || last)) { *k1 = i; *f = 0.0f; }
+}
+
+/* beta of the unit direction v and the slices around it (geometry.Axis.coords + bracket) */
+float epi_locate(__global const EpiFrame *fr, __global const float *phis, int n, int full,
+                 float4 v, int *k0, int *k1, float *f) {
+    float c = dot3(v, fr->u);
+    float4 perp = v - c * fr->u;
+    float phi = atan2(dot3(perp, fr->b2), dot3(perp, fr->b1));
+    epi_bracket(phis, n, full, phi, k0, k1, f);
+    return atan2(length3(perp), c);
+}
+
+/* One work-item per primary view segment (segment lookup): its coordinates and the two
+ * slices around it. geo = (beta, gamma(t_a), gamma(t_b), t_a) with t_a, t_b the distances
+ * of the segment's ends from the eye; idx = (k0, k1, weight of k1 as bits, in the ring).
+ * The ring is the disc of radius ring.z pixels around the epipole (ring.x, ring.y). */
+__kernel void epi_samples(__global const EpiFrame *fr, __global const float *phis, int nslices,
+                          int full, __global const Camera *cam, float4 ring,
+                          __global const ViewSegment *segs, int n, __global float4 *geo,
+                          __global int4 *idx) {
+    int gid = get_global_id(0);
+    if (gid >= n) return;
+    float4 a = segs[gid].a - fr->eye, b = segs[gid].b - fr->eye;
+    a.w = 0.0f;
+    b.w = 0.0f;
+    float t_b = length3(b);
+    float4 v = b / fmax(t_b, 1e-30f);
+    float t_a = fmax(dot3(a, v), 0.0f);
+    int k0, k1;
+    float f;
+    float beta = epi_locate(fr, phis, nslices, full, v, &k0, &k1, &f);
+    float px, py;
+    int in_ring = epi_project(cam, v, cam->width, cam->height, &px, &py)
+                  && hypot(px - ring.x, py - ring.y) < ring.z;
+    geo[gid] = (float4)(beta, epi_gamma(fr, t_a, beta), epi_gamma(fr, t_b, beta), t_a);
+    idx[gid] = (int4)(k0, k1, as_int(f), in_ring);
+}
+
+/* value of grid row k (R samples over the slice's beta range) at beta, linear */
+float4 epi_grid_at(__global const EpiSlice *sl, __global const float4 *grid, int R, float beta) {
+    float span = sl->beta_hi - sl->beta_lo;
+    float s = span > 0.0f ? (beta - sl->beta_lo) / span * R - 0.5f : 0.0f;
+    s = clamp(s, 0.0f, (float)(R - 1));
+    int j = min((int)s, R - 1);
+    int j1 = min(j + 1, R - 1);
+    float f = s - j;
+    return (1.0f - f) * grid[j] + f * grid[j1];
+}
+
+/* One work-item per direction: bilinear lookup in the rectified grid (R values per
+ * slice) at the direction's (alpha, beta). */
+__kernel void epi_unrectify(__global const EpiFrame *fr, __global const EpiSlice *slices,
+                            __global const float *phis, int nslices, int full, int R,
+                            __global const float4 *grid, __global const float4 *dirs, int n,
+                            __global float4 *out) {
+    int gid = get_global_id(0);
+    if (gid >= n) return;
+    float4 v = dirs[gid];
+    v.w = 0.0f;
+    int k0, k1;
+    float f;
+    float beta = epi_locate(fr, phis, nslices, full, v, &k0, &k1, &f);
+    float4 a = epi_grid_at(&slices[k0], grid + (size_t)k0 * R, R, beta);
+    float4 b = epi_grid_at(&slices[k1], grid + (size_t)k1 * R, R, beta);
+    out[gid] = (1.0f - f) * a + f * b;
+}
+
+/* One work-item per grid sample: bilinear sample of a (h, w) float4 image at the grid
+ * view ray's pixel position (the rectification of an image, for tests and tools). */
+__kernel void epi_rectify_image(__global const EpiFrame *fr, __global const EpiSlice *slices,
+                                int nslices, int R, __global const Camera *cam,
+                                __global const float4 *img, int w, int h,
+                                __global float4 *grid) {
+    int gid = get_global_id(0);
+    if (gid >= nslices * R) return;
+    int k = gid / R, j = gid % R;
+    __global const EpiSlice *sl = &slices[k];
+    float beta = sl->beta_lo + (j + 0.5f) * (sl->beta_hi - sl->beta_lo) / R;
+    float4 v = epi_view_dir(fr, sl->w, beta);
+    float px, py;
+    float4 r = (float4)(0.0f);
+    if (epi_project(cam, v, w, h, &px, &py)) {
+        float x = clamp(px - 0.5f, 0.0f, (float)(w - 1)), y = clamp(py - 0.5f, 0.0f, (float)(h - 1));
+        int x0 = min((int)x, w - 1), y0 = min((int)y, h - 1);
+        int x1 = min(x0 + 1, w - 1), y1 = min(y0 + 1, h - 1);
+        float fx = x - x0, fy = y - y0;
+        r = (1.0f - fy) * ((1.0f - fx) * img[y0 * w + x0] + fx * img[y0 * w + x1])
+            + fy * ((1.0f - fx) * img[y1 * w + x0] + fx * img[y1 * w + x1]);
+    }
+    grid[gid] = r;
+}
