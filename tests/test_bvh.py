@@ -52,7 +52,7 @@ def mesh_cow():
             m = trimesh.load(p, force="mesh", process=True)
             m.vertices = _normalise(np.asarray(m.vertices))
             return m
-    pytest.skip("cow.obj not found (tests/data or ../shared/models)")
+    raise FileNotFoundError(f"cow.obj not found in {[str(p) for p in COW_PATHS]}")
 
 
 def tris_of(m) -> np.ndarray:
