@@ -52,3 +52,13 @@ def test_specular_objects_add_an_lsg_caustic_pass(engine):
     assert passes[1].params == {"min_light_depth": 1}
     passes, notes = _plan(engine, d, "raymarch")      # explicit: alone, with a warning
     assert [p.method for p in passes] == ["raymarch"] and any("caustics" in n for n in notes)
+
+
+def test_bad_method_parameters_name_their_key():
+    import pytest
+    from clscatter.errors import SceneError
+    from clscatter.methods import get_method
+    for method, key, value in (("raymarch", "steps", 0), ("lsg", "radius", -1.0),
+                               ("vpm", "knn", 1), ("epipolar", "svd_terms", 0)):
+        with pytest.raises(SceneError, match=f"render.{method}.{key}: .*got"):
+            get_method(method)({key: value})

@@ -62,3 +62,19 @@ def get_method(name: str) -> type:
         raise SceneError("render.method", f"method '{name}' is not implemented in this version "
                          f"(available: {', '.join(available())})")
     raise SceneError("render.method", f"unknown method '{name}' (one of {', '.join(CONTRACT_METHODS)})")
+
+
+def settings(cls: type, params: dict | None) -> dict[str, Any]:
+    """``cls.PARAMS`` overlaid with the scene's ``[render.<name>]`` values (the loader has
+    already checked keys and types; :func:`check` validates ranges)."""
+    p = dict(cls.PARAMS)
+    p.update(params or {})
+    return p
+
+
+def check(cls: type, p: dict, checks) -> None:
+    """Raise ``SceneError("render.<NAME>.<key>", "<rule> (got <value>)")`` for the first
+    ``(key, ok, rule)`` in ``checks`` whose ``ok`` is false."""
+    for key, ok, rule in checks:
+        if not ok:
+            raise SceneError(f"render.{cls.NAME}.{key}", f"{rule} (got {p.get(key)!r})")

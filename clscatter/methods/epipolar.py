@@ -7,10 +7,9 @@ import numpy as np
 
 from .. import structs
 from ..epipolar.pipeline import LOOKUPS, Settings, render_light
-from ..errors import SceneError
 from ..paths import PreparedScene, ViewPaths, accumulate_segments
 from ..stats import Stats
-from . import register
+from . import check, register, settings
 from .raymarch import RayMarch
 
 
@@ -110,23 +109,16 @@ class Epipolar:
     }
 
     def __init__(self, params: dict | None = None):
-        p = dict(self.PARAMS)
-        p.update(params or {})
-        key = "render.epipolar."
-        if p["lookup"] not in LOOKUPS:
-            raise SceneError(key + "lookup", f"must be one of {', '.join(LOOKUPS)}, not {p['lookup']!r}")
-        for name in ("slices", "rays_per_slice", "depth_map", "light_rays", "shadow_map"):
-            if int(p[name]) < 0:
-                raise SceneError(key + name, "must be >= 0 (0: automatic)")
-        if not 1 <= int(p["svd_terms"]) <= 16:
-            raise SceneError(key + "svd_terms", "must be between 1 and 16")
-        if int(p["svd_samples"]) < int(p["svd_terms"]):
-            raise SceneError(key + "svd_samples", "must be at least svd_terms")
-        if int(p["light_rays"]) == 1:
-            raise SceneError(key + "light_rays", "must be 0 (automatic) or >= 2")
-        for name in ("prefilter_tolerance", "epipole_ring"):
-            if float(p[name]) < 0:
-                raise SceneError(key + name, "must be >= 0")
+        p = settings(type(self), params)
+        check(type(self), p, (
+            ("lookup", p["lookup"] in LOOKUPS, f"must be one of {', '.join(LOOKUPS)}"),
+            *((name, int(p[name]) >= 0, "must be >= 0 (0: automatic)")
+              for name in ("slices", "rays_per_slice", "depth_map", "light_rays", "shadow_map")),
+            ("svd_terms", 1 <= int(p["svd_terms"]) <= 16, "must be between 1 and 16"),
+            ("svd_samples", int(p["svd_samples"]) >= int(p["svd_terms"]), "must be at least svd_terms"),
+            ("light_rays", int(p["light_rays"]) != 1, "must be 0 (automatic) or >= 2"),
+            *((name, float(p[name]) >= 0, "must be >= 0")
+              for name in ("prefilter_tolerance", "epipole_ring"))))
         self.settings = Settings(
             slices=int(p["slices"]), rays_per_slice=int(p["rays_per_slice"]),
             light_rays=int(p["light_rays"]), shadow_map=int(p["shadow_map"]),

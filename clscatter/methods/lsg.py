@@ -12,11 +12,10 @@ from .. import structs
 from ..accel.linetree import (LINE_NODE, LineTree, PluckerFrame, build_linetree, canonical_signs,
                               plucker)
 from ..device import Engine
-from ..errors import SceneError
 from ..light_paths import ray_counts, trace_light_paths
 from ..paths import PreparedScene, ViewPaths, accumulate_segments
 from ..stats import Stats, progress
-from . import register
+from . import check, register, settings
 
 F4 = structs.F4
 
@@ -289,8 +288,7 @@ class LineSpaceGathering:
               "min_sin": 1e-6, "segments_per_launch": 65536, "min_light_depth": 0}
 
     def __init__(self, params: dict | None = None):
-        p = dict(self.PARAMS)
-        p.update(params or {})
+        p = settings(type(self), params)
         self.light_rays = int(p["light_rays"])
         self.radius = float(p["radius"])
         self.max_bytes = int(p["max_bytes"])
@@ -298,12 +296,13 @@ class LineSpaceGathering:
         self.min_sin = float(p["min_sin"])
         self.per_launch = max(1, int(p["segments_per_launch"]))
         self.min_light_depth = int(p["min_light_depth"])
-        for key, ok in (("light_rays", self.light_rays >= 0), ("radius", self.radius > 0),
-                        ("max_bytes", self.max_bytes > 0), ("leaf_size", self.leaf_size >= 1),
-                        ("min_sin", 0 <= self.min_sin < 1),
-                        ("min_light_depth", self.min_light_depth >= 0)):
-            if not ok:
-                raise SceneError(f"render.lsg.{key}", f"invalid value {p[key]!r}")
+        check(type(self), p, (
+            ("light_rays", self.light_rays >= 0, "must be >= 0"),
+            ("radius", self.radius > 0, "must be > 0"),
+            ("max_bytes", self.max_bytes > 0, "must be > 0"),
+            ("leaf_size", self.leaf_size >= 1, "must be >= 1"),
+            ("min_sin", 0 <= self.min_sin < 1, "must be in [0, 1)"),
+            ("min_light_depth", self.min_light_depth >= 0, "must be >= 0")))
 
     def render_medium(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
                       show_progress: bool = True) -> np.ndarray:

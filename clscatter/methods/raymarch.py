@@ -5,7 +5,7 @@ import numpy as np
 
 from ..paths import PreparedScene, ViewPaths, accumulate_segments
 from ..stats import Stats, progress
-from . import register
+from . import check, register, settings
 
 
 @register
@@ -35,10 +35,11 @@ class RayMarch:
     PARAMS = {"steps": 32, "segments_per_launch": 65536}
 
     def __init__(self, params: dict | None = None):
-        p = dict(self.PARAMS)
-        p.update(params or {})
-        self.steps = max(1, int(p["steps"]))
-        self.per_launch = max(1, int(p["segments_per_launch"]))
+        p = settings(type(self), params)
+        self.steps = int(p["steps"])
+        self.per_launch = int(p["segments_per_launch"])
+        check(type(self), p, (("steps", self.steps >= 1, "must be >= 1"),
+                              ("segments_per_launch", self.per_launch >= 1, "must be >= 1")))
 
     def render_medium(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
                       show_progress: bool = True) -> np.ndarray:

@@ -8,11 +8,10 @@ import numpy as np
 
 from ..accel.photontree import (BUILD_BYTES_PER_PHOTON, PHOTON, PhotonTree, build_tree,
                                 encode_direction, encode_rgb9e5)
-from ..errors import SceneError
 from ..light_paths import trace_light_paths
 from ..paths import PreparedScene, ViewPaths, accumulate_segments
 from ..stats import Stats, progress
-from . import register
+from . import check, register, settings
 
 # photons deposited per NumPy batch (bounds the float64 temporaries of the deposition)
 DEPOSIT_BATCH = 1 << 16
@@ -231,8 +230,7 @@ class VolumetricPhotonMapping:
               "max_radius": 0.05, "leaf_size": 8, "segments_per_launch": 16384}
 
     def __init__(self, params: dict | None = None):
-        p = dict(self.PARAMS)
-        p.update(params or {})
+        p = settings(type(self), params)
         self.photons = int(p["photons"])
         self.photons_per_ray = float(p["photons_per_ray"])
         self.knn = int(p["knn"])
@@ -246,9 +244,7 @@ class VolumetricPhotonMapping:
                   ("dx", self.dx > 0, "must be > 0"),
                   ("max_radius", self.max_radius > 0, "must be > 0"),
                   ("leaf_size", 1 <= self.leaf_size <= 4096, "must be in [1, 4096]"))
-        for key, ok, msg in checks:
-            if not ok:
-                raise SceneError(f"render.vpm.{key}", f"{msg} (got {p[key]})")
+        check(type(self), p, checks)
 
     def rays(self) -> int:
         """Lighting rays to trace."""
