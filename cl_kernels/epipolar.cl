@@ -1,6 +1,6 @@
 /* epipolar.cl: hierarchical volumetric shadows (Baran et al. 2010) for one light.
  *
- * Stages (host: clscatter/epipolar/pipeline.py):
+ * Stages (host: clscatter/methods/epipolar/pipeline.py):
  *   epi_shadow_map     shadow map, ray traced: orthographic over the medium box along a
  *                      directional light, perspective over a spot light's cone (Sec. 2.2)
  *   epi_depth_map      camera depth map at pixel centres (grid lookup only)
@@ -17,7 +17,7 @@
  * where F carries what depends on the light ray alone (the medium's transmittance from
  * where the light ray enters the box, the spot cone: the paper's "textured light"),
  * Gamma_n, B_n come from the truncated SVD of the slice-independent rest
- * (clscatter/epipolar/svd.py; B_n includes the pure-beta factors phase/sin(beta) and
+ * (clscatter/methods/epipolar/svd.py; B_n includes the pure-beta factors phase/sin(beta) and
  * |ds/dgamma|), and exp(kappa t_a) restores the view transmittance from the segment
  * start t_a (so results are radiance arriving at the start of the medium segment).
  */
@@ -86,7 +86,7 @@ __kernel void epi_shadow_map(__global const BVHNode *nodes, __global const float
 }
 
 /* camera ray through a continuous position in the image (x right, y down, in pixels of
- * a w x h raster spanning the camera's field of view; the paths.cl convention) */
+ * a w x h raster spanning the camera's field of view; the view_paths.cl convention) */
 float4 epi_camera_dir(__global const Camera *cam, float px, float py, int w, int h) {
     float fx = 2.0f * px / w - 1.0f;
     float fy = 1.0f - 2.0f * py / h;

@@ -1,7 +1,7 @@
 /* epipolar.h: structs and the Fenwick (half) tree of the epipolar method.
  *
  * Baran et al. 2010, "A Hierarchical Volumetric Shadow Algorithm for Single Scattering".
- * The structs mirror clscatter/epipolar/geometry.py (EPI_FRAME, EPI_SLICE); their layout
+ * The structs mirror clscatter/methods/epipolar/geometry.py (EPI_FRAME, EPI_SLICE); their layout
  * is checked by tests/test_epipolar.py. Coordinates are those of that module: the axis u
  * from the eye towards the light, slices = half-planes (unit w normal to u), beta = angle
  * of a view ray from u, gamma = light-ray coordinate (distance from the eye for a

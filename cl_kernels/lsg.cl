@@ -2,7 +2,7 @@
  *
  * lsg_gather: one work-item per view segment. The view line is the 6-D hyperplane
  * w = (m_v, u_v) (moment in the Plücker frame); a stackless depth-first walk of the
- * perfect 8-ary tree (clscatter/accel/linetree.py) visits every node whose box meets the
+ * perfect 8-ary tree (clscatter/methods/lsg/linetree.py) visits every node whose box meets the
  * slab |P . w| <= r' (|P . w| = d sin theta <= d, so nothing within r is culled), tests
  * each point of a visited leaf against the same slab, then the surviving pairs with the
  * exact segment-to-segment distance, and adds the cylinder-kernel estimate of lsg.h for

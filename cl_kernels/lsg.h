@@ -1,6 +1,6 @@
 /* lsg.h: structs and pair maths of line space gathering (Sun et al. 2010).
  *
- * Mirrored on the host by clscatter/accel/linetree.py (LINE_NODE) and
+ * Mirrored on the host by clscatter/methods/lsg/linetree.py (LINE_NODE) and
  * clscatter/methods/lsg.py (LSG_LINE); tests/test_lsg.py checks sizes and offsets.
  *
  * ---- The estimate (derived here, not copied from the paper) ----

@@ -1,6 +1,6 @@
 /* raymarch.cl: the reference for single scattering of direct light.
  *
- * One work-item per view segment (ViewSegment, from paths.cl). For every light, STEPS
+ * One work-item per view segment (ViewSegment, from view_paths.cl). For every light, STEPS
  * jittered, stratified samples along the segment; at each, a shadow ray to the light
  * (any-hit through the BVH) and the medium transmittance on the way, the HG phase
  * function and sigma_s:

@@ -1,4 +1,4 @@
-/* specular.h: what view paths (paths.cl) and light paths (light_paths.cl) share: the
+/* specular.h: what view paths (view_paths.cl) and light paths (light_paths.cl) share: the
  * branch record, the surface frame at a hit, and mirror / dielectric scattering.
  *
  * Paths are followed deterministically: a dielectric hit *splits* a branch into its

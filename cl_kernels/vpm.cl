@@ -1,6 +1,6 @@
 /* vpm.cl: volumetric photon mapping, the gather (Jensen & Christensen 1998).
  *
- * One work-item per view segment (ViewSegment, from paths.cl). The segment is marched
+ * One work-item per view segment (ViewSegment, from view_paths.cl). The segment is marched
  * with a fixed step dx from a per-segment random offset u: samples at t_i = (i + u) dx,
  * each standing for a length dx, so the sum is an unbiased estimate of the integral
  * along the segment (jittered regular sampling). Samples farther than max_r from the

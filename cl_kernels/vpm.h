@@ -1,4 +1,4 @@
-/* vpm.h: the photon map of volumetric photon mapping (clscatter/accel/photontree.py builds
+/* vpm.h: the photon map of volumetric photon mapping (clscatter/methods/vpm/photontree.py builds
  * it) and its k-nearest-neighbour query.
  *
  * Photon: 20 bytes, as in Jensen's photon map: position, octahedral direction code (the

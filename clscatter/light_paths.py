@@ -25,7 +25,7 @@ import numpy as np
 
 from . import structs
 from .device import AppendBuffer
-from .paths import PreparedScene
+from .prepared import PreparedScene
 from .stats import Stats, progress
 
 

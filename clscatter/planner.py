@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 from . import structs
 from .methods import available
-from .paths import PreparedScene
+from .prepared import PreparedScene
 
 DIRECT_ONLY = ("raymarch", "epipolar")
 

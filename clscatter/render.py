@@ -8,7 +8,8 @@ import numpy as np
 
 from .device import Engine, get_engine
 from .methods import get_method
-from .paths import prepare_scene, trace_view_paths
+from .prepared import prepare_scene
+from .view_paths import trace_view_paths
 from .planner import plan
 from .scene.model import Scene
 from .stats import Stats

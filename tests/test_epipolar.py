@@ -1,6 +1,6 @@
 """Epipolar method, kernel level: struct layout, the Fenwick tree against cumsum, the sinh
 slice placement, the SVD, and every kernel of epipolar.cl against a NumPy version of the
-same maths (clscatter/epipolar, cl_kernels/epipolar.cl)."""
+same maths (clscatter/methods/epipolar, cl_kernels/epipolar.cl)."""
 from __future__ import annotations
 
 import itertools
@@ -12,8 +12,8 @@ from layout import layout_mismatches
 
 from clscatter import structs
 from clscatter.accel.bvh import build_bvh, trace
-from clscatter.epipolar import geometry as geo
-from clscatter.epipolar import svd
+from clscatter.methods.epipolar import geometry as geo
+from clscatter.methods.epipolar import svd
 from clscatter.scene.frame import Frame, camera_struct
 from clscatter.scene.model import Camera
 

@@ -6,11 +6,12 @@ import analytic
 import numpy as np
 import pytest
 
-from clscatter.epipolar.pipeline import Settings, render_light
+from clscatter.methods.epipolar.pipeline import Settings, render_light
 from clscatter.errors import SceneError
 from clscatter.image import relmse
 from clscatter.methods.epipolar import Epipolar
-from clscatter.paths import prepare_scene, trace_view_paths
+from clscatter.prepared import prepare_scene
+from clscatter.view_paths import trace_view_paths
 from clscatter.render import render
 from clscatter.scene.builtin_epipolar import EPIPOLAR_SCENES, load_epipolar_scene
 from clscatter.scene.loader import scene_from_dict
@@ -60,7 +61,7 @@ def test_directional_slab_matches_closed_form(engine, direction, target):
             eye, v, ps.lights[0]["direction"][:3], float(ps.lights[0]["power"][c]),
             float(m["sigma_s"][c]), float(m["kappa"][c]), float(m["g"]), m["bmin"][:3],
             m["bmax"][:3]) for c in range(3)], axis=1)
-        from clscatter.epipolar.geometry import CameraGeom, epipole, make_axis
+        from clscatter.methods.epipolar.geometry import CameraGeom, epipole, make_axis
         cam = CameraGeom.from_struct(ps.camera)
         P, _ = epipole(make_axis(ps.lights[0], eye), cam)
         near = np.hypot(*(cam.project(v) - P).T) < 6.0
@@ -77,7 +78,7 @@ def test_directional_slab_matches_closed_form(engine, direction, target):
 
 def test_spot_unbounded_matches_quadrature(engine):
     """A spot light in an unbounded medium, no occluders, against analytic.airlight_spot
-    (Gauss quadrature) for every sample, view rays ending where paths.cl ends them (the
+    (Gauss quadrature) for every sample, view rays ending where view_paths.cl ends them (the
     lamp off screen; near an on-screen lamp the cone's silhouette is only resolved to
     the slice spacing, which is what the ring is for). The cone's hard edge falls inside
     light-ray cells, which the cone coverage weights; a sample just outside the cone's

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from clscatter.light_paths import emission, trace_light_paths
-from clscatter.paths import prepare_scene
+from clscatter.prepared import prepare_scene
 from clscatter.scene import scene_from_dict
 
 HERE = Path(__file__).resolve().parent

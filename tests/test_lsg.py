@@ -15,11 +15,12 @@ import pytest
 
 import analytic
 from clscatter import structs
-from clscatter.accel.linetree import PluckerFrame
+from clscatter.methods.lsg.linetree import PluckerFrame
 from clscatter.image import relmse
 from clscatter.light_paths import trace_light_paths
 from clscatter.methods.lsg import STRUCTS, Gatherer, clip_segments
-from clscatter.paths import prepare_scene, trace_view_paths
+from clscatter.prepared import prepare_scene
+from clscatter.view_paths import trace_view_paths
 from clscatter.render import render
 from clscatter.scene import scene_from_dict
 from test_render import _airlight_reference
@@ -315,7 +316,7 @@ def test_real_scene_tree_equals_exhaustive(engine, bounded):
     assert len(s_tree) > 500 and s_tree == set(map(tuple, res_all.pairs.tolist()))
     np.testing.assert_allclose(v_tree, v_all, rtol=2e-5, atol=1e-6 * np.abs(v_all).max())
     w, h = CAUSTIC["camera"]["resolution"]
-    from clscatter.paths import accumulate_segments
+    from clscatter.view_paths import accumulate_segments
     img_t = accumulate_segments(v_tree, views["pixel"], w, h)
     img_a = accumulate_segments(v_all, views["pixel"], w, h)
     assert relmse(img_t, img_a) < 1e-10 and img_a.max() > 0

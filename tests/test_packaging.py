@@ -27,4 +27,4 @@ def test_every_subpackage_is_listed():
 def test_kernel_sources_are_found():
     from clscatter.device import kernel_dir
     kd = kernel_dir()
-    assert (kd / "common.h").is_file() and (kd / "paths.cl").is_file()
+    assert (kd / "common.h").is_file() and (kd / "view_paths.cl").is_file()

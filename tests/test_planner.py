@@ -4,7 +4,7 @@ from __future__ import annotations
 import copy
 from pathlib import Path
 
-from clscatter.paths import prepare_scene
+from clscatter.prepared import prepare_scene
 from clscatter.planner import plan
 from clscatter.scene import scene_from_dict
 

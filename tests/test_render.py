@@ -132,7 +132,8 @@ def test_glass_sphere_conserves_energy(engine):
 
 
 def res_escaped(engine, d: dict) -> np.ndarray:
-    from clscatter.paths import prepare_scene, trace_view_paths
+    from clscatter.prepared import prepare_scene
+    from clscatter.view_paths import trace_view_paths
     ps = prepare_scene(_scene(d), engine)
     try:
         return trace_view_paths(ps, show_progress=False).escaped
@@ -159,7 +160,7 @@ def test_glass_cube_total_internal_reflection_and_absorption(engine):
 
 def test_fresnel_matches_numpy(engine):
     import pyopencl as cl
-    kern = engine.kernel("paths", "fresnel_test")
+    kern = engine.kernel("view_paths", "fresnel_test")
     cos_i = np.linspace(0.0, 1.0, 257).astype(np.float32)
     for eta in (1 / 1.5, 1.5, 1 / 1.33):
         out = np.empty_like(cos_i)
@@ -207,7 +208,8 @@ def test_mirror_reflects_diffuse_quad(engine):
 # ---- kernel level: raymarch on hand-made segments against quadrature ----
 def test_raymarch_kernel_segments_against_quadrature(engine):
     from clscatter.methods.raymarch import RayMarch
-    from clscatter.paths import ViewPaths, prepare_scene
+    from clscatter.prepared import prepare_scene
+    from clscatter.view_paths import ViewPaths
     d = copy.deepcopy(AIRLIGHT)
     d["camera"]["resolution"] = [8, 1]
     d["medium"]["g"] = -0.4
@@ -238,7 +240,8 @@ def test_raymarch_kernel_segments_against_quadrature(engine):
 
 
 def test_view_segments_follow_camera_rays(engine):
-    from clscatter.paths import prepare_scene, trace_view_paths
+    from clscatter.prepared import prepare_scene
+    from clscatter.view_paths import trace_view_paths
     d = copy.deepcopy(AIRLIGHT)
     d["camera"] = _cam(w=6, h=4, spp=1)
     ps = prepare_scene(_scene(d), engine)

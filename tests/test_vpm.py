@@ -13,11 +13,12 @@ import pytest
 from scipy.spatial import cKDTree
 
 from clscatter import structs
-from clscatter.accel import photontree as pt
+from clscatter.methods.vpm import photontree as pt
 from clscatter.image import relmse
 from clscatter.methods.vpm import (DevicePhotonMap, VolumetricPhotonMapping, deposit_photons,
                                    gather, knn_points)
-from clscatter.paths import accumulate_segments, prepare_scene, trace_view_paths
+from clscatter.prepared import prepare_scene
+from clscatter.view_paths import accumulate_segments, trace_view_paths
 from clscatter.scene import scene_from_dict
 from clscatter.stats import Stats
 

@@ -49,7 +49,8 @@ if str(REPO) not in sys.path:
 from clscatter import methods                                   # noqa: E402
 from clscatter.device import get_engine                         # noqa: E402
 from clscatter.image import relmse, write_image                 # noqa: E402
-from clscatter.paths import prepare_scene, trace_view_paths     # noqa: E402
+from clscatter.prepared import prepare_scene
+from clscatter.view_paths import trace_view_paths     # noqa: E402
 from clscatter.scene import scene_from_dict                     # noqa: E402
 from clscatter.scene.builtin_caustics import CAUSTIC_SCENES     # noqa: E402
 from clscatter.stats import Stats, write_json                   # noqa: E402

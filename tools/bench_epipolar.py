@@ -53,11 +53,12 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from clscatter.device import get_engine
-from clscatter.epipolar import geometry as geo
+from clscatter.methods.epipolar import geometry as geo
 from clscatter.image import relmse
 from clscatter.methods.epipolar import Epipolar
 from clscatter.methods.raymarch import RayMarch
-from clscatter.paths import prepare_scene, trace_view_paths
+from clscatter.prepared import prepare_scene
+from clscatter.view_paths import trace_view_paths
 from clscatter.scene.builtin_epipolar import load_epipolar_scene
 from clscatter.stats import Stats, write_json
 

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..paths import PreparedScene, ViewPaths, accumulate_segments
+from ..prepared import PreparedScene
+from ..view_paths import ViewPaths, accumulate_segments
 from ..stats import Stats, progress
 from . import check, register, settings
 

@@ -14,8 +14,8 @@ import math
 
 import numpy as np
 
-from .. import structs
-from ..paths import PreparedScene
+from ... import structs
+from ...prepared import PreparedScene
 from .geometry import Axis, medium_box
 
 T_INF = 1e30

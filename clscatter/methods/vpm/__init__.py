@@ -6,12 +6,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..accel.photontree import (BUILD_BYTES_PER_PHOTON, PHOTON, PhotonTree, build_tree,
+from .photontree import (BUILD_BYTES_PER_PHOTON, PHOTON, PhotonTree, build_tree,
                                 encode_direction, encode_rgb9e5)
-from ..light_paths import trace_light_paths
-from ..paths import PreparedScene, ViewPaths, accumulate_segments
-from ..stats import Stats, progress
-from . import check, register, settings
+from ...light_paths import trace_light_paths
+from ...prepared import PreparedScene
+from ...view_paths import ViewPaths, accumulate_segments
+from ...stats import Stats, progress
+from .. import check, register, settings
 
 # photons deposited per NumPy batch (bounds the float64 temporaries of the deposition)
 DEPOSIT_BATCH = 1 << 16
@@ -170,7 +171,7 @@ class VolumetricPhotonMapping:
     an unbiased track-length discretisation of the lighting rays; dim branches such as
     Fresnel reflections get proportionally fewer photons). The photon map stores 20 bytes
     per photon (position, octahedral direction, RGB9E5 power) in a balanced kd-tree laid
-    out as an implicit perfect binary tree of boxes (``clscatter/accel/photontree.py``).
+    out as an implicit perfect binary tree of boxes (``clscatter/methods/vpm/photontree.py``).
 
     *Gather.* Every view segment from the view-path tracer is marched with step ``dx``
     from a random offset (jittered regular samples, each standing for ``dx``). At each

@@ -8,14 +8,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import structs
-from ..accel.linetree import (LINE_NODE, LineTree, PluckerFrame, build_linetree, canonical_signs,
+from ... import structs
+from .linetree import (LINE_NODE, LineTree, PluckerFrame, build_linetree, canonical_signs,
                               plucker)
-from ..device import Engine
-from ..light_paths import ray_counts, trace_light_paths
-from ..paths import PreparedScene, ViewPaths, accumulate_segments
-from ..stats import Stats, progress
-from . import check, register, settings
+from ...device import Engine
+from ...light_paths import ray_counts, trace_light_paths
+from ...prepared import PreparedScene
+from ...view_paths import ViewPaths, accumulate_segments
+from ...stats import Stats, progress
+from .. import check, register, settings
 
 F4 = structs.F4
 
@@ -229,7 +230,7 @@ class LineSpaceGathering:
     mirrors and glass (Fresnel split, TIR, interior absorption, ``render.max_depth``); every
     straight piece inside the medium is kept with the flux at its start. Each such
     *lighting segment* becomes a 6-D Plücker point; the points go into a balanced
-    median-split kd-tree collapsed into a perfect 8-ary tree (``clscatter.accel.linetree``).
+    median-split kd-tree collapsed into a perfect 8-ary tree (``clscatter.methods.lsg.linetree``).
     Every view segment (seen directly or through mirrors and glass) is a 6-D hyperplane;
     a stackless walk of the tree finds the lighting lines that may pass within ``radius``
     (``|P . w| = d sin theta <= d``), an exact segment-to-segment distance keeps the pairs

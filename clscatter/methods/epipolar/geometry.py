@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import structs
+from ... import structs
 
 F4 = (np.float32, 4)
 
@@ -71,7 +71,7 @@ def _unit(v) -> np.ndarray:
 # --------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class CameraGeom:
-    """The pinhole camera of paths.cl in float64: ``dir = fwd + sx right + sy up``."""
+    """The pinhole camera of view_paths.cl in float64: ``dir = fwd + sx right + sy up``."""
 
     origin: np.ndarray
     fwd: np.ndarray
@@ -473,7 +473,7 @@ def make_slices(axis: Axis, cam: CameraGeom, box, spacing: float = 1.0,
 # --------------------------------------------------------------------------------------
 def frame_struct(axis: Axis, medium: np.ndarray, d: int) -> np.ndarray:
     """EPI_FRAME with the axis, the medium box and extinction; the shadow-map fields are
-    filled by :mod:`clscatter.epipolar.maps`."""
+    filled by :mod:`clscatter.methods.epipolar.maps`."""
     f = np.zeros((), EPI_FRAME)
     f["eye"] = structs.vec4(axis.eye)
     f["u"] = structs.vec4(axis.u)

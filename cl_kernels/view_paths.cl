@@ -1,4 +1,4 @@
-/* paths.cl: view paths from the camera through specular chains.
+/* view_paths.cl: view paths from the camera through specular chains.
  *
  * One work-item per camera sample. Each path is followed through mirrors and
  * dielectrics up to max_depth bounces; a dielectric hit *splits* the path into its

@@ -5,12 +5,13 @@ import dataclasses
 
 import numpy as np
 
-from .. import structs
-from ..epipolar.pipeline import LOOKUPS, Settings, render_light
-from ..paths import PreparedScene, ViewPaths, accumulate_segments
-from ..stats import Stats
-from . import check, register, settings
-from .raymarch import RayMarch
+from ... import structs
+from .pipeline import LOOKUPS, Settings, render_light
+from ...prepared import PreparedScene
+from ...view_paths import ViewPaths, accumulate_segments
+from ...stats import Stats
+from .. import check, register, settings
+from ..raymarch import RayMarch
 
 
 @register

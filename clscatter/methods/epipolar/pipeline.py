@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..paths import PreparedScene
-from ..stats import Stats, progress
+from ...prepared import PreparedScene
+from ...stats import Stats, progress
 from . import geometry as geo
 from .maps import setup_shadow_map, trace_depth_map, trace_shadow_map
 from .svd import decompose

@@ -1,7 +1,6 @@
 """View paths: camera rays through specular chains, surface shading, segment buffers.
 
-:func:`prepare_scene` turns a scene into device buffers once (normalised frame, triangle
-soup, BVH, structs); :func:`trace_view_paths` runs ``paths.cl``: one work-item per camera
+:func:`trace_view_paths` runs ``view_paths.cl`` over a :class:`~clscatter.prepared.PreparedScene`: one work-item per camera
 sample, dielectric hits split into Fresnel-weighted branches, diffuse hits lit directly
 by every light (shadow rays, medium attenuation). It returns the surface image and the
 buffer of view segments in the medium, which every medium method consumes.
@@ -13,70 +12,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import structs
-from .accel.bvh import BVH, build_bvh
-from .device import AppendBuffer, Engine
-from .scene.frame import Frame, camera_struct, light_structs, medium_struct, triangle_soup
-from .scene.model import Scene
+from .device import AppendBuffer
+from .prepared import PreparedScene
 from .stats import Stats, progress
 
 # camera samples per kernel launch (bounds the segment buffer; drives the progress bar)
 SAMPLES_PER_LAUNCH = 1 << 17
-
-
-@dataclass
-class PreparedScene:
-    """A scene in the normalised frame, uploaded to one device."""
-
-    scene: Scene
-    engine: Engine
-    frame: Frame
-    bvh: BVH
-    medium: np.ndarray          # structs.MEDIUM (host copy)
-    camera: np.ndarray          # structs.CAMERA (host copy)
-    lights: np.ndarray          # structs.LIGHT array (host copy)
-    buf: dict                   # name -> device buffer
-
-    @property
-    def num_lights(self) -> int:
-        return len(self.lights)
-
-    @property
-    def has_medium(self) -> bool:
-        return bool(self.medium["present"])
-
-    def release(self) -> None:
-        self.engine.free(*self.buf.values())
-        self.buf.clear()
-
-
-def prepare_scene(scene: Scene, engine: Engine, stats: Stats | None = None) -> PreparedScene:
-    """Normalise, flatten and upload ``scene``; build its BVH."""
-    stats = stats or Stats()
-    frame = Frame.for_scene(scene)
-    with stats.stage("bvh_build"):
-        soup = triangle_soup(scene, frame)
-        bvh = build_bvh(soup.triangles)
-    order = bvh.order
-    normals = np.zeros((len(order), 3, 4), np.float32)
-    normals[:, :, :3] = soup.normals[order]
-    tri_mat = np.ascontiguousarray(soup.material[order], np.int32)
-    medium = medium_struct(scene.medium, frame)
-    camera = camera_struct(scene.camera, frame)
-    lights = light_structs(scene.lights, frame)
-    lights_dev = lights if len(lights) else np.zeros(1, structs.LIGHT)
-    with stats.stage("upload"):
-        buf = {
-            "nodes": engine.to_device(bvh.nodes),
-            "tris": engine.to_device(bvh.triangles),
-            "normals": engine.to_device(normals),
-            "tri_mat": engine.to_device(tri_mat),
-            "materials": engine.to_device(soup.materials),
-            "lights": engine.to_device(lights_dev),
-            "medium": engine.to_device(medium.reshape(1)),
-            "camera": engine.to_device(camera.reshape(1)),
-        }
-    stats.set(triangles=int(len(order)), bvh_nodes=int(len(bvh.nodes)), lights=int(len(lights)))
-    return PreparedScene(scene, engine, frame, bvh, medium, camera, lights, buf)
 
 
 @dataclass
@@ -90,13 +31,13 @@ class ViewPaths:
 
 def trace_view_paths(ps: PreparedScene, stats: Stats | None = None, show_progress: bool = True,
                      samples_per_launch: int = SAMPLES_PER_LAUNCH) -> ViewPaths:
-    """Run ``paths.cl`` over every camera sample of ``ps`` (see the module docstring)."""
+    """Run ``view_paths.cl`` over every camera sample of ``ps`` (see the module docstring)."""
     stats = stats or Stats()
     eng = ps.engine
     cam = ps.scene.camera
     w, h, spp = cam.width, cam.height, cam.spp
     total = w * h * spp
-    kern = eng.kernel("paths", "trace_view")
+    kern = eng.kernel("view_paths", "trace_view")
     chunk = int(min(samples_per_launch, total))
     surface = np.zeros((total, 4), np.float32)
     escaped = np.zeros((total, 4), np.float32)
