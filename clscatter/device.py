@@ -18,8 +18,10 @@ Programs
 """
 from __future__ import annotations
 
+import difflib
 import hashlib
 import os
+import re
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,7 +29,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .errors import DeviceError, KernelBuildError
+from .errors import DeviceError, KernelArgError, KernelBuildError
 
 ENV_DEVICE = "CLSCATTER_DEVICE"
 ENV_CACHE = "CLSCATTER_CACHE_DIR"
@@ -168,6 +170,45 @@ def choose_device(spec: str | None = None) -> DeviceInfo:
                       " (install pocl-opencl-icd)"))
 
 
+# OpenCL scalar parameter types -> the NumPy type a value is converted to
+_SCALARS = {"int": np.int32, "uint": np.uint32, "unsigned int": np.uint32, "float": np.float32,
+            "long": np.int64, "ulong": np.uint64, "short": np.int16, "ushort": np.uint16,
+            "char": np.int8, "uchar": np.uint8}
+_VECTORS = {"float2": 2, "float4": 4, "int2": 2, "int4": 4}
+
+
+@dataclass(frozen=True)
+class KernelParam:
+    """One parameter of a ``__kernel`` function, as declared in its ``.cl`` source."""
+
+    name: str
+    ctype: str          # the declared type without qualifiers, e.g. "float", "Light*"
+    pointer: bool
+
+
+def kernel_signature(source: str, kernel: str) -> tuple[KernelParam, ...]:
+    """The parameters of ``__kernel void <kernel>(...)`` in ``source`` (comments removed).
+
+    Only the ``.cl`` file that defines the kernel is parsed; headers hold no entry points.
+    """
+    text = re.sub(r"/\*.*?\*/|//[^\n]*", " ", source, flags=re.S)
+    m = re.search(r"__kernel\s+void\s+" + re.escape(kernel) + r"\s*\(([^)]*)\)", text)
+    if not m:
+        raise KernelArgError(f"kernel '{kernel}' is not defined in its program source")
+    params = []
+    for raw in m.group(1).split(","):
+        words = raw.replace("*", " * ").split()
+        if not words:
+            continue
+        pointer = "*" in words
+        name = words[-1]
+        ctype = " ".join(w for w in words[:-1] if w not in
+                         ("__global", "global", "__local", "local", "__constant", "constant",
+                          "const", "restrict", "__restrict", "*"))
+        params.append(KernelParam(name, ctype + ("*" if pointer else ""), pointer))
+    return tuple(params)
+
+
 class Engine:
     """An OpenCL context + queue on one device, with cached programs and tracked buffers.
 
@@ -185,6 +226,7 @@ class Engine:
         self.queue = cl.CommandQueue(self.ctx)
         self._programs: dict[tuple, object] = {}
         self._kernels: dict[tuple, object] = {}
+        self._signatures: dict[tuple, tuple[KernelParam, ...]] = {}
         self._sizes: dict[int, int] = {}
         self.bytes_live = 0
         self.bytes_peak = 0
@@ -211,6 +253,64 @@ class Engine:
         if key not in self._kernels:
             self._kernels[key] = self.cl.Kernel(self.program(program, defines), kernel)
         return self._kernels[key]
+
+    def signature(self, program: str, kernel: str) -> tuple[KernelParam, ...]:
+        """The declared parameters of ``kernel`` in ``cl_kernels/<program>.cl`` (cached)."""
+        key = (program, kernel)
+        if key not in self._signatures:
+            path = kernel_dir() / f"{program}.cl"
+            if not path.is_file():
+                raise KernelBuildError(f"kernel source {path} does not exist")
+            self._signatures[key] = kernel_signature(path.read_text(), kernel)
+        return self._signatures[key]
+
+    def bind(self, program: str, kernel: str, args: dict[str, object]) -> list:
+        """Positional kernel arguments from keyword ``args``, checked against the signature.
+
+        Every parameter must be given exactly once (an unknown or missing name is a
+        :class:`KernelArgError`, with a "did you mean"); scalars are converted to the
+        declared type, so ``n=len(x)`` is passed as a 32-bit int where the kernel says
+        ``int``; pointer parameters must be device buffers.
+        """
+        params = self.signature(program, kernel)
+        names = [p.name for p in params]
+        unknown = [k for k in args if k not in names]
+        if unknown:
+            near = difflib.get_close_matches(unknown[0], names, n=1)
+            hint = f" (did you mean '{near[0]}'?)" if near else ""
+            raise KernelArgError(f"{program}.cl:{kernel} has no parameter '{unknown[0]}'{hint}")
+        missing = [n for n in names if n not in args]
+        if missing:
+            raise KernelArgError(f"{program}.cl:{kernel}: missing argument(s) {', '.join(missing)}")
+        out = []
+        for p in params:
+            v = args[p.name]
+            if p.pointer:
+                if not isinstance(v, self.cl.MemoryObjectHolder):
+                    raise KernelArgError(f"{program}.cl:{kernel}: '{p.name}' ({p.ctype}) needs a "
+                                         f"device buffer, got {type(v).__name__}")
+                out.append(v)
+            elif p.ctype in _SCALARS:
+                out.append(_SCALARS[p.ctype](v))
+            elif p.ctype in _VECTORS:
+                vec = np.zeros(_VECTORS[p.ctype], np.float32 if p.ctype.startswith("float") else np.int32)
+                flat = np.asarray(v).ravel()
+                vec[:len(flat)] = flat[:len(vec)]
+                out.append(vec)
+            else:  # a struct passed by value: the caller gives a matching NumPy record
+                out.append(v)
+        return out
+
+    def call(self, program: str, kernel: str, global_size: int | Sequence[int],
+             defines: dict[str, object] | None = None, **args) -> None:
+        """Launch ``kernel`` of ``cl_kernels/<program>.cl`` with keyword arguments.
+
+        ``engine.call("raymarch", "raymarch", n, segs=buf, num_segs=n, ...)``: names are
+        checked against the kernel's declaration (see :meth:`bind`), so a swapped or
+        misspelled argument is an error instead of a wrong image.
+        """
+        self.launch(self.kernel(program, kernel, defines), global_size,
+                    *self.bind(program, kernel, args))
 
     def _cache_key(self, name: str, opts: Sequence[str]) -> str:
         h = hashlib.sha256()
@@ -345,6 +445,17 @@ class AppendBuffer:
         self.capacity = max(1, int(capacity))
         self.buf = engine.empty(self.capacity * self.dtype.itemsize)
         self.counter = engine.empty(4)
+
+    def call(self, program: str, kernel: str, global_size: int,
+             defines: dict[str, object] | None = None, **args) -> np.ndarray:
+        """Keyword launch (see :meth:`Engine.call`) of a kernel whose last three parameters
+        are the records, capacity and counter; return the records appended."""
+        eng = self.eng
+        params = eng.signature(program, kernel)
+        rec, cap, cnt = (p.name for p in params[-3:])
+        return self.launch(eng.kernel(program, kernel, defines), global_size,
+                           *eng.bind(program, kernel, {**args, rec: self.buf, cap: 0,
+                                                       cnt: self.counter})[:-3])
 
     def launch(self, kernel, global_size: int, *args) -> np.ndarray:
         """Run ``kernel(*args, records, capacity, counter)``; return the records appended."""

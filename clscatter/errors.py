@@ -28,3 +28,11 @@ class KernelBuildError(ClscatterError):
 
 class ImageError(ClscatterError):
     """An image file cannot be read or written."""
+
+
+class KernelArgError(TypeError):
+    """A kernel was launched with a wrong, missing or unknown keyword argument.
+
+    A programming error, not a user one: it is deliberately not a :class:`ClscatterError`,
+    so it surfaces as a traceback instead of a one-line message.
+    """

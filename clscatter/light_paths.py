@@ -100,20 +100,26 @@ class LightPaths:
 
 def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = None,
                       show_progress: bool = True, rays_per_launch: int = 1 << 16,
-                      chunk: tuple[int, int] | None = None) -> LightPaths:
+                      chunk: tuple[int, int] | None = None, pieces: bool = False) -> LightPaths:
     """Trace ``num_rays`` lighting rays (shared among lights by power).
 
     ``chunk = (k, n)`` traces only the k-th of n equal parts of every light's rays (the
     same rays a full trace would give), so callers can bound memory and sum results.
+    ``pieces=True`` returns, instead of the medium segments, the
+    :data:`~clscatter.structs.RAY_PIECE` on which every branch ends (diffuse or black
+    surface, or leaving the scene box) with the flux arriving there, with or without a
+    medium (the surface-caustic methods: ``raymap``, ``photonmap``).
     """
     stats = stats or Stats()
     eng = ps.engine
     counts = ray_counts(ps, num_rays)
-    kern = eng.kernel("light_paths", "trace_light")
     parts: list[np.ndarray] = []
     fluxes = np.zeros((ps.num_lights, 3))
     launch = max(1, int(rays_per_launch))
-    segs = AppendBuffer(eng, structs.LIGHT_SEGMENT, launch * 2) if ps.has_medium else None
+    record = structs.RAY_PIECE if pieces else structs.LIGHT_SEGMENT
+    defines = {"RAY_PIECES": 1} if pieces else None
+    wanted = pieces or ps.has_medium
+    segs = AppendBuffer(eng, record, launch * 2) if wanted else None
     seed = np.uint32((ps.scene.render.seed * 2654435761 + 11) & 0xFFFFFFFF)
     total = int(counts.sum())
     with stats.stage("light_paths"), progress(total, "light paths", show_progress) as bar:
@@ -122,7 +128,7 @@ def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = No
             em = emission(ps, li)
             flux = em.power / max(n_li, 1)
             fluxes[li] = flux
-            if n_li == 0 or not ps.has_medium:
+            if n_li == 0 or not wanted:
                 continue
             lo, hi = 0, n_li
             if chunk is not None:
@@ -131,21 +137,22 @@ def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = No
             start = lo
             while start < hi:
                 m = min(launch, hi - start)
-                parts.append(segs.launch(
-                    kern, m, ps.buf["nodes"], ps.buf["tris"], ps.buf["normals"], ps.buf["tri_mat"],
-                    ps.buf["materials"], ps.buf["lights"], np.int32(li), ps.buf["medium"],
-                    np.int32(ps.scene.render.max_depth), seed, np.int32(start), np.int32(m),
-                    np.int32(n_li), structs.vec4(flux), em.rect[0], em.rect[1], em.rect[2]))
+                parts.append(segs.call(
+                    "light_paths", "trace_light", m, defines,
+                    **ps.scene_args("light_paths", "trace_light"), light_index=li,
+                    max_depth=ps.scene.render.max_depth, seed=seed, ray_offset=start,
+                    num_rays=m, rays_total=n_li, flux_per_ray=flux, rect_origin=em.rect[0],
+                    rect_u=em.rect[1], rect_v=em.rect[2]))
                 start += m
                 bar.update(m)
     if segs is not None:
         segs.release()
-    out = np.concatenate(parts) if parts else np.zeros(0, structs.LIGHT_SEGMENT)
+    out = np.concatenate(parts) if parts else np.zeros(0, record)
     out = out[np.lexsort((out["branch"], out["ray"], out["light"]))]
     eng.note_host(out.nbytes)
     stats.add("light_rays", int(total if chunk is None else sum(
         int(c) * (chunk[0] + 1) // chunk[1] - int(c) * chunk[0] // chunk[1] for c in counts)))
-    stats.add("light_segments", int(len(out)))
+    stats.add("light_ray_pieces" if pieces else "light_segments", int(len(out)))
     return LightPaths(out, counts, fluxes)
 
 

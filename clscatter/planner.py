@@ -1,72 +1,98 @@
-"""``auto``: decide which passes a scene needs and skip the rest.
+"""``auto``: decide which passes a scene needs, from the scene alone, and skip the rest.
 
-The medium term of an image is the sum of passes over the same view segments:
+An image is the surface term of the view paths plus passes that each compute one *term*
+(:mod:`clscatter.methods.base`):
 
-* **direct** single scattering (light straight from the lights, shadowed): by
-  ``epipolar`` when every light is directional or spot (its assumptions; it falls back
-  to ray marching for what it cannot do and says so), otherwise by ``raymarch``;
-* **caustics** (light that reached the medium through mirrors or glass): by ``lsg``
-  restricted to lighting segments with at least one specular bounce, only when the scene
-  has mirror or dielectric objects.
+========================  ==================================================================
+term                      needed when the scene has
+========================  ==================================================================
+``direct``                a (non-void) medium and lights
+``caustics``              a medium, lights and mirror or glass objects
+``surface_caustics``      lights, mirror or glass objects and diffuse objects
+``volumes``               ``[[volumes]]`` (graded index: nothing else bends rays)
+========================  ==================================================================
 
-No medium, a void medium or no lights: no medium pass at all. An explicit method runs
-alone and computes what it can (``lsg`` and ``vpm``: direct light and caustics;
-``raymarch`` and ``epipolar``: direct light only, which the notes say). Every decision
-is recorded in ``--stats`` under ``plan``.
+For every needed term the planner takes, among the implemented methods that declare an
+``AUTO`` role for it and whose assumptions hold for the scene (``Method.suits``), the one
+with the highest priority; no method name is written here. An explicit method runs alone
+and computes its ``TERMS``; the notes say which needed terms that leaves out. Every
+decision is recorded in ``--stats`` under ``plan``.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from . import structs
-from .methods import available
-from .prepared import PreparedScene
-
-DIRECT_ONLY = ("raymarch", "epipolar")
+from .methods import all_methods
+from .scene.model import Scene
 
 
 @dataclass
 class Pass:
     method: str
-    role: str                                     # "direct", "caustics" or "all"
+    role: str                                     # a term, or "all" for an explicit method
     params: dict = field(default_factory=dict)    # overrides of the scene's [render.<method>]
 
 
-def _has_specular(ps: PreparedScene) -> bool:
-    kinds = {m.type for m in (o.material for o in ps.scene.objects)}
-    return bool(kinds & {"mirror", "dielectric"})
-
-
-def plan(ps: PreparedScene, requested: str) -> tuple[list[Pass], list[str]]:
-    """The medium passes to run and notes on what was chosen or skipped."""
+def needed_terms(scene: Scene) -> tuple[list[str], list[str]]:
+    """The terms ``scene`` needs, and notes on the ones it does not."""
     notes: list[str] = []
-    if not ps.has_medium:
-        notes.append("no participating medium: medium passes skipped")
-        return [], notes
-    if ps.num_lights == 0:
-        notes.append("no lights: medium passes skipped")
-        return [], notes
-    specular = _has_specular(ps)
-    if requested != "auto":
-        if requested in DIRECT_ONLY and specular:
-            notes.append(f"{requested} computes direct light only: volumetric caustics "
-                         "through mirrors/glass are not in this image")
-        return [Pass(requested, "direct" if requested in DIRECT_ONLY else "all")], notes
-    have = set(available())
-    kinds = set(int(t) for t in ps.lights["type"])
-    if "epipolar" in have and kinds <= {structs.LIGHT_SPOT, structs.LIGHT_DIRECTIONAL}:
-        direct = "epipolar"
-        notes.append("direct single scattering by epipolar (directional/spot lights only)")
-    else:
-        direct = "raymarch"
-        notes.append("direct single scattering by raymarch")
-    passes = [Pass(direct, "direct")]
-    if specular:
-        if "lsg" in have:
-            passes.append(Pass("lsg", "caustics", {"min_light_depth": 1}))
-            notes.append("volumetric caustics by lsg (lighting segments after >= 1 specular bounce)")
+    kinds = {o.material.type for o in scene.objects}
+    specular = bool(kinds & {"mirror", "dielectric"})
+    lights = bool(scene.lights)
+    medium = scene.has_medium()
+    terms: list[str] = []
+    if not lights:
+        notes.append("no lights: no light-carrying pass")
+        return terms, notes
+    if medium:
+        terms.append("direct")
+        if specular:
+            terms.append("caustics")
         else:
-            notes.append("scene has mirrors/glass but no caustic method is available")
+            notes.append("no mirrors or glass: caustic pass skipped")
     else:
-        notes.append("no mirrors or glass: caustic pass skipped")
+        notes.append("no participating medium: medium passes skipped")
+    if specular and "diffuse" in kinds:
+        terms.append("surface_caustics")
+    if scene.volumes:
+        terms.append("volumes")
+    return terms, notes
+
+
+def plan(scene: Scene, requested: str) -> tuple[list[Pass], list[str]]:
+    """The passes to run for ``scene`` with ``requested`` ('auto' or a method name), and
+    notes on what was chosen or skipped."""
+    terms, notes = needed_terms(scene)
+    methods = all_methods()
+    if requested != "auto":
+        cls = methods[requested]
+        if not terms:
+            return [], notes
+        missing = [t for t in terms if t not in cls.TERMS]
+        if len(missing) == len(terms):
+            notes.append(f"{requested} computes {', '.join(sorted(cls.TERMS))}, which this scene "
+                         f"does not need ({', '.join(terms)}): nothing to run")
+            return [], notes
+        if missing:
+            notes.append(f"{requested} does not compute {', '.join(missing)}: "
+                         "that light is not in this image")
+        return [Pass(requested, "all")], notes
+    passes: list[Pass] = []
+    for term in terms:
+        candidates = []
+        for name, cls in methods.items():
+            role = cls.AUTO.get(term)
+            if role is None:
+                continue
+            why_not = cls.suits(scene)
+            if why_not:
+                notes.append(f"{term}: not {name} ({why_not})")
+                continue
+            candidates.append((role.priority, name, role))
+        if not candidates:
+            notes.append(f"scene needs {term} but no available method computes it")
+            continue
+        _, name, role = max(candidates)
+        passes.append(Pass(name, term, dict(role.params or {})))
+        notes.append(f"{term} by {name}")
     return passes, notes

@@ -5,7 +5,8 @@ reads the device buffers it holds.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from typing import Sequence
 
 import numpy as np
 
@@ -15,6 +16,23 @@ from .device import Engine
 from .scene.frame import Frame, camera_struct, light_structs, medium_struct, triangle_soup
 from .scene.model import Scene
 from .stats import Stats
+
+
+@dataclass
+class SceneBuffers:
+    """The scene's device buffers; names match the kernels' parameter names."""
+
+    nodes: object       # BVH nodes (structs.BVH_NODE)
+    tris: object        # Woop-transformed triangles, BVH order
+    normals: object     # per-vertex shading normals (float4 x 3 per triangle)
+    tri_mat: object     # material index per triangle
+    materials: object   # structs.MATERIAL
+    lights: object      # structs.LIGHT (one dummy record when the scene has none)
+    medium: object      # structs.MEDIUM
+    camera: object      # structs.CAMERA
+
+    def as_dict(self) -> dict[str, object]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
 @dataclass
@@ -28,7 +46,7 @@ class PreparedScene:
     medium: np.ndarray          # structs.MEDIUM (host copy)
     camera: np.ndarray          # structs.CAMERA (host copy)
     lights: np.ndarray          # structs.LIGHT array (host copy)
-    buf: dict                   # name -> device buffer
+    dev: SceneBuffers | None    # device buffers (None once released)
 
     @property
     def num_lights(self) -> int:
@@ -38,9 +56,23 @@ class PreparedScene:
     def has_medium(self) -> bool:
         return bool(self.medium["present"])
 
+    def call(self, program: str, kernel: str, global_size: int | Sequence[int],
+             defines: dict[str, object] | None = None, **args) -> None:
+        """:meth:`Engine.call` with the scene filled in: every kernel parameter named like
+        a :class:`SceneBuffers` field, and ``num_lights``, is bound from this scene unless
+        given explicitly."""
+        self.engine.call(program, kernel, global_size, defines, **self.scene_args(program, kernel), **args)
+
+    def scene_args(self, program: str, kernel: str, **given) -> dict[str, object]:
+        """The scene's part of a kernel's arguments (parameters not in ``given``)."""
+        have = {**self.dev.as_dict(), "num_lights": self.num_lights}
+        return {p.name: have[p.name] for p in self.engine.signature(program, kernel)
+                if p.name in have and p.name not in given}
+
     def release(self) -> None:
-        self.engine.free(*self.buf.values())
-        self.buf.clear()
+        if self.dev is not None:
+            self.engine.free(*self.dev.as_dict().values())
+            self.dev = None
 
 
 def prepare_scene(scene: Scene, engine: Engine, stats: Stats | None = None) -> PreparedScene:
@@ -59,15 +91,15 @@ def prepare_scene(scene: Scene, engine: Engine, stats: Stats | None = None) -> P
     lights = light_structs(scene.lights, frame)
     lights_dev = lights if len(lights) else np.zeros(1, structs.LIGHT)
     with stats.stage("upload"):
-        buf = {
-            "nodes": engine.to_device(bvh.nodes),
-            "tris": engine.to_device(bvh.triangles),
-            "normals": engine.to_device(normals),
-            "tri_mat": engine.to_device(tri_mat),
-            "materials": engine.to_device(soup.materials),
-            "lights": engine.to_device(lights_dev),
-            "medium": engine.to_device(medium.reshape(1)),
-            "camera": engine.to_device(camera.reshape(1)),
-        }
+        dev = SceneBuffers(
+            nodes=engine.to_device(bvh.nodes),
+            tris=engine.to_device(bvh.triangles),
+            normals=engine.to_device(normals),
+            tri_mat=engine.to_device(tri_mat),
+            materials=engine.to_device(soup.materials),
+            lights=engine.to_device(lights_dev),
+            medium=engine.to_device(medium.reshape(1)),
+            camera=engine.to_device(camera.reshape(1)),
+        )
     stats.set(triangles=int(len(order)), bvh_nodes=int(len(bvh.nodes)), lights=int(len(lights)))
-    return PreparedScene(scene, engine, frame, bvh, medium, camera, lights, buf)
+    return PreparedScene(scene, engine, frame, bvh, medium, camera, lights, dev)

@@ -1,4 +1,5 @@
-"""One render: scene -> prepared device scene -> view paths -> medium method -> image."""
+"""One render: scene -> checked method parameters -> plan -> prepared device scene -> view
+paths -> passes -> image."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -7,43 +8,55 @@ from typing import Any
 import numpy as np
 
 from .device import Engine, get_engine
-from .methods import get_method
-from .prepared import prepare_scene
-from .view_paths import trace_view_paths
+from .methods import configure_scene, get_method
 from .planner import plan
+from .prepared import prepare_scene
 from .scene.model import Scene
 from .stats import Stats
+from .view_paths import trace_view_paths
 
 
 @dataclass
 class RenderResult:
     image: np.ndarray            # (H, W, 3) float32 linear radiance
     stats: dict[str, Any]
-    surface: np.ndarray          # the surface part alone
+    surface: np.ndarray          # the surface part alone (direct light + surface caustics)
     medium: np.ndarray           # the medium part alone
 
 
 def render(scene: Scene, method: str | None = None, engine: Engine | None = None,
            device: str | None = None, show_progress: bool = True) -> RenderResult:
-    """Render ``scene`` with ``method`` (default: the scene's render.method)."""
+    """Render ``scene`` with ``method`` (default: the scene's render.method).
+
+    Every method name and ``[render.<method>]`` table is checked before any device work
+    (:func:`clscatter.methods.configure_scene`); the plan is made from the scene alone.
+    """
     stats = Stats()
     requested = method or scene.render.method
-    if requested != "auto":
-        get_method(requested)  # fail early, before any device work, on a bad name
-    engine = engine or get_engine(device)
+    with stats.stage("configure"):
+        configure_scene(scene, requested)
+        passes, notes = plan(scene, requested)
+    with stats.stage("device"):
+        engine = engine or get_engine(device)
     engine.reset_peak()
     ps = prepare_scene(scene, engine, stats)
     try:
         paths = trace_view_paths(ps, stats, show_progress)
-        passes, notes = plan(ps, requested)
         cam = scene.camera
+        surface = paths.surface.copy()
         medium = np.zeros((cam.height, cam.width, 3), np.float32)
         for p in passes:
-            params = {**scene.render.params.get(p.method, {}), **p.params}
-            m = get_method(p.method)(params)
-            medium = medium + m.render_medium(ps, paths, stats, show_progress)
+            m = get_method(p.method)({**(scene.render.params.get(p.method) or {}), **p.params})
+            out = m.render(ps, paths, stats, show_progress)
+            if p.role == "surface_caustics":
+                surface = surface + out
+            elif isinstance(out, dict):      # a method that splits its own terms
+                surface = surface + out.get("surface", 0.0)
+                medium = medium + out.get("medium", 0.0)
+            else:
+                medium = medium + out
         chosen = "+".join(p.method for p in passes) or None
-        image = paths.surface + medium
+        image = surface + medium
         bad = ~np.isfinite(image)
         if bad.any():
             stats.set(nonfinite_pixels_zeroed=int(bad.any(axis=-1).sum()))
@@ -54,4 +67,5 @@ def render(scene: Scene, method: str | None = None, engine: Engine | None = None
                   peak_bytes=int(engine.bytes_peak))
     finally:
         ps.release()
-    return RenderResult(image.astype(np.float32), stats.to_dict(), paths.surface, medium)
+    return RenderResult(image.astype(np.float32), stats.to_dict(), surface.astype(np.float32),
+                        medium.astype(np.float32))

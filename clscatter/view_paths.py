@@ -37,7 +37,6 @@ def trace_view_paths(ps: PreparedScene, stats: Stats | None = None, show_progres
     cam = ps.scene.camera
     w, h, spp = cam.width, cam.height, cam.spp
     total = w * h * spp
-    kern = eng.kernel("view_paths", "trace_view")
     chunk = int(min(samples_per_launch, total))
     surface = np.zeros((total, 4), np.float32)
     escaped = np.zeros((total, 4), np.float32)
@@ -50,11 +49,10 @@ def trace_view_paths(ps: PreparedScene, stats: Stats | None = None, show_progres
         start = 0
         while start < total:
             n = min(chunk, total - start)
-            seg_parts.append(segs.launch(
-                kern, n, ps.buf["nodes"], ps.buf["tris"], ps.buf["normals"], ps.buf["tri_mat"],
-                ps.buf["materials"], ps.buf["lights"], np.int32(ps.num_lights), ps.buf["medium"],
-                ps.buf["camera"], np.int32(ps.scene.render.max_depth), seed, np.int32(start),
-                np.int32(n), out_surf, out_esc))
+            seg_parts.append(segs.call(
+                "view_paths", "trace_view", n, **ps.scene_args("view_paths", "trace_view"),
+                cam=ps.dev.camera, max_depth=ps.scene.render.max_depth, seed=seed,
+                sample_offset=start, num_samples=n, surface=out_surf, escaped=out_esc))
             surface[start:start + n] = eng.read(out_surf, (chunk, 4), np.float32)[:n]
             escaped[start:start + n] = eng.read(out_esc, (chunk, 4), np.float32)[:n]
             start += n
@@ -69,6 +67,34 @@ def trace_view_paths(ps: PreparedScene, stats: Stats | None = None, show_progres
     surf_img = surface[:, :3].reshape(h * w, spp, 3).sum(axis=1).reshape(h, w, 3)
     esc_img = escaped[:, :3].reshape(h * w, spp, 3).sum(axis=1).reshape(h, w, 3)
     return ViewPaths(surf_img.astype(np.float32), esc_img.astype(np.float32), segments)
+
+
+def trace_diffuse_hits(ps: PreparedScene, samples_per_launch: int = SAMPLES_PER_LAUNCH) -> np.ndarray:
+    """Where the camera paths of :func:`trace_view_paths` meet diffuse surfaces.
+
+    The same samples and branches (same seeds), one :data:`~clscatter.structs.DIFFUSE_HIT`
+    per branch ending on a diffuse surface, with weight = throughput * albedo / pi: a
+    method that knows the irradiance E arriving at a hit adds ``weight * E`` to its pixel
+    (surface caustics). Sorted by (sample, branch), so runs are reproducible.
+    """
+    eng = ps.engine
+    cam = ps.scene.camera
+    total = cam.width * cam.height * cam.spp
+    chunk = int(min(samples_per_launch, total))
+    hits = AppendBuffer(eng, structs.DIFFUSE_HIT, chunk)
+    seed = np.uint32(ps.scene.render.seed & 0xFFFFFFFF)
+    parts: list[np.ndarray] = []
+    for start in range(0, total, chunk):
+        n = min(chunk, total - start)
+        parts.append(hits.call(
+            "view_paths", "trace_diffuse_hits", n, **ps.scene_args("view_paths", "trace_diffuse_hits"),
+            cam=ps.dev.camera, max_depth=ps.scene.render.max_depth, seed=seed,
+            sample_offset=start, num_samples=n))
+    hits.release()
+    out = np.concatenate(parts) if parts else np.zeros(0, structs.DIFFUSE_HIT)
+    out = out[np.lexsort((out["branch"], out["sample"]))]
+    eng.note_host(out.nbytes)
+    return out
 
 
 def accumulate_segments(values: np.ndarray, pixels: np.ndarray, width: int, height: int) -> np.ndarray:

@@ -1,10 +1,16 @@
-"""auto: passes chosen by what the scene contains."""
+"""auto: passes chosen from the scene alone by the methods' declared capabilities.
+
+These tests need no OpenCL device: the planner reads the Scene, not device buffers.
+"""
 from __future__ import annotations
 
 import copy
 from pathlib import Path
 
-from clscatter.prepared import prepare_scene
+import pytest
+
+from clscatter.errors import SceneError
+from clscatter.methods import AutoRole, Method, get_method
 from clscatter.planner import plan
 from clscatter.scene import scene_from_dict
 
@@ -18,47 +24,95 @@ BASE = {
 }
 
 
-def _plan(engine, d, requested="auto"):
-    ps = prepare_scene(scene_from_dict(copy.deepcopy(d), HERE, "p"), engine)
-    try:
-        return plan(ps, requested)
-    finally:
-        ps.release()
+def _plan(d, requested="auto"):
+    return plan(scene_from_dict(copy.deepcopy(d), HERE, "p"), requested)
 
 
-def test_no_medium_or_lights_skips_everything(engine):
+def _roles(passes):
+    return [(p.method, p.role) for p in passes]
+
+
+def test_planner_needs_no_opencl():
+    """Plan in a fresh process where importing pyopencl fails."""
+    import subprocess
+    import sys
+    code = ("import sys; sys.modules['pyopencl'] = None\n"
+            "from clscatter.planner import plan\n"
+            "from clscatter.scene import load_scene\n"
+            "passes, notes = plan(load_scene('builtin:shafts'), 'auto')\n"
+            "print([p.method for p in passes])")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                       cwd=HERE.parent)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "['epipolar']"
+
+
+def test_no_medium_or_lights_skips_everything():
     d = copy.deepcopy(BASE)
     del d["medium"]
-    assert _plan(engine, d)[0] == []
+    assert _plan(d)[0] == []
     d = copy.deepcopy(BASE)
     d["lights"] = []
-    assert _plan(engine, d)[0] == []
+    assert _plan(d)[0] == []
     d = copy.deepcopy(BASE)
     d["medium"]["sigma_s"] = 0.0                  # a void medium is no medium
-    assert _plan(engine, d)[0] == []
+    assert _plan(d)[0] == []
 
 
-def test_point_light_diffuse_scene_is_raymarched_without_caustics(engine):
-    passes, notes = _plan(engine, BASE)
-    assert [(p.method, p.role) for p in passes] == [("raymarch", "direct")]
+def test_point_light_diffuse_scene_is_raymarched_without_caustics():
+    passes, notes = _plan(BASE)
+    assert _roles(passes) == [("raymarch", "direct")]
     assert any("caustic pass skipped" in n for n in notes)
 
 
-def test_specular_objects_add_an_lsg_caustic_pass(engine):
+def test_spot_and_directional_lights_choose_epipolar():
+    d = copy.deepcopy(BASE)
+    d["lights"] = [{"type": "spot", "position": [0, 2, 0], "target": [0, 0, 0], "intensity": 5.0,
+                    "cutoff_angle": 20.0}]
+    assert _roles(_plan(d)[0]) == [("epipolar", "direct")]
+    d["lights"].append({"type": "point", "position": [1, 2, 0], "intensity": 1.0})
+    passes, notes = _plan(d)                       # a point light breaks epipolar's assumptions
+    assert _roles(passes) == [("raymarch", "direct")]
+    assert any("not epipolar" in n for n in notes)
+
+
+def test_specular_objects_add_an_lsg_caustic_pass():
     d = copy.deepcopy(BASE)
     d["objects"][0]["material"] = {"type": "dielectric", "ior": 1.5}
-    passes, _ = _plan(engine, d)
-    assert [(p.method, p.role) for p in passes] == [("raymarch", "direct"), ("lsg", "caustics")]
+    passes, _ = _plan(d)
+    assert _roles(passes)[:2] == [("raymarch", "direct"), ("lsg", "caustics")]
     assert passes[1].params == {"min_light_depth": 1}
-    passes, notes = _plan(engine, d, "raymarch")      # explicit: alone, with a warning
+    passes, notes = _plan(d, "raymarch")      # explicit: alone, with a warning
     assert [p.method for p in passes] == ["raymarch"] and any("caustics" in n for n in notes)
 
 
+def test_the_planner_follows_declared_capabilities(monkeypatch):
+    """A new method with a higher priority for a term takes it over; nothing in the planner
+    names it."""
+    import clscatter.methods as methods
+
+    class Fancy(Method):
+        NAME = "fancy"
+        TERMS = frozenset({"direct"})
+        AUTO = {"direct": AutoRole(priority=99)}
+
+    methods._load_all()
+    monkeypatch.setitem(methods._REGISTRY, "fancy", Fancy)
+    assert _roles(_plan(BASE)[0]) == [("fancy", "direct")]
+
+    class Picky(Fancy):
+        NAME = "picky"
+        AUTO = {"direct": AutoRole(priority=100)}
+        LIGHTS = frozenset({"directional"})
+
+    monkeypatch.setitem(methods._REGISTRY, "picky", Picky)
+    passes, notes = _plan(BASE)                    # a point light: picky does not suit
+    assert _roles(passes) == [("fancy", "direct")] and any("not picky" in n for n in notes)
+
+
 def test_bad_method_parameters_name_their_key():
-    import pytest
-    from clscatter.errors import SceneError
-    from clscatter.methods import get_method
     for method, key, value in (("raymarch", "steps", 0), ("lsg", "radius", -1.0),
-                               ("vpm", "knn", 1), ("epipolar", "svd_terms", 0)):
+                               ("vpm", "knn", 1), ("epipolar", "svd_terms", 0),
+                               ("lsg", "light_rays", 0), ("epipolar", "lookup", "nope")):
         with pytest.raises(SceneError, match=f"render.{method}.{key}: .*got"):
             get_method(method)({key: value})

@@ -227,7 +227,7 @@ def test_raymarch_kernel_segments_against_quadrature(engine):
     segs["pixel"] = np.arange(n)
     segs["sample"] = np.arange(n)
     from clscatter.stats import Stats
-    img = RayMarch({"steps": 64}).render_medium(ps, ViewPaths(None, None, segs), Stats(), False)
+    img = RayMarch({"steps": 64}).render(ps, ViewPaths(None, None, segs), Stats(), False)
     ps.release()
     m, L = d["medium"], d["lights"][0]
     kappa = np.add(m["sigma_s"], m["sigma_a"])

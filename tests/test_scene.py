@@ -25,9 +25,19 @@ FAKE_PARAMS = {"raymarch": {"steps": 32, "step_scale": 0.5, "jitter": True, "mod
                "lsg": {"light_rays": 1000, "radius": 0.001}}
 
 
+def _fake_class(name: str, defaults: dict) -> type:
+    from clscatter.methods import Method, Param
+    return type(name, (Method,), {"NAME": name, "PARAMS": tuple(
+        Param(k, v, k, lo=0 if isinstance(v, (int, float)) and not isinstance(v, bool) else None)
+        for k, v in defaults.items())})
+
+
 @pytest.fixture
 def fake_methods(monkeypatch):
-    monkeypatch.setattr(loader, "_method_params", lambda: copy.deepcopy(FAKE_PARAMS))
+    import clscatter.methods as methods
+    methods._load_all()
+    monkeypatch.setattr(methods, "_REGISTRY",
+                        {n: _fake_class(n, d) for n, d in FAKE_PARAMS.items()})
 
 
 def base() -> dict:
@@ -57,7 +67,17 @@ def base() -> dict:
 
 
 def load(data: dict, *sets: str) -> Scene:
-    return scene_from_dict(apply_overrides(data, sets), DATA, "<test>")
+    """Load as ``clscatter render`` does before any device work: the scene, then every
+    ``[render.<method>]`` table checked by the methods."""
+    from clscatter.methods import configure_scene
+    scene = scene_from_dict(apply_overrides(data, sets), DATA, "<test>")
+    configure_scene(scene)
+    return scene
+
+
+def params(scene: Scene) -> dict:
+    from clscatter.methods import configure_scene
+    return configure_scene(scene)
 
 
 # ---- The full scene file --------------------------------------------------------------
@@ -177,7 +197,7 @@ def test_defaults_of_a_minimal_scene(fake_methods):
     assert c.origin.dtype == np.float64                       # ints in the file become floats
     assert s.medium is None and s.lights == [] and s.objects == [] and s.bbox() is None
     assert (s.render.method, s.render.max_depth, s.render.seed) == ("auto", 16, 0)
-    assert s.render.params == FAKE_PARAMS                     # defaults filled in
+    assert s.render.params == {}                              # tables stay raw in the scene
     m = scene_from_dict({**base(), "medium": {}, "lights": []}, DATA).medium
     np.testing.assert_array_equal(m.sigma_s, 0.0)
     assert m.g == 0.0 and m.bounds is None
@@ -265,17 +285,20 @@ def test_overrides_strings_bare_and_quoted():
 
 
 def test_overrides_create_method_tables(fake_methods):
-    s = load(base(), "render.raymarch.steps=64", "render.lsg.radius=0.0005",
-             "render.voxel.whatever=3")
-    assert s.render.params["raymarch"] == {**FAKE_PARAMS["raymarch"], "steps": 64}
-    assert s.render.params["lsg"]["radius"] == 0.0005
-    assert s.render.params["voxel"] == {"whatever": 3}       # not implemented: kept as is
+    s = load(base(), "render.raymarch.steps=64", "render.lsg.radius=0.0005")
+    assert s.render.params["raymarch"]["steps"] == 64          # raw in the scene
+    assert params(s)["raymarch"] == {**FAKE_PARAMS["raymarch"], "steps": 64}   # defaults filled
+    assert params(s)["lsg"]["radius"] == 0.0005
+    # a table of a reserved method that this build does not implement is an error
+    with pytest.raises(SceneError) as e:
+        load(base(), "render.voxel.whatever=3")
+    assert e.value.key == "render.voxel"
     # render table created from nothing
     d = base()
     del d["render"]
-    assert load(d, "render.raymarch.jitter=false").render.params["raymarch"]["jitter"] is False
+    assert params(load(d, "render.raymarch.jitter=false"))["raymarch"]["jitter"] is False
     # int is fine where the default is a float
-    assert load(base(), "render.raymarch.step_scale=2").render.params["raymarch"]["step_scale"] == 2.0
+    assert params(load(base(), "render.raymarch.step_scale=2"))["raymarch"]["step_scale"] == 2.0
 
 
 def test_override_appends_a_light():
@@ -491,15 +514,14 @@ def test_unknown_builtin():
 
 
 def test_real_method_params_are_checked():
-    from clscatter.methods import method_params
-    known = method_params()
-    assert "raymarch" in known
-    name, defaults = sorted(known.items())[0]
-    s = load(base())
-    assert s.render.params[name] == defaults
-    with pytest.raises(SceneError) as e:
-        load(base(), f"render.{name}.no_such_parameter=1")
-    assert e.value.key == f"render.{name}.no_such_parameter"
+    from clscatter.methods import all_methods, configure
+    known = all_methods()
+    assert {"raymarch", "lsg", "vpm", "epipolar"} <= set(known)
+    for name, cls in known.items():
+        assert configure(name, None) == {p.name: p.default for p in cls.PARAMS}
+        with pytest.raises(SceneError) as e:
+            load(base(), f"render.{name}.no_such_parameter=1")
+        assert e.value.key == f"render.{name}.no_such_parameter"
 
 
 # ---- Built-in scenes ----------------------------------------------------------------------

@@ -304,7 +304,7 @@ def _vpm_vs_segment_reference(engine, d, reference, **params):
     try:
         vp = trace_view_paths(ps, show_progress=False)
         stats = Stats()
-        img = VolumetricPhotonMapping(params).render_medium(ps, vp, stats, False)
+        img = VolumetricPhotonMapping(params).render(ps, vp, stats, False)
     finally:
         ps.release()
     s, fr = vp.segments, ps.frame

@@ -4,7 +4,7 @@ on a caustic scene, as in Table 1 / Figure 5 of the LSG paper (Sun et al. 2010).
 
 On one built-in caustic scene (default ``caustic_sphere``, 160 x 120, 1 spp), in one
 process, with the scene prepared and the view paths traced once (both methods gather
-the same view segments; only the medium pass ``render_medium`` is timed):
+the same view segments; only the medium pass ``render`` is timed):
 
 * a converged reference, LSG with many lighting rays and a small radius (VPM when LSG is
   not available; ``--reference``), cached under bench_out/caustics/ and keyed by scene,
@@ -121,7 +121,7 @@ class Bench:
             stats = Stats()
             m = methods.get_method(method)(dict(params))
             t = time.perf_counter()
-            medium = m.render_medium(self.ps, self.paths, stats, show_progress=False)
+            medium = m.render(self.ps, self.paths, stats, show_progress=False)
             seconds = time.perf_counter() - t
             rec = {"method": method, "params": dict(params), "seconds": seconds,
                    "peak_bytes": int(eng.bytes_peak), "method_bytes": int(eng.bytes_peak - live),

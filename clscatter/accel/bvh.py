@@ -367,11 +367,11 @@ def trace(engine, bvh: BVH, origins: np.ndarray, dirs: np.ndarray, tmin: float =
         return empty + (np.zeros((0, 2), np.float32),) if uv else empty
     bufs = bvh.device_buffers(engine)
     ob, db = engine.to_device(o), engine.to_device(d)
-    args = (bufs.nodes, bufs.triangles, ob, db, np.float32(tmin), np.float32(tmax))
+    args = dict(nodes=bufs.nodes, tris=bufs.triangles, orig=ob, dir=db, tmin=tmin, tmax=tmax)
     if not closest:
         hb = engine.empty(4 * n)
         try:
-            engine.launch(engine.kernel("bvh", "any_hit"), n, *args, hb)
+            engine.call("bvh", "any_hit", n, **args, hit_out=hb)
             return engine.read(hb, n, np.int32) != 0
         finally:
             engine.free(ob, db, hb)
@@ -379,9 +379,9 @@ def trace(engine, bvh: BVH, origins: np.ndarray, dirs: np.ndarray, tmin: float =
     ub = engine.empty(8 * n) if uv else None
     try:
         if uv:
-            engine.launch(engine.kernel("bvh", "closest_hit_uv"), n, *args, tb, ib, ub)
+            engine.call("bvh", "closest_hit_uv", n, **args, t_out=tb, tri_out=ib, uv_out=ub)
         else:
-            engine.launch(engine.kernel("bvh", "closest_hit"), n, *args, tb, ib)
+            engine.call("bvh", "closest_hit", n, **args, t_out=tb, tri_out=ib)
         t = engine.read(tb, n, np.float32)
         slot = engine.read(ib, n, np.int32)
         uvs = engine.read(ub, (n, 2), np.float32) if uv else None

@@ -1,80 +1,112 @@
-"""Rendering methods, registered by name.
+"""Rendering methods, discovered from this package and registered by name.
 
-A method computes the medium's single scattering (and, for the caustic methods, light
-carried by specular chains) for the view segments the path tracer produced. Each
-method is one module with one class; the class docstring is its user documentation,
-``PARAMS`` maps every ``[render.<name>]`` key to its documented default.
-
-Register a method with ``@register``; ``get_method(name)`` finds it. The scene loader
-checks ``[render.<name>]`` keys against :func:`method_params`.
+Adding a method means adding one module (or package) here with one class decorated by
+``@register`` (see :mod:`clscatter.methods.base` for what the class declares) and its
+``cl_kernels/<name>.cl``; nothing else names it: the scene loader keeps ``[render.<name>]``
+tables raw, :func:`configure` checks them against the class's ``PARAMS`` before any device
+work, and the ``auto`` planner chooses by the class's declared capabilities.
 """
 from __future__ import annotations
 
 import importlib
+import pkgutil
 from typing import Any
 
 from ..errors import SceneError
+from ..scene.model import METHOD_NAMES
+from .base import AutoRole, Method, Param, configure as _configure, param_table
 
-# every method name the scene format reserves (SCENE_FORMAT.md, render.method)
-CONTRACT_METHODS = ("auto", "lsg", "epipolar", "voxel", "raymarch", "vpm", "raymap", "photonmap")
+__all__ = ["AutoRole", "Method", "Param", "register", "available", "get_method", "configure",
+           "all_methods", "param_table", "unavailable"]
 
-# modules imported to populate the registry; a method whose module does not exist yet
-# is simply absent (its name is still reserved)
-_MODULES = ("raymarch", "lsg", "vpm", "epipolar")
-
-_REGISTRY: dict[str, type] = {}
+_REGISTRY: dict[str, type[Method]] = {}
+_BROKEN: dict[str, str] = {}     # module name -> why it could not be imported
+_LOADED = False
 
 
-def register(cls: type) -> type:
+def register(cls: type[Method]) -> type[Method]:
     """Class decorator: make ``cls`` available under ``cls.NAME``."""
+    if not cls.NAME:
+        raise TypeError(f"{cls.__name__} has no NAME")
     _REGISTRY[cls.NAME] = cls
     return cls
 
 
 def _load_all() -> None:
-    for m in _MODULES:
-        name = f"{__name__}.{m}"
+    """Import every module of this package once, so that their ``@register`` run.
+
+    A module that cannot be imported because an optional dependency is missing is
+    remembered with the reason (:func:`unavailable`), not fatal: the other methods work,
+    and using this one gives a one-line error that names the dependency.
+    """
+    global _LOADED
+    if _LOADED:
+        return
+    _LOADED = True
+    for info in pkgutil.iter_modules(__path__):
+        if info.name == "base":
+            continue
         try:
-            importlib.import_module(name)
-        except ModuleNotFoundError as e:
-            if e.name != name:  # a real missing dependency inside the module: report it
-                raise
+            importlib.import_module(f"{__name__}.{info.name}")
+        except ImportError as e:
+            _BROKEN[info.name] = f"needs the Python package '{e.name or e}' ({e})"
+
+
+def all_methods() -> dict[str, type[Method]]:
+    """``{name: class}`` of every method that imported."""
+    _load_all()
+    return dict(sorted(_REGISTRY.items()))
 
 
 def available() -> list[str]:
     """Names of the methods implemented in this build (plus 'auto')."""
+    return ["auto", *all_methods()]
+
+
+def unavailable() -> dict[str, str]:
+    """Method modules that could not be imported, with the reason."""
     _load_all()
-    return ["auto", *sorted(_REGISTRY)]
+    return dict(_BROKEN)
 
 
-def method_params() -> dict[str, dict[str, Any]]:
-    """``{method name: {parameter: default}}`` for every implemented method."""
-    _load_all()
-    return {name: dict(cls.PARAMS) for name, cls in _REGISTRY.items()}
-
-
-def get_method(name: str) -> type:
+def get_method(name: str) -> type[Method]:
     """The method class registered as ``name`` (SceneError naming render.method if none)."""
     _load_all()
     if name in _REGISTRY:
         return _REGISTRY[name]
-    if name in CONTRACT_METHODS:
+    if name in _BROKEN:
+        raise SceneError("render.method", f"method '{name}' is unavailable: {_BROKEN[name]}")
+    if name in METHOD_NAMES:
         raise SceneError("render.method", f"method '{name}' is not implemented in this version "
                          f"(available: {', '.join(available())})")
-    raise SceneError("render.method", f"unknown method '{name}' (one of {', '.join(CONTRACT_METHODS)})")
+    raise SceneError("render.method", f"unknown method {name!r} (one of {', '.join(METHOD_NAMES)})")
 
 
-def settings(cls: type, params: dict | None) -> dict[str, Any]:
-    """``cls.PARAMS`` overlaid with the scene's ``[render.<name>]`` values (the loader has
-    already checked keys and types; :func:`check` validates ranges)."""
-    p = dict(cls.PARAMS)
-    p.update(params or {})
-    return p
+def configure(name: str, table: dict | None) -> dict[str, Any]:
+    """Checked parameters of method ``name`` from its ``[render.<name>]`` table (defaults
+    filled in). An unknown key, a wrong type or a value out of range is a
+    :class:`SceneError` naming ``render.<name>.<key>``."""
+    _load_all()
+    if name not in _REGISTRY:
+        if table and name in _BROKEN:
+            raise SceneError(f"render.{name}", f"cannot check these parameters: method "
+                             f"'{name}' is unavailable ({_BROKEN[name]})")
+        if table and name in METHOD_NAMES:
+            raise SceneError(f"render.{name}", f"method '{name}' is not implemented in this "
+                             f"version, so its parameters cannot be used")
+        return dict(table or {})
+    return _configure(_REGISTRY[name], table)
 
 
-def check(cls: type, p: dict, checks) -> None:
-    """Raise ``SceneError("render.<NAME>.<key>", "<rule> (got <value>)")`` for the first
-    ``(key, ok, rule)`` in ``checks`` whose ``ok`` is false."""
-    for key, ok, rule in checks:
-        if not ok:
-            raise SceneError(f"render.{cls.NAME}.{key}", f"{rule} (got {p.get(key)!r})")
+def configure_scene(scene, method: str | None = None) -> dict[str, dict[str, Any]]:
+    """Check, before any device work, everything a render of ``scene`` will read from the
+    methods: the requested method exists (``method`` or ``render.method``) and every
+    ``[render.<name>]`` table in the scene is valid, whether or not that method runs.
+    Returns ``{name: checked parameters}`` for the tables present and the requested method."""
+    requested = method if method is not None else scene.render.method
+    if requested != "auto":
+        get_method(requested)
+    out = {name: configure(name, table) for name, table in scene.render.params.items()}
+    if requested != "auto" and requested not in out:
+        out[requested] = configure(requested, None)
+    return out

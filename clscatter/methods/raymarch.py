@@ -6,11 +6,12 @@ import numpy as np
 from ..prepared import PreparedScene
 from ..view_paths import ViewPaths, accumulate_segments
 from ..stats import Stats, progress
-from . import check, register, settings
+from .base import AutoRole, Method, Param
+from . import register
 
 
 @register
-class RayMarch:
+class RayMarch(Method):
     """``raymarch``: march every view segment, shadow-test every step.
 
     For each view segment in the medium (from the view-path tracer, so segments seen
@@ -22,27 +23,22 @@ class RayMarch:
     uniformly. Only direct light is marched (no caustics): light bounced by mirrors or
     bent by glass is the caustic methods' job.
 
-    ==============  =====  =======  ============================================
-    parameter       type   default  meaning
-    ==============  =====  =======  ============================================
-    steps           int    32       samples per segment and light
-    segments_per_launch int 65536  segments per kernel launch (progress/memory)
-    ==============  =====  =======  ============================================
-
     Usage: ``clscatter render scene.toml --method raymarch --set render.raymarch.steps=128``
     """
 
     NAME = "raymarch"
-    PARAMS = {"steps": 32, "segments_per_launch": 65536}
+    PARAMS = (
+        Param("steps", 32, "samples per segment and light", lo=1),
+        Param("segments_per_launch", 65536, "segments per kernel launch (progress, memory)", lo=1),
+    )
+    TERMS = frozenset({"direct"})
+    AUTO = {"direct": AutoRole(priority=10)}
 
-    def __init__(self, params: dict | None = None):
-        p = settings(type(self), params)
-        self.steps = int(p["steps"])
-        self.per_launch = int(p["segments_per_launch"])
-        check(type(self), p, (("steps", self.steps >= 1, "must be >= 1"),
-                              ("segments_per_launch", self.per_launch >= 1, "must be >= 1")))
+    @property
+    def steps(self) -> int:
+        return self.params["steps"]
 
-    def render_medium(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
+    def render(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
                       show_progress: bool = True) -> np.ndarray:
         """Single-scattered radiance (H, W, 3) for all view segments of ``paths``."""
         cam = ps.scene.camera
@@ -51,18 +47,16 @@ class RayMarch:
         if n == 0 or ps.num_lights == 0:
             return np.zeros((cam.height, cam.width, 3), np.float32)
         eng = ps.engine
-        kern = eng.kernel("raymarch", "raymarch")
         seg_buf = eng.to_device(segs)
-        chunk = min(self.per_launch, n)
+        chunk = min(self.params["segments_per_launch"], n)
         out_buf = eng.empty(chunk * 16)
         values = np.zeros((n, 4), np.float32)
         seed = np.uint32((ps.scene.render.seed * 7919 + 17) & 0xFFFFFFFF)
         with stats.stage("raymarch"), progress(n, "raymarch", show_progress) as bar:
             for start in range(0, n, chunk):
                 m = min(chunk, n - start)
-                eng.launch(kern, m, ps.buf["nodes"], ps.buf["tris"], ps.buf["lights"],
-                           np.int32(ps.num_lights), ps.buf["medium"], seg_buf, np.int32(start),
-                           np.int32(m), np.int32(self.steps), seed, out_buf)
+                ps.call("raymarch", "raymarch", m, segs=seg_buf, seg_offset=start, num_segs=m,
+                        steps=self.steps, seed=seed, out=out_buf)
                 values[start:start + m] = eng.read(out_buf, (chunk, 4), np.float32)[:m]
                 bar.update(m)
         eng.free(seg_buf, out_buf)

@@ -21,7 +21,8 @@ objects                     shape and material required; shape keys required;
                             transform translate 0, rotate [0, 1, 0, 0], scale 1
 volumes                     ior required (shapes), sigma_s 0, sigma_a 0, resolution 128
 render                      method "auto", max_depth 16, seed 0; ``[render.<m>]``
-                            defaults come from each method's ``PARAMS``
+                            tables are kept raw (clscatter.methods.configure
+                            checks them against each method's declared PARAMS)
 ==========================  ======================================================
 
 Extensions (keys not in the contract, documented here): ``subdivisions`` on spheres
@@ -45,9 +46,9 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib  # type: ignore[no-redef]
 
 from ..errors import SceneError
-from ..methods import CONTRACT_METHODS
 from . import shapes
-from .model import Camera, Light, Material, Medium, Object, RenderSettings, Scene, Volume
+from .model import (METHOD_NAMES, Camera, Light, Material, Medium, Object, RenderSettings, Scene,
+                    Volume)
 
 _REQUIRED = object()
 
@@ -120,20 +121,6 @@ def _unknown_key_message(name: str, allowed: Iterable[str], context: str) -> str
     if allowed:
         msg += f"; allowed: {', '.join(allowed)}"
     return msg
-
-
-def _method_params() -> dict[str, dict[str, Any]]:
-    """``{method: {param: default}}`` of the implemented methods.
-
-    The registry promises that a method whose module does not exist yet is simply
-    absent; tolerate that here too so a scene can load while methods are being written.
-    """
-    from .. import methods
-
-    try:
-        return methods.method_params()
-    except ModuleNotFoundError:
-        return {}
 
 
 class _Table:
@@ -468,53 +455,20 @@ def _load_grid(path: Path, key: str) -> np.ndarray:
     return grid
 
 
-def _param_value(value: Any, default: Any, key: str) -> Any:
-    """Type-check one ``[render.<method>]`` value against its default's type."""
-    if isinstance(default, bool):
-        if not isinstance(value, bool):
-            raise _err(key, f"expected true or false, got {_tname(value)}")
-        return value
-    if isinstance(default, int):
-        if not isinstance(value, int) or isinstance(value, bool):
-            raise _err(key, f"expected an integer, got {_tname(value)}")
-        return int(value)
-    if isinstance(default, float):
-        return _check_number(value, key, None, False, None, False)
-    if isinstance(default, str):
-        if not isinstance(value, str):
-            raise _err(key, f"expected a string, got {_tname(value)}")
-        return value
-    if isinstance(default, (list, tuple)):
-        if not isinstance(value, list):
-            raise _err(key, f"expected an array, got {_tname(value)}")
-        return value
-    return value
-
-
 def _render(root: _Table) -> RenderSettings:
     t = root.table("render", {})
     for name, value in t.data.items():
-        if name in RENDER_KEYS or name in CONTRACT_METHODS:
+        if name in RENDER_KEYS or name in METHOD_NAMES:
             continue
         if isinstance(value, dict):
             raise _err(t.k(name), f"unknown method table [render.{name}] (methods: "
-                       f"{', '.join(CONTRACT_METHODS)})")
-        raise _err(t.k(name), _unknown_key_message(name, (*RENDER_KEYS, *CONTRACT_METHODS), ""))
-    method = t.choice("method", CONTRACT_METHODS, "auto")
+                       f"{', '.join(METHOD_NAMES)})")
+        raise _err(t.k(name), _unknown_key_message(name, (*RENDER_KEYS, *METHOD_NAMES), ""))
+    method = t.choice("method", METHOD_NAMES, "auto")
     max_depth = t.integer("max_depth", 16, lo=0)
     seed = t.integer("seed", 0, lo=0)
-    known = _method_params()
-    params: dict[str, dict[str, Any]] = {m: dict(d) for m, d in known.items()}
-    for m in CONTRACT_METHODS:
-        if not t.has(m):
-            continue
-        mt = t.table(m)
-        if m in known:
-            mt.allow(known[m], f" for method '{m}'")
-            for name, value in mt.data.items():
-                params[m][name] = _param_value(value, known[m][name], mt.k(name))
-        else:  # reserved but not implemented yet: kept as written
-            params[m] = copy.deepcopy(mt.data)
+    # method tables stay raw: clscatter.methods.configure checks them before any device work
+    params = {m: copy.deepcopy(t.table(m).data) for m in METHOD_NAMES if t.has(m)}
     return RenderSettings(method=method, max_depth=max_depth, seed=seed, params=params)
 
 

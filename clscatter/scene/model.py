@@ -95,6 +95,10 @@ class Volume:
     key: str = ""
 
 
+# the method names the scene format reserves (render.method, [render.<name>] tables)
+METHOD_NAMES = ("auto", "lsg", "epipolar", "voxel", "raymarch", "vpm", "raymap", "photonmap")
+
+
 @dataclass
 class RenderSettings:
     method: str = "auto"
@@ -113,6 +117,11 @@ class Scene:
     volumes: list[Volume] = field(default_factory=list)
     render: RenderSettings = field(default_factory=RenderSettings)
     source: str = "<memory>"    # file path or "builtin:NAME"
+
+    def has_medium(self) -> bool:
+        """True when a medium exists and extinguishes light somewhere (a void medium, all
+        coefficients 0, is no medium)."""
+        return self.medium is not None and bool(np.any(self.medium.kappa > 0))
 
     def bbox(self) -> tuple[np.ndarray, np.ndarray] | None:
         """Bounding box of all objects and volumes (the contract's 'scene bounding box')."""

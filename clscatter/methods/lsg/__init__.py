@@ -16,7 +16,7 @@ from ...light_paths import ray_counts, trace_light_paths
 from ...prepared import PreparedScene
 from ...view_paths import ViewPaths, accumulate_segments
 from ...stats import Stats, progress
-from .. import check, register, settings
+from .. import AutoRole, Method, Param, register
 
 F4 = structs.F4
 
@@ -181,17 +181,18 @@ class Gatherer:
         centre = structs.vec4(fr.centre)
         tests = valid = 0
         if len(prep.lines):
-            kern = eng.kernel("lsg", "lsg_gather")
             with progress(self.n, "lsg gather", self.show_progress) as bar:
                 for start in range(0, self.n, self.per_launch):
                     m = min(self.per_launch, self.n - start)
-                    eng.launch(kern, m, nodes_buf, ranges_buf, np.int32(prep.tree.first_leaf),
-                               lines_buf, points_buf, ids_buf, np.int32(len(prep.lines)),
-                               np.float32(prep.max_m1), self.views_buf, np.int32(start),
-                               np.int32(m), centre, np.float32(1.0 / fr.scale),
-                               np.float32(self.radius), np.float32(self.min_sin), self.medium_buf,
-                               np.int32(bruteforce), self.out_buf, self.counts_buf,
-                               self.pairs_buf, self.pair_count, np.int32(self.record))
+                    eng.call("lsg", "lsg_gather", m, nodes=nodes_buf, leaf_ranges=ranges_buf,
+                             first_leaf=prep.tree.first_leaf, lines=lines_buf,
+                             points=points_buf, line_ids=ids_buf, num_lines=len(prep.lines),
+                             max_m1=prep.max_m1, views=self.views_buf, view_offset=start,
+                             num_views=m, pl_centre=centre, pl_inv_scale=1.0 / fr.scale,
+                             radius=self.radius, min_sin=self.min_sin, medium=self.medium_buf,
+                             exhaustive=int(bruteforce), out=self.out_buf,
+                             counts=self.counts_buf, pairs=self.pairs_buf,
+                             pair_count=self.pair_count, max_pairs=self.record)
                     c = eng.read(self.counts_buf, (m, 2), np.int32)  # (also waits for the launch)
                     tests += int(c[:, 0].sum(dtype=np.int64))
                     valid += int(c[:, 1].sum(dtype=np.int64))
@@ -222,7 +223,7 @@ def _chunk_rays(counts: np.ndarray, k: int, n: int) -> int:
 
 
 @register
-class LineSpaceGathering:
+class LineSpaceGathering(Method):
     """``lsg``: line space gathering (Sun, Zhou, Lin, Guo 2010) for single scattering along
     specular light paths: volumetric caustics, light glows, volumetric shadows.
 
@@ -251,20 +252,6 @@ class LineSpaceGathering:
     ``max_bytes``; a chunk that turns out larger is re-traced in smaller parts. The view
     segments and the accumulator (80 bytes per view segment) are a fixed cost.
 
-    ===================  =====  ==========  =============================================
-    parameter            type   default     meaning
-    ===================  =====  ==========  =============================================
-    light_rays           int    200000      lighting rays, shared among lights by power
-    radius               float  0.003       gather radius, relative to the scene extent
-    max_bytes            int    1073741824  working-set bound for one chunk of rays
-    leaf_size            int    4           least points per tree leaf (at most 8x)
-    min_sin              float  1e-6        sin(theta) below this counts as parallel
-    segments_per_launch  int    65536       view segments per kernel launch (progress)
-    min_light_depth      int    0           gather only lighting segments with at least
-                                            this many specular bounces (1: caustics only,
-                                            as ``auto`` uses it beside a direct method)
-    ===================  =====  ==========  =============================================
-
     ``radius``: the scene format's example ``0.001`` suits ~1M rays or more. At the
     default 200k rays, 0.003 balances noise and blur: on a glass-sphere caustic scene
     (128 x 96) the relMSE against a 1.6M-ray render was 6.7e-4, 9.7e-5, 6.7e-5, 1.7e-4
@@ -285,39 +272,33 @@ class LineSpaceGathering:
     """
 
     NAME = "lsg"
-    PARAMS = {"light_rays": 200_000, "radius": 0.003, "max_bytes": 1 << 30, "leaf_size": 4,
-              "min_sin": 1e-6, "segments_per_launch": 65536, "min_light_depth": 0}
+    PARAMS = (
+        Param("light_rays", 200_000, "lighting rays, shared among lights by power", lo=1),
+        Param("radius", 0.003, "gather radius, relative to the scene extent", lo=0, lo_open=True),
+        Param("max_bytes", 1 << 30, "working-set bound for one chunk of rays", lo=1),
+        Param("leaf_size", 4, "least points per tree leaf (at most 8x)", lo=1),
+        Param("min_sin", 1e-6, "sin(theta) below this counts as parallel", lo=0, hi=1, hi_open=True),
+        Param("segments_per_launch", 65536, "view segments per kernel launch (progress)", lo=1),
+        Param("min_light_depth", 0, "gather only lighting segments with at least this many "
+              "specular bounces (1: caustics only, as auto uses it beside a direct method)", lo=0),
+    )
+    TERMS = frozenset({"direct", "caustics"})
+    AUTO = {"caustics": AutoRole(priority=10, params={"min_light_depth": 1})}
 
-    def __init__(self, params: dict | None = None):
-        p = settings(type(self), params)
-        self.light_rays = int(p["light_rays"])
-        self.radius = float(p["radius"])
-        self.max_bytes = int(p["max_bytes"])
-        self.leaf_size = int(p["leaf_size"])
-        self.min_sin = float(p["min_sin"])
-        self.per_launch = max(1, int(p["segments_per_launch"]))
-        self.min_light_depth = int(p["min_light_depth"])
-        check(type(self), p, (
-            ("light_rays", self.light_rays >= 0, "must be >= 0"),
-            ("radius", self.radius > 0, "must be > 0"),
-            ("max_bytes", self.max_bytes > 0, "must be > 0"),
-            ("leaf_size", self.leaf_size >= 1, "must be >= 1"),
-            ("min_sin", 0 <= self.min_sin < 1, "must be in [0, 1)"),
-            ("min_light_depth", self.min_light_depth >= 0, "must be >= 0")))
-
-    def render_medium(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
-                      show_progress: bool = True) -> np.ndarray:
+    def render(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
+               show_progress: bool = True) -> np.ndarray:
         """Single-scattered radiance (H, W, 3) gathered from the lighting rays."""
         cam = ps.scene.camera
         views = paths.segments
-        r = self.radius * ps.scene.scene_extent() / ps.frame.scale
+        r = self.params["radius"] * ps.scene.scene_extent() / ps.frame.scale
         stats.set(lsg_radius=r, view_segments=int(len(views)))
-        if len(views) == 0 or ps.num_lights == 0 or self.light_rays == 0:
+        if len(views) == 0 or ps.num_lights == 0 or self.params["light_rays"] == 0:
             stats.set(pair_tests=0, pair_tests_bruteforce=0, valid_pairs=0, chunks=0)
             return np.zeros((cam.height, cam.width, 3), np.float32)
         eng = ps.engine
-        gat = Gatherer(eng, views, ps.medium, r, self.min_sin, self.leaf_size, self.per_launch,
-                       show_progress=show_progress)
+        p = self.params
+        gat = Gatherer(eng, views, ps.medium, r, p["min_sin"], p["leaf_size"],
+                       p["segments_per_launch"], show_progress=show_progress)
         try:
             totals = self._gather_chunks(ps, gat, stats, show_progress)
             values = gat.values()
@@ -333,10 +314,10 @@ class LineSpaceGathering:
                        show_progress: bool) -> dict:
         """Trace and gather the lighting rays chunk by chunk within max_bytes."""
         eng = ps.engine
-        counts = ray_counts(ps, self.light_rays)
-        budget = self.max_bytes
+        counts = ray_counts(ps, self.params["light_rays"])
+        budget = self.params["max_bytes"]
         seg_per_ray = 1.0          # lower bound until a chunk has been traced
-        n0 = max(1, math.ceil(self.light_rays * seg_per_ray * BYTES_PER_SEGMENT / budget))
+        n0 = max(1, math.ceil(self.params["light_rays"] * seg_per_ray * BYTES_PER_SEGMENT / budget))
         queue = deque((k, n0) for k in range(n0))
         tot = dict(pair_tests=0, valid_pairs=0, light_x_view=0, chunks=0, lsg_light_segments_kept=0,
                    tree_build_seconds=0.0, gather_seconds=0.0, lsg_chunk_bytes_max=0,
@@ -351,10 +332,10 @@ class LineSpaceGathering:
                 queue.extendleft((k * split + j, n * split) for j in reversed(range(split)))
                 continue
             with stats.stage("light_paths"):
-                lp = trace_light_paths(ps, self.light_rays, None, show_progress, chunk=(k, n))
+                lp = trace_light_paths(ps, self.params["light_rays"], None, show_progress, chunk=(k, n))
             segs = lp.segments
-            if self.min_light_depth > 0:
-                segs = segs[segs["depth"] >= self.min_light_depth]
+            if self.params["min_light_depth"] > 0:
+                segs = segs[segs["depth"] >= self.params["min_light_depth"]]
             seg_per_ray = max(seg_per_ray, len(segs) / rays)
             need = len(segs) * BYTES_PER_SEGMENT
             if need > budget and rays > 1:   # re-trace this chunk in smaller parts

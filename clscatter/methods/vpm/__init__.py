@@ -12,7 +12,7 @@ from ...light_paths import trace_light_paths
 from ...prepared import PreparedScene
 from ...view_paths import ViewPaths, accumulate_segments
 from ...stats import Stats, progress
-from .. import check, register, settings
+from .. import Method, Param, register
 
 # photons deposited per NumPy batch (bounds the float64 temporaries of the deposition)
 DEPOSIT_BATCH = 1 << 16
@@ -114,7 +114,6 @@ def gather(engine, medium: np.ndarray, pmap: DevicePhotonMap, segments: np.ndarr
     work = np.zeros((n, 2), np.int32)
     if n == 0:
         return out, work
-    kern = engine.kernel("vpm", "vpm_gather", {"KNN": int(knn)})
     med = engine.to_device(np.asarray(medium).reshape(1))
     seg_buf = engine.to_device(segments)
     chunk = max(1, min(int(per_launch), n))
@@ -123,11 +122,12 @@ def gather(engine, medium: np.ndarray, pmap: DevicePhotonMap, segments: np.ndarr
     with progress(n, "vpm gather", show_progress) as bar:
         for start in range(0, n, chunk):
             m = min(chunk, n - start)
-            engine.launch(kern, m, seg_buf, np.int32(start), np.int32(m), pmap.photons,
-                          np.int32(pmap.count), pmap.nodes, np.int32(pmap.levels),
-                          np.float32(pmap.power_scale), med,
-                          np.float32(dx), np.float32(max_radius * max_radius),
-                          np.uint32(seed & 0xFFFFFFFF), out_buf, work_buf)
+            engine.call("vpm", "vpm_gather", m, {"KNN": int(knn)}, segs=seg_buf,
+                        seg_offset=start, num_segs=m, photons=pmap.photons,
+                        num_photons=pmap.count, nodes=pmap.nodes, levels=pmap.levels,
+                        power_scale=pmap.power_scale, medium=med, dx=dx,
+                        max_r2=max_radius * max_radius, seed=seed & 0xFFFFFFFF, out=out_buf,
+                        work_out=work_buf)
             out[start:start + m] = engine.read(out_buf, (chunk, 4), np.float32)[:m]
             work[start:start + m] = engine.read(work_buf, (chunk, 2), np.int32)[:m]
             bar.update(m)
@@ -144,12 +144,13 @@ def knn_points(engine, pmap: DevicePhotonMap, points: np.ndarray, wo: np.ndarray
     p4 = np.zeros((max(n, 1), 4), np.float32)
     w4 = np.zeros((max(n, 1), 4), np.float32)
     p4[:n, :3], w4[:n, :3] = points, wo
-    kern = engine.kernel("vpm", "vpm_knn", {"KNN": int(knn)})
     bufs = [engine.to_device(p4), engine.to_device(w4), engine.empty(4 * n),
             engine.empty(4 * n * knn), engine.empty(16 * n)]
-    engine.launch(kern, n, bufs[0], bufs[1], np.int32(n), pmap.photons, np.int32(pmap.count),
-                  pmap.nodes, np.int32(pmap.levels), np.float32(pmap.power_scale),
-                  np.float32(g), np.float32(max_radius * max_radius), *bufs[2:])
+    engine.call("vpm", "vpm_knn", n, {"KNN": int(knn)}, points=bufs[0], wo=bufs[1],
+                num_points=n, photons=pmap.photons, num_photons=pmap.count, nodes=pmap.nodes,
+                levels=pmap.levels, power_scale=pmap.power_scale, g=g,
+                max_r2=max_radius * max_radius, count_out=bufs[2], idx_out=bufs[3],
+                est_out=bufs[4])
     count = engine.read(bufs[2], n, np.int32)
     idx = engine.read(bufs[3], (n, knn), np.int32)
     est = engine.read(bufs[4], (n, 4), np.float32)[:, :3]
@@ -158,7 +159,7 @@ def knn_points(engine, pmap: DevicePhotonMap, points: np.ndarray, wo: np.ndarray
 
 
 @register
-class VolumetricPhotonMapping:
+class VolumetricPhotonMapping(Method):
     """``vpm``: volumetric photon mapping (Jensen & Christensen 1998), k-nearest-neighbour
     gathers while marching the view segments. The baseline for volumetric caustics.
 
@@ -207,19 +208,6 @@ class VolumetricPhotonMapping:
     ``photon_trace_seconds``, ``photon_build_seconds`` (deposition and tree),
     ``gather_seconds``, ``photon_map_bytes``; ``peak_bytes`` covers the whole render.
 
-    ===================  =====  ==========  ================================================
-    parameter            type   default     meaning
-    ===================  =====  ==========  ================================================
-    photons              int    1000000     photons stored in the photon map
-    photons_per_ray      float  32.0        photons per traced lighting ray (sets the ray
-                                            count: photons / photons_per_ray)
-    knn                  int    32          photons per density estimate (2 .. 1024)
-    dx                   float  0.004       march step, relative to the scene's extent
-    max_radius           float  0.05        largest gather radius, relative to the extent
-    leaf_size            int    8           least photons per kd-tree leaf (at most 2x)
-    segments_per_launch  int    16384       view segments per kernel launch (progress)
-    ===================  =====  ==========  ================================================
-
     The LSG paper's comparisons use ``p`` photons, ``knn`` and ``dx`` (scene extent 1);
     e.g. p = 89M, knn = 128, dx = 0.002 at 512 x 512 x 4 samples.
 
@@ -227,29 +215,21 @@ class VolumetricPhotonMapping:
     """
 
     NAME = "vpm"
-    PARAMS = {"photons": 1_000_000, "photons_per_ray": 32.0, "knn": 32, "dx": 0.004,
-              "max_radius": 0.05, "leaf_size": 8, "segments_per_launch": 16384}
-
-    def __init__(self, params: dict | None = None):
-        p = settings(type(self), params)
-        self.photons = int(p["photons"])
-        self.photons_per_ray = float(p["photons_per_ray"])
-        self.knn = int(p["knn"])
-        self.dx = float(p["dx"])
-        self.max_radius = float(p["max_radius"])
-        self.leaf_size = int(p["leaf_size"])
-        self.per_launch = max(1, int(p["segments_per_launch"]))
-        checks = (("photons", self.photons >= 1, "must be >= 1"),
-                  ("photons_per_ray", self.photons_per_ray > 0, "must be > 0"),
-                  ("knn", 2 <= self.knn <= 1024, "must be in [2, 1024]"),
-                  ("dx", self.dx > 0, "must be > 0"),
-                  ("max_radius", self.max_radius > 0, "must be > 0"),
-                  ("leaf_size", 1 <= self.leaf_size <= 4096, "must be in [1, 4096]"))
-        check(type(self), p, checks)
+    PARAMS = (
+        Param("photons", 1_000_000, "photons stored in the photon map", lo=1),
+        Param("photons_per_ray", 32.0, "photons per traced lighting ray (sets the ray count: "
+              "photons / photons_per_ray)", lo=0, lo_open=True),
+        Param("knn", 32, "photons per density estimate", lo=2, hi=1024),
+        Param("dx", 0.004, "march step, relative to the scene's extent", lo=0, lo_open=True),
+        Param("max_radius", 0.05, "largest gather radius, relative to the extent", lo=0, lo_open=True),
+        Param("leaf_size", 8, "least photons per kd-tree leaf (at most 2x)", lo=1, hi=4096),
+        Param("segments_per_launch", 16384, "view segments per kernel launch (progress)", lo=1),
+    )
+    TERMS = frozenset({"direct", "caustics"})
 
     def rays(self) -> int:
         """Lighting rays to trace."""
-        return max(1, round(self.photons / self.photons_per_ray))
+        return max(1, round(self.params["photons"] / self.params["photons_per_ray"]))
 
     def build_photon_map(self, ps: PreparedScene, stats: Stats,
                          show_progress: bool = True) -> PhotonTree:
@@ -263,7 +243,7 @@ class VolumetricPhotonMapping:
             segs = lp.segments
             del lp
             seed = (ps.scene.render.seed * 1000003 + 7) & 0xFFFFFFFF
-            photons, scale = deposit_photons(segs, ps.medium["kappa"], self.photons, seed)
+            photons, scale = deposit_photons(segs, ps.medium["kappa"], self.params["photons"], seed)
             # working sets (measured with tracemalloc): the deposition holds the segments,
             # ~180 bytes of per-segment arrays, the photons and one batch's temporaries;
             # the tree build ~BUILD_BYTES_PER_PHOTON per photon beyond the photons
@@ -272,14 +252,14 @@ class VolumetricPhotonMapping:
                               + 160 * min(DEPOSIT_BATCH, n),
                               photons.nbytes + BUILD_BYTES_PER_PHOTON * n))
             del segs
-            tree = build_tree(photons, self.leaf_size, scale)
+            tree = build_tree(photons, self.params["leaf_size"], scale)
             del photons
         stats.set(photon_build_seconds=time.perf_counter() - t, photons=tree.count,
                   photon_map_bytes=tree.nbytes, photon_tree_levels=tree.levels)
         return tree
 
-    def render_medium(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
-                      show_progress: bool = True) -> np.ndarray:
+    def render(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
+               show_progress: bool = True) -> np.ndarray:
         """Single-scattered radiance (H, W, 3) for all view segments of ``paths``."""
         cam = ps.scene.camera
         segs = paths.segments
@@ -294,8 +274,10 @@ class VolumetricPhotonMapping:
         seed = (ps.scene.render.seed * 7919 + 29) & 0xFFFFFFFF
         t = time.perf_counter()
         with stats.stage("vpm_gather"):
-            values, work = gather(eng, ps.medium, pmap, segs, self.knn, self.dx * rel,
-                                  self.max_radius * rel, seed, self.per_launch, show_progress)
+            p = self.params
+            values, work = gather(eng, ps.medium, pmap, segs, p["knn"], p["dx"] * rel,
+                                  p["max_radius"] * rel, seed, p["segments_per_launch"],
+                                  show_progress)
         pmap.free(eng)
         stats.set(gather_seconds=time.perf_counter() - t, gather_steps=int(values[:, 3].sum()),
                   knn_boxes_tested=int(work[:, 0].sum(dtype=np.int64)),

@@ -1,0 +1,171 @@
+"""What every rendering method is: declared parameters, declared capabilities, one render call.
+
+A method is one class in one module (or package) of :mod:`clscatter.methods`:
+
+* ``NAME`` — the name the scene's ``render.method`` and ``--method`` use;
+* ``PARAMS`` — a tuple of :class:`Param`, each declared once (default, one-line doc, range);
+  the ``[render.<NAME>]`` table is checked against it before any device work, defaults
+  come from it, and the parameter table of the class docstring and of ``docs/methods.md``
+  is generated from it (:func:`param_table`);
+* capabilities the ``auto`` planner reads instead of method names: ``TERMS`` (what the
+  method computes when it runs alone), ``LIGHTS`` (light types it handles; others it leaves
+  to a fallback it documents), ``AUTO`` (the roles it can take in an ``auto`` plan, with a
+  priority and parameter overrides for that role);
+* ``render(ps, paths, stats, show_progress)`` — the radiance it adds to the image.
+
+Terms (the pieces an image is made of):
+
+``direct``            single scattering of light that came straight from a light (shadowed)
+``caustics``          single scattering of light that came through mirrors or glass
+``surface_caustics``  diffuse surfaces lit through mirrors or glass
+``volumes``           light bent by graded-index ``[[volumes]]``
+"""
+from __future__ import annotations
+
+import difflib
+import math
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from ..errors import SceneError
+
+TERMS = ("direct", "caustics", "surface_caustics", "volumes")
+LIGHT_KINDS = frozenset({"point", "spot", "directional"})
+
+
+def _tname(v: Any) -> str:
+    return {bool: "a boolean", int: "an integer", float: "a number", str: "a string",
+            list: "an array", dict: "a table"}.get(type(v), type(v).__name__)
+
+
+@dataclass(frozen=True)
+class Param:
+    """One ``[render.<method>]`` parameter: its default (which fixes its type), a one-line
+    doc, and its range: ``lo``/``hi`` bounds (``lo_open``/``hi_open`` make them strict) or
+    ``choices`` for strings."""
+
+    name: str
+    default: Any
+    doc: str
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    choices: tuple[str, ...] | None = None
+
+    @property
+    def type(self) -> type:
+        return type(self.default)
+
+    def rule(self) -> str:
+        """The range as a phrase, e.g. ``"must be in (0, 1]"`` ('' when unbounded)."""
+        if self.choices:
+            return "must be one of " + ", ".join(repr(c) for c in self.choices)
+        if self.lo is not None and self.hi is not None:
+            return (f"must be in {'(' if self.lo_open else '['}{self.lo:g}, "
+                    f"{self.hi:g}{')' if self.hi_open else ']'}")
+        if self.lo is not None:
+            return f"must be {'>' if self.lo_open else '>='} {self.lo:g}"
+        if self.hi is not None:
+            return f"must be {'<' if self.hi_open else '<='} {self.hi:g}"
+        return ""
+
+    def check(self, value: Any, key: str) -> Any:
+        """``value`` converted to this parameter's type, or :class:`SceneError` naming ``key``."""
+        t = self.type
+        if t is bool:
+            if not isinstance(value, bool):
+                raise SceneError(key, f"expected true or false, got {_tname(value)}")
+            return value
+        if t is int:
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise SceneError(key, f"expected an integer, got {_tname(value)}")
+            value = int(value)
+        elif t is float:
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
+                raise SceneError(key, f"expected a number, got {_tname(value)}")
+            value = float(value)
+            if not math.isfinite(value):
+                raise SceneError(key, f"must be a finite number (got {value!r})")
+        elif t is str:
+            if not isinstance(value, str):
+                raise SceneError(key, f"expected a string, got {_tname(value)}")
+        if self.choices is not None and value not in self.choices:
+            raise SceneError(key, f"{self.rule()} (got {value!r})")
+        if t in (int, float):
+            bad = ((self.lo is not None and (value <= self.lo if self.lo_open else value < self.lo))
+                   or (self.hi is not None and (value >= self.hi if self.hi_open else value > self.hi)))
+            if bad:
+                raise SceneError(key, f"{self.rule()} (got {value!r})")
+        return value
+
+
+@dataclass(frozen=True)
+class AutoRole:
+    """A role a method can take in an ``auto`` plan: the highest ``priority`` among the
+    methods that suit the scene wins; ``params`` override the scene's values for that role."""
+
+    priority: int
+    params: dict[str, Any] | None = None
+
+
+class Method:
+    """Base class of the rendering methods (see the module docstring)."""
+
+    NAME: ClassVar[str] = ""
+    PARAMS: ClassVar[tuple[Param, ...]] = ()
+    TERMS: ClassVar[frozenset[str]] = frozenset()
+    LIGHTS: ClassVar[frozenset[str]] = LIGHT_KINDS
+    AUTO: ClassVar[dict[str, AutoRole]] = {}
+
+    def __init__(self, params: dict | None = None):
+        self.params: dict[str, Any] = configure(type(self), params)
+
+    @classmethod
+    def check_params(cls, params: dict[str, Any]) -> None:
+        """Rules that involve several parameters (each one's own range is in its
+        :class:`Param`); raise :class:`SceneError` naming ``render.<NAME>.<key>``."""
+
+    @classmethod
+    def suits(cls, scene) -> str:
+        """'' when this method's assumptions hold for ``scene`` (a :class:`Scene`), else why
+        not. The default: every light's kind is in ``LIGHTS``."""
+        kinds = {light.type for light in scene.lights}
+        missing = kinds - cls.LIGHTS
+        return f"{cls.NAME} handles {', '.join(sorted(cls.LIGHTS))} lights only" if missing else ""
+
+    def render(self, ps, paths, stats, show_progress: bool = True) -> np.ndarray:
+        """Radiance (H, W, 3) this method adds to the image (its ``TERMS``)."""
+        raise NotImplementedError
+
+
+def configure(cls: type[Method], table: dict | None) -> dict[str, Any]:
+    """``cls``'s parameters: defaults overlaid with ``table`` (a ``[render.<NAME>]`` table),
+    each key known, typed and in range, else :class:`SceneError` naming
+    ``render.<NAME>.<key>`` (with "did you mean")."""
+    params = {p.name: p for p in cls.PARAMS}
+    out = {name: p.default for name, p in params.items()}
+    for key, value in (table or {}).items():
+        where = f"render.{cls.NAME}.{key}"
+        if key not in params:
+            close = difflib.get_close_matches(key, list(params), n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            raise SceneError(where, f"unknown parameter of method '{cls.NAME}'{hint}; "
+                             f"allowed: {', '.join(params) or 'none'}")
+        out[key] = params[key].check(value, where)
+    cls.check_params(out)
+    return out
+
+
+def param_table(cls: type[Method]) -> str:
+    """The parameter reference of ``cls`` as a Markdown table (name, type, default, range,
+    meaning), generated from ``PARAMS``: the docs show exactly what the code checks."""
+    rows = ["| parameter | type | default | range | meaning |", "|---|---|---|---|---|"]
+    for p in cls.PARAMS:
+        default = f"{p.default:_}" if p.type is int else repr(p.default) if p.type is str \
+            else str(p.default).lower() if p.type is bool else f"{p.default:g}"
+        rng = p.rule().replace("must be ", "") or "any"
+        rows.append(f"| `{p.name}` | {p.type.__name__} | {default} | {rng} | {p.doc} |")
+    return "\n".join(rows)
