@@ -85,8 +85,49 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def diff_command(
+    a_path: str | Path,
+    b_path: str | Path,
+    heatmap_path: str | Path | None = None,
+    as_json: bool = False,
+) -> int:
+    """``clscatter diff A B [--heatmap F] [--json]``: compare image A against reference B.
+
+    Prints one ``name: value`` line per metric (rmse, relmse, psnr (with ``dB``),
+    ssim, max_error), or, with ``as_json``, a single JSON object with those five keys
+    (non-finite values as strings, see :func:`to_json_safe`). Writes the error heatmap
+    to ``heatmap_path`` if given. Returns 0; unreadable files or images of different
+    sizes raise ImageError naming the files.
+    """
+    import json
+    import math
+    import os
+
+    from .errors import ImageError
+    from .image import METRIC_KEYS, compare, read_image, to_json_safe, write_heatmap
+
+    a = read_image(a_path)
+    b = read_image(b_path)
+    if a.shape != b.shape:
+        raise ImageError(
+            f"{os.fspath(a_path)} is {a.shape[1]} x {a.shape[0]} but "
+            f"{os.fspath(b_path)} is {b.shape[1]} x {b.shape[0]} (width x height); "
+            f"shapes {a.shape} vs {b.shape}"
+        )
+    metrics = compare(a, b)
+    if heatmap_path is not None:
+        write_heatmap(heatmap_path, a, b)
+    if as_json:
+        print(json.dumps(to_json_safe(metrics)))
+    else:
+        for key in METRIC_KEYS:
+            unit = " dB" if key == "psnr" and math.isfinite(metrics[key]) else ""
+            value = metrics[key]
+            print(f"{key}: {value if not math.isfinite(value) else format(value, '.6g')}{unit}")
+    return 0
+
+
 def _cmd_diff(args: argparse.Namespace) -> int:
-    from .image import diff_command
     return diff_command(args.a, args.b, heatmap_path=args.heatmap, as_json=args.json)
 
 

@@ -595,49 +595,6 @@ def write_heatmap(path: PathLike, a: np.ndarray, b: np.ndarray) -> None:
         write_image(path, srgb_eotf(colours / 255.0).astype(np.float32))
 
 
-# ----------------------------------------------------------------------------- CLI
-
-
-def _fmt(value: float) -> str:
-    if not math.isfinite(value):
-        return str(value)
-    return f"{value:.6g}"
-
-
-def diff_command(
-    a_path: PathLike,
-    b_path: PathLike,
-    heatmap_path: PathLike | None = None,
-    as_json: bool = False,
-) -> int:
-    """``clscatter diff A B [--heatmap F] [--json]``: compare image A against reference B.
-
-    Prints one ``name: value`` line per metric (rmse, relmse, psnr (with ``dB``),
-    ssim, max_error), or, with ``as_json``, a single JSON object with those five keys
-    (non-finite values as strings, see :func:`to_json_safe`). Writes the error heatmap
-    to ``heatmap_path`` if given. Returns 0; unreadable files or images of different
-    sizes raise ImageError naming the files.
-    """
-    a = read_image(a_path)
-    b = read_image(b_path)
-    if a.shape != b.shape:
-        raise ImageError(
-            f"{os.fspath(a_path)} is {a.shape[1]} x {a.shape[0]} but "
-            f"{os.fspath(b_path)} is {b.shape[1]} x {b.shape[0]} (width x height); "
-            f"shapes {a.shape} vs {b.shape}"
-        )
-    metrics = compare(a, b)
-    if heatmap_path is not None:
-        write_heatmap(heatmap_path, a, b)
-    if as_json:
-        print(json.dumps(to_json_safe(metrics)))
-    else:
-        for key in METRIC_KEYS:
-            unit = " dB" if key == "psnr" and math.isfinite(metrics[key]) else ""
-            print(f"{key}: {_fmt(metrics[key])}{unit}")
-    return 0
-
-
 __all__ = [
     "SUPPORTED_SUFFIXES",
     "RELMSE_EPS",
@@ -657,5 +614,4 @@ __all__ = [
     "to_json_safe",
     "heatmap",
     "write_heatmap",
-    "diff_command",
 ]

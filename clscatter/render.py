@@ -32,7 +32,7 @@ def render(scene: Scene, method: str | None = None, engine: Engine | None = None
     (:func:`clscatter.methods.configure_scene`); the plan is made from the scene alone.
     """
     stats = Stats()
-    requested = method or scene.render.method
+    requested = method if method is not None else scene.render.method
     with stats.stage("configure"):
         configure_scene(scene, requested)
         passes, notes = plan(scene, requested)

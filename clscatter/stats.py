@@ -8,7 +8,21 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
 
-from tqdm import tqdm
+
+class Timer:
+    """Wall-clock seconds of a ``with`` block (``.seconds`` after it ends): the one way a
+    stage is timed (:meth:`Stats.stage` uses it too)."""
+
+    def __init__(self) -> None:
+        self.seconds = 0.0
+        self._t = 0.0
+
+    def __enter__(self) -> "Timer":
+        self._t = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.seconds = time.perf_counter() - self._t
 
 
 class Stats:
@@ -24,13 +38,15 @@ class Stats:
         self.values: dict[str, Any] = {}
 
     @contextmanager
-    def stage(self, name: str) -> Iterator[None]:
-        """Time a block; repeated stages of one name add up."""
-        t = time.perf_counter()
+    def stage(self, name: str) -> Iterator[Timer]:
+        """Time a block as stage ``name`` (repeated stages of one name add up); the
+        :class:`Timer` it yields holds this block's own seconds afterwards."""
+        timer = Timer()
         try:
-            yield
+            with timer:
+                yield timer
         finally:
-            self.stages[name] = self.stages.get(name, 0.0) + time.perf_counter() - t
+            self.stages[name] = self.stages.get(name, 0.0) + timer.seconds
 
     def set(self, **values: Any) -> None:
         self.values.update(values)
@@ -71,7 +87,11 @@ def _json_safe(v: Any) -> Any:
     return v
 
 
-def progress(total: int, desc: str, enabled: bool = True) -> tqdm:
-    """A progress bar that appears only after a second of work and only on a terminal."""
+def progress(total: int, desc: str, enabled: bool = True):
+    """A tqdm progress bar that appears only after a second of work and only on a terminal.
+
+    tqdm is imported here, not at module level, so that scene and parameter checks (which
+    import this module) work and report errors even where tqdm is missing."""
+    from tqdm import tqdm
     return tqdm(total=total, desc=desc, disable=None if enabled else True, delay=1.0,
                 leave=False, unit="it", dynamic_ncols=True)

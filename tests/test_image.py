@@ -13,6 +13,7 @@ import pytest
 from matplotlib import colormaps
 
 from clscatter import image as im
+from clscatter.cli import diff_command
 from clscatter.errors import ImageError
 
 LOSSLESS = ("exr", "npy", "pfm")
@@ -466,7 +467,7 @@ def test_diff_command_json(tmp_path, capsys):
     pa, pb, ph = tmp_path / "a.npy", tmp_path / "b.exr", tmp_path / "heat.png"
     im.write_image(pa, a)
     im.write_image(pb, b)
-    assert im.diff_command(pa, pb, heatmap_path=ph, as_json=True) == 0
+    assert diff_command(pa, pb, heatmap_path=ph, as_json=True) == 0
     out = capsys.readouterr().out
     data = json.loads(out)
     assert set(data) == {"rmse", "relmse", "psnr", "ssim", "max_error"}
@@ -474,7 +475,7 @@ def test_diff_command_json(tmp_path, capsys):
     assert data["max_error"] == pytest.approx(0.125, abs=1e-7)
     assert iio.imread(ph).shape == (16, 16, 3)
 
-    assert im.diff_command(pb, pb, as_json=True) == 0
+    assert diff_command(pb, pb, as_json=True) == 0
     data = json.loads(capsys.readouterr().out)
     assert data["psnr"] == "inf" and data["rmse"] == 0 and data["ssim"] == 1
 
@@ -483,7 +484,7 @@ def test_diff_command_text(tmp_path, capsys):
     b = _smooth(8, 8).astype(np.float32)
     im.write_image(tmp_path / "b.pfm", b)
     im.write_image(tmp_path / "a.pfm", b * 1.1)
-    assert im.diff_command(tmp_path / "a.pfm", tmp_path / "b.pfm") == 0
+    assert diff_command(tmp_path / "a.pfm", tmp_path / "b.pfm") == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert [ln.split(":")[0] for ln in lines] == ["rmse", "relmse", "psnr", "ssim", "max_error"]
     assert float(lines[0].split(":")[1]) == pytest.approx(im.rmse(b * 1.1, b), rel=1e-5)
@@ -494,10 +495,10 @@ def test_diff_command_errors(tmp_path):
     im.write_image(tmp_path / "small.npy", np.zeros((4, 5, 3)))
     im.write_image(tmp_path / "big.npy", np.zeros((5, 4, 3)))
     with pytest.raises(ImageError) as exc:
-        im.diff_command(tmp_path / "small.npy", tmp_path / "big.npy")
+        diff_command(tmp_path / "small.npy", tmp_path / "big.npy")
     msg = _assert_one_line(exc)
     assert "small.npy" in msg and "big.npy" in msg
     assert "(4, 5, 3)" in msg and "(5, 4, 3)" in msg
     with pytest.raises(ImageError) as exc:
-        im.diff_command(tmp_path / "small.npy", tmp_path / "nothere.exr")
+        diff_command(tmp_path / "small.npy", tmp_path / "nothere.exr")
     assert "nothere.exr" in _assert_one_line(exc)

@@ -14,7 +14,7 @@ from typing import Any
 
 from ..errors import SceneError
 from ..scene.model import METHOD_NAMES
-from .base import AutoRole, Method, Param, configure as _configure, param_table
+from .base import TERMS, AutoRole, Method, Param, configure as _configure, param_table
 
 __all__ = ["AutoRole", "Method", "Param", "register", "available", "get_method", "configure",
            "all_methods", "param_table", "unavailable"]
@@ -25,9 +25,16 @@ _LOADED = False
 
 
 def register(cls: type[Method]) -> type[Method]:
-    """Class decorator: make ``cls`` available under ``cls.NAME``."""
+    """Class decorator: make ``cls`` available under ``cls.NAME`` and append its generated
+    parameter table to its docstring (the docstring is the method's user documentation)."""
     if not cls.NAME:
         raise TypeError(f"{cls.__name__} has no NAME")
+    bad = (set(cls.TERMS) | set(cls.AUTO)) - set(TERMS)
+    if bad or not set(cls.AUTO) <= set(cls.TERMS):
+        raise TypeError(f"{cls.__name__}: unknown or undeclared terms {sorted(bad or set(cls.AUTO))}")
+    if cls.PARAMS and "Parameters (generated" not in (cls.__doc__ or ""):
+        cls.__doc__ = (cls.__doc__ or "").rstrip() + "\n\n    Parameters (generated from PARAMS):\n\n" + \
+            "\n".join("    " + line for line in param_table(cls).splitlines()) + "\n"
     _REGISTRY[cls.NAME] = cls
     return cls
 
@@ -110,3 +117,23 @@ def configure_scene(scene, method: str | None = None) -> dict[str, dict[str, Any
     if requested != "auto" and requested not in out:
         out[requested] = configure(requested, None)
     return out
+
+
+def methods_markdown() -> str:
+    """``docs/methods.md``: every method's summary, terms, auto roles and parameter table,
+    generated from the classes (``tools/write_method_docs.py`` writes it; a test checks
+    that the committed file is current)."""
+    out = ["# Methods", "",
+           "Generated from the method classes by `tools/write_method_docs.py`; do not edit.",
+           "Set parameters in the scene's `[render.<method>]` table or with",
+           "`--set render.<method>.<parameter>=VALUE`. Radii and steps are relative to the",
+           "longest side of the scene's bounding box.", ""]
+    for name, cls in all_methods().items():
+        doc = (cls.__doc__ or "").strip().splitlines()
+        roles = ", ".join(f"{t} (priority {r.priority})" for t, r in sorted(cls.AUTO.items()))
+        out += [f"## `{name}`", "", doc[0] if doc else "", "",
+                f"- computes: {', '.join(sorted(cls.TERMS)) or 'nothing'}",
+                f"- lights: {', '.join(sorted(cls.LIGHTS))}",
+                f"- used by `auto` for: {roles or 'never (explicit only)'}", "",
+                param_table(cls) if cls.PARAMS else "No parameters.", ""]
+    return "\n".join(out)

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import math
-import time
 from collections import deque
 from dataclasses import dataclass
 
@@ -15,7 +14,7 @@ from ...device import Engine
 from ...light_paths import ray_counts, trace_light_paths
 from ...prepared import PreparedScene
 from ...view_paths import ViewPaths, accumulate_segments
-from ...stats import Stats, progress
+from ...stats import Stats, Timer, progress
 from .. import AutoRole, Method, Param, register
 
 F4 = structs.F4
@@ -160,53 +159,53 @@ class Gatherer:
     # ---- one chunk ----
     def add(self, segs: np.ndarray, bruteforce: bool = False) -> ChunkResult:
         eng = self.eng
-        t0 = time.perf_counter()
+        t_build, t_gather = Timer(), Timer()
         kappa = self.medium["kappa"][0]
         # bruteforce: a one-leaf tree (the lines in input order, clipped like the tree's)
         leaf = 1 << 62 if bruteforce else self.leaf_size
-        prep = prepare_lines(segs, self.lo, self.hi, self.radius, kappa, leaf, self.frame)
-        t1 = time.perf_counter()
-        eng.note_host(prep.nbytes)
-        lines_buf = eng.to_device(prep.lines)
-        points_buf = eng.to_device(prep.points)
-        ids_buf = eng.to_device(prep.ids)
-        nodes_buf = eng.to_device(prep.tree.nodes)
-        ranges_buf = eng.to_device(prep.tree.leaf_ranges)
-        dev_bytes = (prep.lines.nbytes + prep.points.nbytes + prep.ids.nbytes
-                     + prep.tree.nodes.nbytes + prep.tree.leaf_ranges.nbytes)
-        # the host arrays that stay alive beside the new device buffers
-        eng.note_host(prep.nbytes - prep.lines.nbytes - prep.points.nbytes)
-        eng.cl.enqueue_fill_buffer(eng.queue, self.pair_count, np.zeros(1, np.int32), 0, 4)
-        fr = prep.frame
-        centre = structs.vec4(fr.centre)
-        tests = valid = 0
-        if len(prep.lines):
-            with progress(self.n, "lsg gather", self.show_progress) as bar:
-                for start in range(0, self.n, self.per_launch):
-                    m = min(self.per_launch, self.n - start)
-                    eng.call("lsg", "lsg_gather", m, nodes=nodes_buf, leaf_ranges=ranges_buf,
-                             first_leaf=prep.tree.first_leaf, lines=lines_buf,
-                             points=points_buf, line_ids=ids_buf, num_lines=len(prep.lines),
-                             max_m1=prep.max_m1, views=self.views_buf, view_offset=start,
-                             num_views=m, pl_centre=centre, pl_inv_scale=1.0 / fr.scale,
-                             radius=self.radius, min_sin=self.min_sin, medium=self.medium_buf,
-                             exhaustive=int(bruteforce), out=self.out_buf,
-                             counts=self.counts_buf, pairs=self.pairs_buf,
-                             pair_count=self.pair_count, max_pairs=self.record)
-                    c = eng.read(self.counts_buf, (m, 2), np.int32)  # (also waits for the launch)
-                    tests += int(c[:, 0].sum(dtype=np.int64))
-                    valid += int(c[:, 1].sum(dtype=np.int64))
-                    bar.update(m)
-        pairs = None
-        if self.record:
-            got = int(eng.read(self.pair_count, 1, np.int32)[0])
-            if got > self.record:
-                raise RuntimeError(f"{got} valid pairs exceed record_pairs={self.record}")
-            pairs = eng.read(self.pairs_buf, (got, 2), np.int32)
-        eng.free(lines_buf, points_buf, ids_buf, nodes_buf, ranges_buf)
-        t2 = time.perf_counter()
+        with t_build:
+            prep = prepare_lines(segs, self.lo, self.hi, self.radius, kappa, leaf, self.frame)
+        with t_gather:
+            eng.note_host(prep.nbytes)
+            lines_buf = eng.to_device(prep.lines)
+            points_buf = eng.to_device(prep.points)
+            ids_buf = eng.to_device(prep.ids)
+            nodes_buf = eng.to_device(prep.tree.nodes)
+            ranges_buf = eng.to_device(prep.tree.leaf_ranges)
+            dev_bytes = (prep.lines.nbytes + prep.points.nbytes + prep.ids.nbytes
+                         + prep.tree.nodes.nbytes + prep.tree.leaf_ranges.nbytes)
+            # the host arrays that stay alive beside the new device buffers
+            eng.note_host(prep.nbytes - prep.lines.nbytes - prep.points.nbytes)
+            eng.cl.enqueue_fill_buffer(eng.queue, self.pair_count, np.zeros(1, np.int32), 0, 4)
+            fr = prep.frame
+            centre = structs.vec4(fr.centre)
+            tests = valid = 0
+            if len(prep.lines):
+                with progress(self.n, "lsg gather", self.show_progress) as bar:
+                    for start in range(0, self.n, self.per_launch):
+                        m = min(self.per_launch, self.n - start)
+                        eng.call("lsg", "lsg_gather", m, nodes=nodes_buf, leaf_ranges=ranges_buf,
+                                 first_leaf=prep.tree.first_leaf, lines=lines_buf,
+                                 points=points_buf, line_ids=ids_buf, num_lines=len(prep.lines),
+                                 max_m1=prep.max_m1, views=self.views_buf, view_offset=start,
+                                 num_views=m, pl_centre=centre, pl_inv_scale=1.0 / fr.scale,
+                                 radius=self.radius, min_sin=self.min_sin, medium=self.medium_buf,
+                                 exhaustive=int(bruteforce), out=self.out_buf,
+                                 counts=self.counts_buf, pairs=self.pairs_buf,
+                                 pair_count=self.pair_count, max_pairs=self.record)
+                        c = eng.read(self.counts_buf, (m, 2), np.int32)  # (also waits for the launch)
+                        tests += int(c[:, 0].sum(dtype=np.int64))
+                        valid += int(c[:, 1].sum(dtype=np.int64))
+                        bar.update(m)
+            pairs = None
+            if self.record:
+                got = int(eng.read(self.pair_count, 1, np.int32)[0])
+                if got > self.record:
+                    raise RuntimeError(f"{got} valid pairs exceed record_pairs={self.record}")
+                pairs = eng.read(self.pairs_buf, (got, 2), np.int32)
+            eng.free(lines_buf, points_buf, ids_buf, nodes_buf, ranges_buf)
         return ChunkResult(tests, valid, len(prep.lines), int(prep.nbytes + dev_bytes),
-                           t1 - t0, t2 - t1, pairs)
+                           t_build.seconds, t_gather.seconds, pairs)
 
     def values(self) -> np.ndarray:
         """The accumulated estimate per view segment, ``(n_views, 4)`` float32."""

@@ -1,7 +1,6 @@
 """Volumetric photon mapping (Jensen & Christensen 1998): the baseline for caustics."""
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -235,11 +234,10 @@ class VolumetricPhotonMapping(Method):
                          show_progress: bool = True) -> PhotonTree:
         """Trace the lighting rays and build the photon map (host arrays)."""
         eng = ps.engine
-        t = time.perf_counter()
-        lp = trace_light_paths(ps, self.rays(), stats, show_progress)
-        stats.set(photon_trace_seconds=time.perf_counter() - t)
-        t = time.perf_counter()
-        with stats.stage("photon_build"):
+        with stats.stage("photon_trace") as t_trace:
+            lp = trace_light_paths(ps, self.rays(), stats, show_progress)
+        stats.set(photon_trace_seconds=t_trace.seconds)
+        with stats.stage("photon_build") as t_build:
             segs = lp.segments
             del lp
             seed = (ps.scene.render.seed * 1000003 + 7) & 0xFFFFFFFF
@@ -254,7 +252,7 @@ class VolumetricPhotonMapping(Method):
             del segs
             tree = build_tree(photons, self.params["leaf_size"], scale)
             del photons
-        stats.set(photon_build_seconds=time.perf_counter() - t, photons=tree.count,
+        stats.set(photon_build_seconds=t_build.seconds, photons=tree.count,
                   photon_map_bytes=tree.nbytes, photon_tree_levels=tree.levels)
         return tree
 
@@ -272,14 +270,13 @@ class VolumetricPhotonMapping(Method):
         del tree                     # the gather reads the device copy
         rel = ps.scene.scene_extent() / ps.frame.scale
         seed = (ps.scene.render.seed * 7919 + 29) & 0xFFFFFFFF
-        t = time.perf_counter()
-        with stats.stage("vpm_gather"):
+        with stats.stage("vpm_gather") as t_gather:
             p = self.params
             values, work = gather(eng, ps.medium, pmap, segs, p["knn"], p["dx"] * rel,
                                   p["max_radius"] * rel, seed, p["segments_per_launch"],
                                   show_progress)
         pmap.free(eng)
-        stats.set(gather_seconds=time.perf_counter() - t, gather_steps=int(values[:, 3].sum()),
+        stats.set(gather_seconds=t_gather.seconds, gather_steps=int(values[:, 3].sum()),
                   knn_boxes_tested=int(work[:, 0].sum(dtype=np.int64)),
                   knn_photons_tested=int(work[:, 1].sum(dtype=np.int64)))
         return accumulate_segments(values, segs["pixel"], cam.width, cam.height)
