@@ -1,5 +1,5 @@
 /* lights.h: light arriving at a point, shared by surface shading (view_paths.cl) and the
- * medium methods (raymarch.cl, ...). One place for the light models of SCENE_FORMAT.md:
+ * medium methods (raymarch.cl, ...). One place for the light models of docs/scene_format.md:
  * point and spot lights give intensity I (W/sr) -> I / d^2; a spot is a hard-edged cone
  * of uniform intensity; a directional light gives irradiance E on a facing surface. */
 #ifndef CLSCATTER_LIGHTS_H

@@ -1,4 +1,4 @@
-"""The ``clscatter`` command line (contract: SCENE_FORMAT.md, "Command-line contract").
+"""The ``clscatter`` command line (contract: docs/scene_format.md, "Command-line contract").
 
     clscatter                                   render the built-in demo scene
     clscatter render [SCENE] -o OUT [-o OUT2] [--method M] [--set key=value ...]

@@ -28,7 +28,7 @@ class Timer:
 class Stats:
     """Seconds per stage plus named counters, serialised as the ``--stats`` JSON object.
 
-    Required keys (SCENE_FORMAT.md): method, device, seconds_total, stages, peak_bytes,
+    Required keys (docs/scene_format.md): method, device, seconds_total, stages, peak_bytes,
     width, height. Methods add their own counters with :meth:`set`.
     """
 

@@ -1,7 +1,7 @@
 """Analytic and quadrature references for single scattering (a helper for tests).
 
 This is an importable helper module, not a test file. Everything is float64 NumPy and
-follows the "Radiometric conventions" of ``/work/shared/SCENE_FORMAT.md``:
+follows the "Radiometric conventions" of ``docs/scene_format.md``:
 
 * homogeneous medium with scattering ``sigma_s`` and extinction ``kappa``; both are
   *scalars per call* (the caller loops over the rgb channels);

@@ -11,7 +11,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # for `import analytic`
 
-SHARED_MODELS = REPO.parent / "shared" / "models"
+MODELS = REPO / "models"
 
 
 @pytest.fixture(scope="session")

@@ -12,7 +12,7 @@ from clscatter.accel.bvh import MAX_DEPTH, MAX_LEAF, build_bvh, trace
 trimesh = pytest.importorskip("trimesh")
 
 REPO = Path(__file__).resolve().parents[1]
-COW_PATHS = [REPO / "tests" / "data" / "cow.obj", REPO.parent / "shared" / "models" / "cow.obj"]
+COW_PATHS = [REPO / "tests" / "data" / "cow.obj", REPO / "models" / "cow.obj"]
 
 BARY_EPS = 1e-4     # rays this close (barycentric units) to an edge may go either way
 T_TOL = 1e-4        # hit distance tolerance (scenes are ~unit size, |d| = 1)

@@ -28,3 +28,24 @@ def test_kernel_sources_are_found():
     from clscatter.device import kernel_dir
     kd = kernel_dir()
     assert (kd / "common.h").is_file() and (kd / "view_paths.cl").is_file()
+
+
+def test_nothing_points_outside_the_repository():
+    """The format, meshes and papers a user needs are in the repository; no file refers to
+    the workplace's shared folder or its copy of the format."""
+    import re
+    bad = re.compile(r"\.\./shared|/work/shared|parent\s*/\s*\"shared\"|SCENE_FORMAT\.md")
+    skip = {".git", ".venv", "bench_out", "__pycache__", ".pytest_cache", "clscatter.egg-info"}
+    hits = []
+    for p in REPO.rglob("*"):
+        if any(part in skip for part in p.relative_to(REPO).parts) or not p.is_file():
+            continue
+        if p.suffix not in (".py", ".md", ".toml", ".sh", ".cl", ".h", ".txt", ".cfg", "") or p.name == "test_packaging.py":
+            continue
+        try:
+            text = p.read_text()
+        except (UnicodeDecodeError, OSError):
+            continue
+        hits += [f"{p.relative_to(REPO)}:{i + 1}" for i, line in enumerate(text.splitlines())
+                 if bad.search(line)]
+    assert hits == [], f"references outside the repository: {hits}"

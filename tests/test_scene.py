@@ -1,4 +1,4 @@
-"""Scene loading: the TOML contract (SCENE_FORMAT.md), overrides, validation, built-ins."""
+"""Scene loading: the TOML contract (docs/scene_format.md), overrides, validation, built-ins."""
 from __future__ import annotations
 
 import copy

@@ -138,7 +138,7 @@ def embree_threaded(scene, o, d, threads, **kw):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--mesh", type=Path,
-                    default=REPO.parent / "shared" / "models" / "stanford-bunny.obj")
+                    default=REPO / "models" / "stanford-bunny.obj")
     ap.add_argument("--subdivide", type=int, default=1)
     ap.add_argument("--size", type=int, default=512, help="image side (rays = size^2)")
     ap.add_argument("--repeats", type=int, default=5)

@@ -1,4 +1,4 @@
-"""Built-in scenes, generated in code as dicts in exactly the TOML schema of SCENE_FORMAT.md.
+"""Built-in scenes, generated in code as dicts in exactly the TOML schema of docs/scene_format.md.
 
 ``load_scene("builtin:NAME")`` validates them through the same ``scene_from_dict`` as a
 file; ``builtin_toml(NAME)`` writes one out as a TOML file to start from. All render at

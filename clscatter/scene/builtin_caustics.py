@@ -2,7 +2,7 @@
 statuettes of the LSG paper (Sun et al. 2010): volumetric caustics seen directly and
 through the refractors, light-source glows, a reflected caustic.
 
-Dicts in exactly the TOML schema of SCENE_FORMAT.md, like ``builtin.py``; every scene has
+Dicts in exactly the TOML schema of docs/scene_format.md, like ``builtin.py``; every scene has
 a diffuse floor, a medium box around everything (so lighting and viewing rays end at its
 walls) and renders at 320 x 240, 4 spp. The meshes are small committed OBJ files in
 ``meshes/`` (written by ``tools/make_caustic_meshes.py`` from ``procedural.py``),

@@ -1,6 +1,6 @@
 """Built-in scenes for the epipolar method: light shafts of rising shadow complexity.
 
-Dicts in the TOML schema of SCENE_FORMAT.md (like ``builtin.py``), each with a bounded
+Dicts in the TOML schema of docs/scene_format.md (like ``builtin.py``), each with a bounded
 medium; the lead registers :data:`EPIPOLAR_SCENES` in ``BUILTIN``. All render at
 320 x 240, 4 spp; radiance roughly 0.05 .. 1 at exposure 0.
 

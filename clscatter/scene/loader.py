@@ -1,6 +1,6 @@
 """TOML scene loader: file or built-in scene + ``--set`` overrides -> validated :class:`Scene`.
 
-The format is ``SCENE_FORMAT.md`` (the contract). Everything is checked here, once:
+The format is ``docs/scene_format.md`` (the contract). Everything is checked here, once:
 unknown keys and tables at any level, types, vector/colour lengths, value ranges and
 cross-key constraints. Every failure is a :class:`SceneError` whose ``key`` is the full
 dotted path (``lights[1].cutoff_angle``, ``render.lsg.radius``, ``objects[0].file``) and
@@ -475,7 +475,7 @@ def _render(root: _Table) -> RenderSettings:
 # ---- Public API -------------------------------------------------------------------------
 
 def scene_from_dict(data: dict, base_dir: Path | str = ".", source: str = "<memory>") -> Scene:
-    """Validate a parsed scene (TOML schema of SCENE_FORMAT.md) and build the :class:`Scene`.
+    """Validate a parsed scene (TOML schema of docs/scene_format.md) and build the :class:`Scene`.
 
     ``base_dir`` is the folder relative file paths (meshes, grids) are resolved against.
     Raises :class:`SceneError` naming the dotted key of the first problem found.
