@@ -3,6 +3,7 @@
     clscatter                                   render the built-in demo scene
     clscatter render [SCENE] -o OUT [-o OUT2] [--method M] [--set key=value ...]
                      [--stats FILE.json] [--device SPEC] [--exposure EV]
+    clscatter check [SCENE] [--method M] [--set key=value ...] [--max-memory SIZE]
     clscatter diff A B [--heatmap FILE.png] [--json]
     clscatter devices
     clscatter scenes [--dump NAME]
@@ -13,6 +14,8 @@ user can fix print one line naming the key or file and exit with status 2.
 from __future__ import annotations
 
 import argparse
+import math
+import signal
 import sys
 from pathlib import Path
 from typing import Sequence
@@ -43,8 +46,18 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="override a scene key (dotted path, TOML value); repeatable")
     r.add_argument("--stats", default=None, metavar="FILE.json", help="write run statistics")
     r.add_argument("--device", default=None, help="OpenCL device: P:D or a name substring")
-    r.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops (default 0)")
+    r.add_argument("--exposure", type=_finite_float, default=0.0,
+                   help="PNG exposure in stops (default 0)")
+    r.add_argument("--max-memory", default=None, metavar="SIZE",
+                   help="refuse renders estimated to need more (e.g. 4G; default: the "
+                        "device's and the machine's memory)")
     r.add_argument("--no-progress", action="store_true", help="never show progress bars")
+
+    c = sub.add_parser("check", help="validate a scene and print the plan and cost estimate")
+    c.add_argument("scene", nargs="?", default=None, help="scene TOML file or builtin:NAME")
+    c.add_argument("--method", default=None, help="override render.method")
+    c.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    c.add_argument("--max-memory", default=None, metavar="SIZE")
 
     d = sub.add_parser("diff", help="compare two images")
     d.add_argument("a")
@@ -60,28 +73,46 @@ def _build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _finite_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number (got {text!r})")
+    return value
+
+
+def _note(line: str) -> None:
+    print(f"clscatter: note: {line}", file=sys.stderr)
+
+
 def _cmd_render(args: argparse.Namespace) -> int:
+    from .budget import parse_bytes
     from .image import write_image
+    from .outputs import check_output, write_all
     from .render import render
     from .scene import DEFAULT_BUILTIN, load_scene
     from .stats import write_json
 
-    outputs = args.output or [DEMO_OUTPUT]
-    for o in outputs:
-        if Path(o).suffix.lower() not in IMAGE_SUFFIXES:
-            raise ClscatterError(f"{o}: unsupported output format (use {', '.join(IMAGE_SUFFIXES)})")
-        if not Path(o).resolve().parent.is_dir():
-            raise ClscatterError(f"{o}: output folder does not exist")
+    # every output is checked before any work: nothing is rendered for nothing
+    outputs = [check_output(o, IMAGE_SUFFIXES, "-o") for o in (args.output or [DEMO_OUTPUT])]
+    stats_path = check_output(args.stats, (".json",), "--stats") if args.stats else None
+    dests = [p.resolve() for p in outputs] + ([stats_path.resolve()] if stats_path else [])
+    if len(set(dests)) != len(dests):
+        raise ClscatterError(f"{_first_duplicate(dests)}: the same file is given twice as output")
+    max_memory = parse_bytes(args.max_memory) if args.max_memory is not None else None
     scene = load_scene(args.scene or f"builtin:{DEFAULT_BUILTIN}", args.overrides)
     result = render(scene, method=args.method, device=args.device,
-                    show_progress=not args.no_progress)
-    for o in outputs:
-        write_image(o, result.image, exposure=args.exposure)
-    if args.stats:
-        write_json(args.stats, result.stats)
+                    show_progress=not args.no_progress, max_memory=max_memory, on_note=_note)
+    writes = [(o, lambda tmp, o=o: write_image(tmp, result.image, exposure=args.exposure))
+              for o in outputs]
+    if stats_path:
+        writes.append((stats_path, lambda tmp: write_json(tmp, result.stats)))
+    write_all(writes)
     st = result.stats
     print(f"{scene.source}: {st['width']}x{st['height']} by {st['method']} in "
-          f"{st['seconds_total']:.2f} s -> {', '.join(outputs)}")
+          f"{st['seconds_total']:.2f} s -> {', '.join(map(str, outputs))}")
     return 0
 
 
@@ -127,6 +158,38 @@ def diff_command(
     return 0
 
 
+def _first_duplicate(paths: list[Path]) -> Path:
+    seen = set()
+    for p in paths:
+        if p in seen:
+            return p
+        seen.add(p)
+    return paths[0]
+
+
+def _cmd_check(args: argparse.Namespace) -> int:
+    """Validate the scene and the method parameters, print the plan and the estimates."""
+    from .budget import check_budget, human_bytes, memory_budget, parse_bytes, peak_bytes
+    from .render import check
+    from .scene import DEFAULT_BUILTIN, load_scene
+
+    scene = load_scene(args.scene or f"builtin:{DEFAULT_BUILTIN}", args.overrides)
+    req = check(scene, args.method)
+    c = scene.camera
+    print(f"{scene.source}: valid; {c.width}x{c.height}, {c.spp} spp, "
+          f"{scene.triangle_count()} triangles")
+    print("plan: " + (", ".join(f"{p.method} ({p.role})" for p in req.passes) or "no passes"))
+    for n in req.notes:
+        print(f"  {n}")
+    for e in req.estimates:
+        print(f"estimate {e.stage}: {human_bytes(e.bytes)}, about {e.work:.2g} {e.unit} ({e.key})")
+    max_memory = parse_bytes(args.max_memory) if args.max_memory is not None else None
+    limit, source = memory_budget(None, max_memory)
+    print(f"peak: about {human_bytes(peak_bytes(req.estimates))} of {human_bytes(limit)} ({source})")
+    check_budget(req.estimates, limit, source)
+    return 0
+
+
 def _cmd_diff(args: argparse.Namespace) -> int:
     return diff_command(args.a, args.b, heatmap_path=args.heatmap, as_json=args.json)
 
@@ -165,12 +228,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not argv:
         argv = ["render"]
     parser = _build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:          # argparse: usage errors (one line, status 2) and --help
+        return int(e.code or 0)
     if args.command is None:
         parser.print_help()
         return 2
-    handlers = {"render": _cmd_render, "diff": _cmd_diff, "devices": _cmd_devices,
-                "scenes": _cmd_scenes}
+    handlers = {"render": _cmd_render, "check": _cmd_check, "diff": _cmd_diff,
+                "devices": _cmd_devices, "scenes": _cmd_scenes}
+    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         return handlers[args.command](args)
     except ClscatterError as e:
@@ -180,8 +247,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"clscatter: error: {text}", file=sys.stderr)
         return e.exit_status
     except KeyboardInterrupt:
-        print("clscatter: interrupted", file=sys.stderr)
+        print("clscatter: interrupted; nothing was written", file=sys.stderr)
         return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _terminate(signum, frame) -> None:
+    """SIGTERM stops like Ctrl-C: between kernel launches, with no output written."""
+    raise KeyboardInterrupt
 
 
 if __name__ == "__main__":

@@ -163,7 +163,13 @@ def tonemap(img: np.ndarray, exposure: float = 0.0) -> np.ndarray:
     ``round(255 * oetf(clamp(img * 2**exposure, 0, 1)))`` with the exact sRGB curve
     (halves round up). NaN and -Inf map to 0, +Inf to 255.
     """
-    x = np.asarray(img, dtype=np.float64) * (2.0 ** float(exposure))
+    e = float(exposure)
+    if not math.isfinite(e):
+        raise ImageError(f"exposure must be a finite number of stops (got {exposure!r})")
+    # exp2 of a clipped exponent: any finite exposure works (2**1e6 would overflow a float);
+    # beyond +-2000 stops every finite value is already 0 or saturated
+    with np.errstate(over="ignore", invalid="ignore"):
+        x = np.asarray(img, dtype=np.float64) * np.exp2(min(max(e, -2000.0), 2000.0))
     x = np.nan_to_num(x, nan=0.0, posinf=1.0, neginf=0.0)
     x = np.clip(x, 0.0, 1.0)
     return np.floor(srgb_oetf(x) * 255.0 + 0.5).astype(np.uint8)

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from . import budget
 from .device import Engine, get_engine
 from .methods import configure_scene, get_method
 from .planner import plan
@@ -24,20 +25,50 @@ class RenderResult:
     medium: np.ndarray           # the medium part alone
 
 
+@dataclass
+class Prepared:
+    """A checked render request: the plan and its cost estimates (no device work yet)."""
+
+    requested: str
+    passes: list
+    notes: list[str]
+    estimates: list
+
+
+def check(scene: Scene, method: str | None = None) -> Prepared:
+    """Everything a render checks before it touches a device: the method name, every
+    ``[render.<method>]`` table (:func:`clscatter.methods.configure_scene`), the plan (made
+    from the scene alone) and the cost estimates (:mod:`clscatter.budget`)."""
+    requested = method if method is not None else scene.render.method
+    settings = configure_scene(scene, requested)
+    passes, notes = plan(scene, requested)
+    return Prepared(requested, passes, notes, budget.estimate(scene, passes, settings))
+
+
 def render(scene: Scene, method: str | None = None, engine: Engine | None = None,
-           device: str | None = None, show_progress: bool = True) -> RenderResult:
+           device: str | None = None, show_progress: bool = True,
+           max_memory: float | None = None, on_note=None) -> RenderResult:
     """Render ``scene`` with ``method`` (default: the scene's render.method).
 
-    Every method name and ``[render.<method>]`` table is checked before any device work
-    (:func:`clscatter.methods.configure_scene`); the plan is made from the scene alone.
+    :func:`check` runs first; a render whose estimated peak memory exceeds ``max_memory``
+    (default: the device's and the machine's memory) is refused before anything is
+    allocated. ``on_note`` receives one-line notes for the user (long work, dropped
+    triangles).
     """
     stats = Stats()
-    requested = method if method is not None else scene.render.method
     with stats.stage("configure"):
-        configure_scene(scene, requested)
-        passes, notes = plan(scene, requested)
+        req = check(scene, method)
+    requested, passes, notes = req.requested, req.passes, req.notes
     with stats.stage("device"):
         engine = engine or get_engine(device)
+    limit, source = budget.memory_budget(engine, max_memory)
+    budget.check_budget(req.estimates, limit, source)
+    for line in budget.long_work_notes(req.estimates) + _scene_notes(scene):
+        if on_note is not None:
+            on_note(line)
+    if scene.dropped_triangles():
+        stats.set(degenerate_triangles_dropped=scene.dropped_triangles())
+    stats.set(estimated_peak_bytes=int(budget.peak_bytes(req.estimates)))
     engine.reset_peak()
     ps = prepare_scene(scene, engine, stats)
     try:
@@ -69,3 +100,8 @@ def render(scene: Scene, method: str | None = None, engine: Engine | None = None
         ps.release()
     return RenderResult(image.astype(np.float32), stats.to_dict(), surface.astype(np.float32),
                         medium.astype(np.float32))
+
+
+def _scene_notes(scene: Scene) -> list[str]:
+    return [f"{o.key}: {o.dropped_triangles} zero-area triangles dropped"
+            for o in scene.objects if o.dropped_triangles]

@@ -136,6 +136,12 @@ class Method:
         missing = kinds - cls.LIGHTS
         return f"{cls.NAME} handles {', '.join(sorted(cls.LIGHTS))} lights only" if missing else ""
 
+    @classmethod
+    def estimate(cls, scene, params: dict[str, Any]) -> list:
+        """Cost estimates (:class:`clscatter.budget.Estimate`) of this pass on ``scene`` with
+        checked ``params``, made before anything is allocated; [] when negligible."""
+        return []
+
     def render(self, ps, paths, stats, show_progress: bool = True) -> np.ndarray:
         """Radiance (H, W, 3) this method adds to the image (its ``TERMS``)."""
         raise NotImplementedError

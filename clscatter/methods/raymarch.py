@@ -34,6 +34,13 @@ class RayMarch(Method):
     TERMS = frozenset({"direct"})
     AUTO = {"direct": AutoRole(priority=10)}
 
+    @classmethod
+    def estimate(cls, scene, params):
+        from ..budget import Estimate, camera_samples
+        segs = 2.0 * camera_samples(scene)          # primary segments plus specular branches
+        return [Estimate("raymarch", "render.raymarch.steps", segs * (64 + 16 + 16),
+                         segs * params["steps"] * max(1, len(scene.lights)), "shadow-ray steps")]
+
     @property
     def steps(self) -> int:
         return self.params["steps"]

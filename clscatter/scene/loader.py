@@ -411,7 +411,12 @@ def _object(t: _Table, materials: dict[str, Material], base_dir: Path) -> Object
     else:
         raise _err(t.k("material"), f"expected a material name or an inline table, got {_tname(m)}")
     v, f, n = _shape_geometry(t, shape, base_dir)
-    return Object(shape=shape, material=material, vertices=v, faces=f, normals=n, key=t.key)
+    f, dropped = shapes.drop_degenerate(v, f)
+    if len(f) == 0:
+        raise _err(t.k("file") if shape == "mesh" else t.key,
+                   "every triangle of this object has zero area")
+    return Object(shape=shape, material=material, vertices=v, faces=f, normals=n, key=t.key,
+                  dropped_triangles=dropped)
 
 
 def _volume(t: _Table, base_dir: Path) -> Volume:

@@ -79,6 +79,7 @@ class Object:
     faces: np.ndarray           # (F, 3) int64
     normals: np.ndarray | None = None
     key: str = ""               # e.g. "objects[2]", for messages
+    dropped_triangles: int = 0  # zero-area triangles removed when loading
 
 
 @dataclass
@@ -117,6 +118,10 @@ class Scene:
     volumes: list[Volume] = field(default_factory=list)
     render: RenderSettings = field(default_factory=RenderSettings)
     source: str = "<memory>"    # file path or "builtin:NAME"
+
+    def dropped_triangles(self) -> int:
+        """Zero-area triangles removed from the objects when the scene was loaded."""
+        return sum(o.dropped_triangles for o in self.objects)
 
     def has_medium(self) -> bool:
         """True when a medium exists and extinguishes light somewhere (a void medium, all

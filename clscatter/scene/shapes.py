@@ -137,7 +137,9 @@ def load_mesh(path: Path, key: str, smooth: bool = False) -> Mesh:
     if not path.is_file():
         raise SceneError(key, f"mesh path is not a file: {path}")
     try:
-        mesh = trimesh.load(str(path), force="mesh", process=True)
+        # process=False: trimesh's processing would silently drop NaN vertices, and with
+        # them the faces that use them; a file with NaN coordinates is an error instead
+        mesh = trimesh.load(str(path), force="mesh", process=False)
     except Exception as exc:  # trimesh raises many kinds; all mean "cannot read this file"
         raise SceneError(key, _one_line(f"cannot read mesh {path}: {exc}")) from None
     faces = getattr(mesh, "faces", None)
@@ -146,6 +148,25 @@ def load_mesh(path: Path, key: str, smooth: bool = False) -> Mesh:
     v = np.asarray(mesh.vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     if not np.all(np.isfinite(v)):
-        raise SceneError(key, f"mesh {path} has non-finite vertex coordinates")
+        bad = int((~np.isfinite(v)).any(axis=1).sum())
+        raise SceneError(key, f"mesh {path} has {bad} vertices with NaN or infinite coordinates")
+    if f.min() < 0 or f.max() >= len(v):
+        raise SceneError(key, f"mesh {path} has faces that index missing vertices")
+    mesh = trimesh.Trimesh(v, f, process=True)     # merge duplicate vertices (smooth normals)
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    f = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
     n = _normalise_rows(np.asarray(mesh.vertex_normals, dtype=np.float64)) if smooth else None
     return v, f, n
+
+
+def drop_degenerate(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, int]:
+    """``faces`` without zero-area triangles (repeated vertices, collinear corners), and how
+    many were dropped. Zero area means below 1e-12 of the mesh's extent squared: such a
+    triangle has no normal and is hit by no ray; keeping it only risks NaN normals."""
+    if len(faces) == 0:
+        return faces, 0
+    t = vertices[faces]
+    area2 = np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+    ext = float(np.ptp(vertices, axis=0).max()) if len(vertices) else 0.0
+    keep = area2 > 1e-12 * max(ext * ext, 1e-300)
+    return faces[keep], int((~keep).sum())

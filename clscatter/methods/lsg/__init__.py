@@ -155,6 +155,8 @@ class Gatherer:
         self.counts_buf = engine.empty(min(self.per_launch, max(self.n, 1)) * 8)
         self.pairs_buf = engine.empty(max(self.record, 1) * 8)
         self.pair_count = engine.empty(4)
+        # valid pairs per view segment, summed over add() calls (automatic radius)
+        self.valid_per_view = np.zeros(self.n, np.int64)
 
     # ---- one chunk ----
     def add(self, segs: np.ndarray, bruteforce: bool = False) -> ChunkResult:
@@ -196,6 +198,7 @@ class Gatherer:
                         c = eng.read(self.counts_buf, (m, 2), np.int32)  # (also waits for the launch)
                         tests += int(c[:, 0].sum(dtype=np.int64))
                         valid += int(c[:, 1].sum(dtype=np.int64))
+                        self.valid_per_view[start:start + m] += c[:, 1]
                         bar.update(m)
             pairs = None
             if self.record:
@@ -206,6 +209,12 @@ class Gatherer:
             eng.free(lines_buf, points_buf, ids_buf, nodes_buf, ranges_buf)
         return ChunkResult(tests, valid, len(prep.lines), int(prep.nbytes + dev_bytes),
                            t_build.seconds, t_gather.seconds, pairs)
+
+    def reset(self) -> None:
+        """Zero the accumulator and the per-view pair counts."""
+        self.eng.cl.enqueue_fill_buffer(self.eng.queue, self.out_buf, np.zeros(1, np.float32), 0,
+                                        max(self.n, 1) * 16)
+        self.valid_per_view[:] = 0
 
     def values(self) -> np.ndarray:
         """The accumulated estimate per view segment, ``(n_views, 4)`` float32."""
@@ -219,6 +228,38 @@ class Gatherer:
 def _chunk_rays(counts: np.ndarray, k: int, n: int) -> int:
     """Rays that chunk (k, n) of trace_light_paths traces (every light's share)."""
     return int(sum(int(c) * (k + 1) // n - int(c) * k // n for c in counts))
+
+
+def ppb_radii(r1: float, alpha: float, passes: int) -> np.ndarray:
+    """Radii of progressive passes 1..passes: ``r_{i+1} = r_i (i + alpha) / (i + 1)``.
+
+    This is the progressive photon beams rule for a 1-D kernel (Jarosz et al. 2011,
+    sec. 5): LSG's pair estimate depends on the line distance d only through the disc
+    kernel integrated along the chord, ``2 sqrt(r^2 - d^2) / (pi r^2)``, a 1-D kernel in
+    d whose variance grows like 1/r, as for photon beams (not 1/r^2 as for surface
+    photons). Keeping a fraction alpha of the new variance per pass makes the average
+    of the passes consistent: ``r_i ~ i^(alpha - 1) -> 0`` while
+    ``sum_i 1/r_i / i^2 -> 0``; its variance falls like ``passes^-alpha`` and the bias
+    (a blur, ~ r^2 where the light field is smooth) like ``passes^-2(1 - alpha)``.
+    """
+    r = np.empty(max(int(passes), 0))
+    cur = float(r1)
+    for i in range(len(r)):
+        r[i] = cur
+        cur *= (i + 1 + alpha) / (i + 2)
+    return r
+
+
+@dataclass
+class AutoRadius:
+    """What the automatic radius was chosen from (``--stats``: ``lsg_auto_radius``)."""
+
+    radius: float              # chosen, normalised units
+    trial_radius: float        # radius of the pilot gather
+    pilot_rays: int
+    count_median: float        # pilot valid pairs per lit view segment, scaled to light_rays
+    footprint: float           # median pixel footprint at the lit view segments
+    lit_views: int             # view segments with a pilot pair
 
 
 @register
@@ -245,17 +286,43 @@ class LineSpaceGathering(Method):
     view segment ~ 1/sqrt(expected lighting rays through its cylinder), which grows like
     ``light_rays * radius``). Halving ``radius`` needs twice the rays for the same noise.
 
+    *Targeted emission.* With ``min_light_depth >= 1`` (a caustic pass, as ``auto`` runs
+    it) and ``targeted`` (default), every light emits only towards the bounding spheres
+    of the mirrors and glass (directional lights: their projected footprint), each ray
+    weighted by its exact pdf (``clscatter.emission``), so the expected image is the same
+    and no ray is spent on light that cannot make a caustic. ``light_rays`` then counts
+    targeted rays.
+
+    *Automatic radius* (``radius = 0``, the default). A pilot traces ``light_rays / 8``
+    rays (at least 2000) and gathers them at a trial radius r0 (4 pixel footprints at the
+    median view-segment distance, doubled until 64 view segments find a pair), counting
+    the valid pairs of every view segment. The number of lighting segments a view
+    segment's cylinder catches grows linearly with r (lines crossing a segment within
+    distance r), so, scaled to the full ``light_rays``, the median count c over the lit
+    view segments gives ``r_n = r0 * auto_count / c``: the radius at which a typical lit
+    view segment gathers ``auto_count`` lighting segments (relative noise per segment
+    ~ 1 / sqrt(auto_count)). The radius is not allowed below half the median pixel
+    footprint f at those segments (blur below a pixel is invisible, while the noise keeps
+    growing as r shrinks): ``r = max(r_n, f / 2)``. Both terms are measured in the data,
+    in the normalised frame, so the same physical scene gets the same radius at any
+    scale and with objects added far away (tests/test_invariance.py); the bounding box
+    plays no part. ``radius > 0`` overrides it (a multiple of the scene extent, as before).
+    The pilot's rays are not part of the image.
+
+    *Progressive passes* (``passes`` > 1 or ``time_budget`` > 0): pass i traces
+    ``light_rays`` fresh rays (an independent rotation of the stratified set) and gathers
+    them with radius ``r_i``, ``r_{i+1} = r_i (i + alpha) / (i + 1)`` (:func:`ppb_radii`,
+    the progressive photon beams rule); the image is the mean of the passes, which
+    converges to the exact single scattering (no radius bias floor). With
+    ``time_budget`` S, passes run while the time of the passes so far plus one more
+    (the mean pass time) fits in S; at least one pass runs, and ``passes`` > 1 is then
+    an upper bound.
+
     Lighting rays are processed in chunks whose estimates are summed (with a fixed radius
     the sum equals one pass over all rays), so that one chunk's working set (traced
     segments, tree, device buffers; ~500 bytes per lighting segment) stays within
     ``max_bytes``; a chunk that turns out larger is re-traced in smaller parts. The view
     segments and the accumulator (80 bytes per view segment) are a fixed cost.
-
-    ``radius``: the scene format's example ``0.001`` suits ~1M rays or more. At the
-    default 200k rays, 0.003 balances noise and blur: on a glass-sphere caustic scene
-    (128 x 96) the relMSE against a 1.6M-ray render was 6.7e-4, 9.7e-5, 6.7e-5, 1.7e-4
-    and 5.3e-4 for r = 0.001, 0.002, 0.003, 0.005 and 0.01 (at 50k rays r = 0.005 was
-    best). Use smaller radii with more rays for sharper caustics.
 
     Statistics: ``light_segments`` (traced), ``lsg_light_segments_kept`` (after clipping
     to the view segments' box grown by r), ``view_segments``, ``pair_tests`` (exact
@@ -264,16 +331,28 @@ class LineSpaceGathering(Method):
     ``lsg_cull_fraction`` (1 - pair_tests / bruteforce), ``lsg_valid_fraction`` (valid /
     tested), ``tree_build_seconds`` (clipping, Plücker points, tree), ``gather_seconds``,
     ``chunks``, ``lsg_chunks_retraced``, ``lsg_chunk_bytes_max`` (largest chunk working
-    set), ``lsg_radius`` (normalised units); ``peak_bytes`` covers the whole render.
+    set), ``lsg_radius`` (first pass, normalised units), ``lsg_radius_last``,
+    ``lsg_passes``, ``lsg_pass_seconds``, ``lsg_time_budget``, ``lsg_auto_radius`` (what
+    the automatic radius was chosen from), ``lsg_targeted``,
+    ``light_rays_specular_fraction`` (emitted rays whose first hit is a mirror or glass);
+    ``peak_bytes`` covers the whole render.
 
     Usage: ``clscatter render scene.toml --method lsg --set render.lsg.light_rays=1000000
-    --set render.lsg.radius=0.001``
+    --set render.lsg.time_budget=30``
     """
 
     NAME = "lsg"
     PARAMS = (
-        Param("light_rays", 200_000, "lighting rays, shared among lights by power", lo=1),
-        Param("radius", 0.003, "gather radius, relative to the scene extent", lo=0, lo_open=True),
+        Param("light_rays", 200_000, "lighting rays per pass, shared among lights by power", lo=1),
+        Param("radius", 0.0, "gather radius relative to the scene extent; 0: automatic, "
+              "from the lighting-ray density and the pixel footprint", lo=0),
+        Param("auto_count", 48.0, "automatic radius: lighting segments a typical lit view "
+              "segment should gather", lo=1),
+        Param("passes", 1, "progressive passes of fresh rays (an upper bound with time_budget)", lo=1),
+        Param("time_budget", 0.0, "seconds for progressive passes (0: run `passes`)", lo=0),
+        Param("alpha", 0.7, "progressive radius reduction r_(i+1) = r_i (i + alpha) / (i + 1)",
+              lo=0, hi=1, lo_open=True, hi_open=True),
+        Param("targeted", True, "with min_light_depth >= 1, emit only towards mirrors and glass"),
         Param("max_bytes", 1 << 30, "working-set bound for one chunk of rays", lo=1),
         Param("leaf_size", 4, "least points per tree leaf (at most 8x)", lo=1),
         Param("min_sin", 1e-6, "sin(theta) below this counts as parallel", lo=0, hi=1, hi_open=True),
@@ -282,45 +361,124 @@ class LineSpaceGathering(Method):
               "specular bounces (1: caustics only, as auto uses it beside a direct method)", lo=0),
     )
     TERMS = frozenset({"direct", "caustics"})
-    AUTO = {"caustics": AutoRole(priority=10, params={"min_light_depth": 1})}
+    # auto: the caustic pass alone, targeted, progressive under a time budget
+    AUTO = {"caustics": AutoRole(priority=10, params={"min_light_depth": 1, "time_budget": 20.0,
+                                                     "passes": 64})}
+
+    def targeted(self) -> bool:
+        return bool(self.params["targeted"]) and self.params["min_light_depth"] >= 1
 
     def render(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
                show_progress: bool = True) -> np.ndarray:
         """Single-scattered radiance (H, W, 3) gathered from the lighting rays."""
         cam = ps.scene.camera
         views = paths.segments
-        r = self.params["radius"] * ps.scene.scene_extent() / ps.frame.scale
-        stats.set(lsg_radius=r, view_segments=int(len(views)))
-        if len(views) == 0 or ps.num_lights == 0 or self.params["light_rays"] == 0:
-            stats.set(pair_tests=0, pair_tests_bruteforce=0, valid_pairs=0, chunks=0)
+        p = self.params
+        stats.set(view_segments=int(len(views)), lsg_targeted=self.targeted())
+        if len(views) == 0 or ps.num_lights == 0 or p["light_rays"] == 0:
+            stats.set(pair_tests=0, pair_tests_bruteforce=0, valid_pairs=0, chunks=0,
+                      lsg_radius=0.0, lsg_passes=0)
             return np.zeros((cam.height, cam.width, 3), np.float32)
         eng = ps.engine
-        p = self.params
-        gat = Gatherer(eng, views, ps.medium, r, p["min_sin"], p["leaf_size"],
-                       p["segments_per_launch"], show_progress=show_progress)
+        r_fixed = p["radius"] * ps.scene.scene_extent() / ps.frame.scale
+        gat = Gatherer(eng, views, ps.medium, r_fixed or 1.0, p["min_sin"], p["leaf_size"],
+                       p["segments_per_launch"], show_progress=False)
         try:
-            totals = self._gather_chunks(ps, gat, stats, show_progress)
-            values = gat.values()
+            if r_fixed > 0:
+                r1 = r_fixed
+            else:
+                with stats.stage("lsg_auto_radius"):
+                    auto = self.auto_radius(ps, gat, views)
+                r1 = auto.radius
+                stats.set(lsg_auto_radius=auto.__dict__)
+            totals, passes, pass_seconds = self._progressive(ps, gat, r1, stats, show_progress)
+            values = gat.values() / max(passes, 1)
         finally:
             gat.release()
+        radii = ppb_radii(r1, p["alpha"], passes)
         totals["pair_tests_bruteforce"] = totals.pop("light_x_view")
         bf = max(totals["pair_tests_bruteforce"], 1)
+        spec, rays = totals.pop("specular_rays"), totals.pop("rays")
         stats.set(**totals, lsg_cull_fraction=1.0 - totals["pair_tests"] / bf,
-                  lsg_valid_fraction=totals["valid_pairs"] / max(totals["pair_tests"], 1))
+                  lsg_valid_fraction=totals["valid_pairs"] / max(totals["pair_tests"], 1),
+                  lsg_radius=float(r1), lsg_radius_last=float(radii[-1]), lsg_passes=passes,
+                  lsg_pass_seconds=pass_seconds, lsg_time_budget=p["time_budget"],
+                  light_rays_specular_fraction=spec / max(rays, 1))
         return accumulate_segments(values, views["pixel"], cam.width, cam.height)
 
+    # ---- automatic radius ----
+    def auto_radius(self, ps: PreparedScene, gat: Gatherer, views: np.ndarray) -> AutoRadius:
+        """The automatic radius (class docstring): a pilot gather at a trial radius."""
+        n_rays = self.params["light_rays"]
+        pilot = int(min(n_rays, max(2000, n_rays // 8)))
+        cam = ps.camera
+        mid = 0.5 * (views["a"][:, :3] + views["b"][:, :3]).astype(np.float64)
+        dist = np.linalg.norm(mid - cam["origin"][:3].astype(np.float64), axis=1)
+        pix = 2.0 * float(np.linalg.norm(cam["right"][:3])) / max(int(cam["width"]), 1)
+        foot = dist * pix                       # pixel footprint at each view segment
+        lp = trace_light_paths(ps, pilot, None, False, targeted=self.targeted(), seed_offset=-1)
+        segs = self._select(lp.segments)
+        r0 = 4.0 * float(np.median(foot)) if len(foot) else 1e-3
+        lit = np.zeros(0, np.int64)
+        for _ in range(12):
+            gat.reset()
+            gat.radius = r0
+            gat.add(segs)
+            lit = np.flatnonzero(gat.valid_per_view > 0)
+            if len(lit) >= min(64, max(1, len(views) // 4)) or len(segs) == 0:
+                break
+            r0 *= 2.0
+        gat.reset()
+        if len(lit) == 0:                       # no light reaches any view segment
+            return AutoRadius(r0, r0, pilot, 0.0, float(np.median(foot)), 0)
+        count = float(np.median(gat.valid_per_view[lit])) * n_rays / pilot
+        f = float(np.median(foot[lit]))
+        r = max(r0 * self.params["auto_count"] / count, 0.5 * f)
+        return AutoRadius(float(r), float(r0), pilot, count, f, int(len(lit)))
+
+    # ---- passes ----
+    def _select(self, segs: np.ndarray) -> np.ndarray:
+        if self.params["min_light_depth"] > 0:
+            return segs[segs["depth"] >= self.params["min_light_depth"]]
+        return segs
+
+    def _progressive(self, ps: PreparedScene, gat: Gatherer, r1: float, stats: Stats,
+                     show_progress: bool) -> tuple[dict, int, list]:
+        """Run the passes into ``gat``'s accumulator; (totals, passes run, seconds each)."""
+        p = self.params
+        budget = float(p["time_budget"])
+        most = int(p["passes"]) if budget <= 0 or p["passes"] > 1 else 1 << 30
+        tot: dict = {}
+        seconds: list[float] = []
+        r = r1
+        with progress(most if most < 1 << 30 else 0, "lsg passes", show_progress) as bar:
+            for i in range(most):
+                if budget > 0 and i > 0 and sum(seconds) * (1 + 1 / i) > budget:
+                    break
+                with Timer() as t:
+                    gat.radius = r
+                    res = self._gather_chunks(ps, gat, stats, show_progress and most == 1,
+                                              seed_offset=i)
+                seconds.append(t.seconds)
+                for key, v in res.items():
+                    tot[key] = max(tot.get(key, 0), v) if key.endswith("_max") else tot.get(key, 0) + v
+                bar.update(1)
+                r *= (i + 1 + p["alpha"]) / (i + 2)
+        return tot, len(seconds), seconds
+
     def _gather_chunks(self, ps: PreparedScene, gat: Gatherer, stats: Stats,
-                       show_progress: bool) -> dict:
-        """Trace and gather the lighting rays chunk by chunk within max_bytes."""
+                       show_progress: bool, seed_offset: int = 0) -> dict:
+        """Trace and gather one pass of lighting rays chunk by chunk within max_bytes."""
         eng = ps.engine
-        counts = ray_counts(ps, self.params["light_rays"])
+        targeted = self.targeted()
+        counts = ray_counts(ps, self.params["light_rays"], targeted)
         budget = self.params["max_bytes"]
         seg_per_ray = 1.0          # lower bound until a chunk has been traced
         n0 = max(1, math.ceil(self.params["light_rays"] * seg_per_ray * BYTES_PER_SEGMENT / budget))
         queue = deque((k, n0) for k in range(n0))
         tot = dict(pair_tests=0, valid_pairs=0, light_x_view=0, chunks=0, lsg_light_segments_kept=0,
                    tree_build_seconds=0.0, gather_seconds=0.0, lsg_chunk_bytes_max=0,
-                   lsg_chunks_retraced=0)
+                   lsg_chunks_retraced=0, specular_rays=0, rays=0)
         while queue:
             k, n = queue.popleft()
             rays = _chunk_rays(counts, k, n)
@@ -331,10 +489,9 @@ class LineSpaceGathering(Method):
                 queue.extendleft((k * split + j, n * split) for j in reversed(range(split)))
                 continue
             with stats.stage("light_paths"):
-                lp = trace_light_paths(ps, self.params["light_rays"], None, show_progress, chunk=(k, n))
-            segs = lp.segments
-            if self.params["min_light_depth"] > 0:
-                segs = segs[segs["depth"] >= self.params["min_light_depth"]]
+                lp = trace_light_paths(ps, self.params["light_rays"], None, show_progress,
+                                       chunk=(k, n), targeted=targeted, seed_offset=seed_offset)
+            segs = self._select(lp.segments)
             seg_per_ray = max(seg_per_ray, len(segs) / rays)
             need = len(segs) * BYTES_PER_SEGMENT
             if need > budget and rays > 1:   # re-trace this chunk in smaller parts
@@ -344,6 +501,8 @@ class LineSpaceGathering(Method):
                 continue
             stats.add("light_rays", rays)
             stats.add("light_segments", int(len(segs)))
+            tot["specular_rays"] += int(lp.specular_rays.sum())
+            tot["rays"] += rays
             res = gat.add(segs)
             tot["pair_tests"] += res.pair_tests
             tot["valid_pairs"] += res.valid_pairs

@@ -226,6 +226,15 @@ class VolumetricPhotonMapping(Method):
     )
     TERMS = frozenset({"direct", "caustics"})
 
+    @classmethod
+    def estimate(cls, scene, params):
+        from ...budget import Estimate, camera_samples
+        photons = float(params["photons"])
+        segs = 2.0 * camera_samples(scene)
+        steps = segs / params["dx"]                # an upper bound: every segment spans the scene
+        return [Estimate("vpm", "render.vpm.photons", photons * (72 + 64 / params["photons_per_ray"]),
+                         steps * params["knn"] * 4, "photon distance tests (upper bound)")]
+
     def rays(self) -> int:
         """Lighting rays to trace."""
         return max(1, round(self.params["photons"] / self.params["photons_per_ray"]))

@@ -1,0 +1,131 @@
+"""Cost estimates before a render allocates anything, and the refusal of what cannot fit.
+
+Every render estimates, from the scene and the checked method parameters alone, the peak
+working set (host + device bytes) and the amount of work of each stage: the view paths
+(camera samples) and every planned pass (``Method.estimate``). The sum is compared with a
+memory budget, the smaller of the device's global memory and the machine's physical
+memory, or ``--max-memory``; a render over budget is refused with one line that names the
+scene key to lower and the estimate, before any buffer exists. Work above
+:data:`LONG_WORK` is allowed but announced (the progress bars show the ETA; Ctrl-C stops
+between kernel launches and writes nothing).
+
+The estimates are deliberately simple upper-bound models (bytes per camera sample, per
+segment, per photon), stated next to each number; ``clscatter check`` prints them.
+"""
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass
+
+from .errors import ClscatterError
+
+# bytes per camera sample kept by the view-path stage: surface + escaped (2 x float4),
+# the image sums, and the medium segments (~1 per sample plus specular branches, 64 bytes
+# each, held up to three times while being appended, concatenated and sorted)
+BYTES_PER_SAMPLE = 48
+BYTES_PER_SAMPLE_MEDIUM = 48 + 3 * 64 * 2
+# elementary operations above which a render is announced as long (~a minute on a CPU)
+LONG_WORK = 2e10
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One stage's cost: ``bytes`` of working set, ``work`` operations of ``unit``, and
+    the scene ``key`` that scales them."""
+
+    stage: str
+    key: str
+    bytes: float
+    work: float = 0.0
+    unit: str = ""
+
+
+def camera_samples(scene) -> int:
+    c = scene.camera
+    return int(c.width) * int(c.height) * int(c.spp)
+
+
+def view_path_estimate(scene) -> Estimate:
+    """The view-path stage: per camera sample bytes (see :data:`BYTES_PER_SAMPLE`)."""
+    n = camera_samples(scene)
+    per = BYTES_PER_SAMPLE_MEDIUM if scene.has_medium() else BYTES_PER_SAMPLE
+    key = "camera.spp" if scene.camera.spp > 64 else "camera.resolution"
+    return Estimate("view_paths", key, float(n) * per, float(n) * (1 + scene.render.max_depth),
+                    "ray casts")
+
+
+def estimate(scene, passes, settings: dict) -> list[Estimate]:
+    """Estimates of the view paths and of every pass of the plan (``settings``: checked
+    parameters per method, :func:`clscatter.methods.configure_scene`)."""
+    from .methods import configure, get_method
+    out = [view_path_estimate(scene)]
+    for p in passes:
+        cls = get_method(p.method)
+        params = configure(p.method, {**(scene.render.params.get(p.method) or {}), **p.params})
+        out += cls.estimate(scene, params)
+    return out
+
+
+def memory_budget(engine=None, max_memory: float | None = None) -> tuple[float, str]:
+    """(bytes, where the number comes from): ``max_memory`` if given, else the smaller of
+    the device's global memory and the machine's physical memory."""
+    if max_memory is not None:
+        return float(max_memory), "--max-memory"
+    limits = []
+    try:
+        limits.append((float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")),
+                       "physical memory"))
+    except (ValueError, OSError, AttributeError):
+        pass
+    if engine is not None:
+        try:
+            limits.append((float(engine.device.global_mem_size), "device memory"))
+        except Exception:
+            pass
+    return min(limits) if limits else (float("inf"), "no limit known")
+
+
+def human_bytes(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if abs(n) < 1024 or unit == "PiB":
+            return f"{n:.3g} {unit}" if unit != "B" else f"{int(n)} B"
+        n /= 1024
+    return f"{n:.3g} PiB"
+
+
+def parse_bytes(text: str) -> float:
+    """``"4G"``, ``"512MiB"``, ``"1e9"`` -> bytes (binary multiples); ClscatterError if not."""
+    m = re.fullmatch(r"\s*([0-9.eE+]+)\s*([kKmMgGtT]?)(i?[bB])?\s*", str(text))
+    try:
+        value = float(m.group(1)) if m else float("nan")
+    except ValueError:
+        value = float("nan")
+    if not m or not value > 0 or value == float("inf"):
+        raise ClscatterError(f"--max-memory: expected a size such as 4G or 512M (got {text!r})")
+    return value * 1024 ** " KMGT".index(m.group(2).upper() or " ")
+
+
+def peak_bytes(estimates: list[Estimate]) -> float:
+    """The view paths stay alive while the passes run one after another: peak = view paths
+    + the largest pass."""
+    view, passes = estimates[0], estimates[1:]
+    return view.bytes + max((e.bytes for e in passes), default=0.0)
+
+
+def check_budget(estimates: list[Estimate], budget: float, source: str) -> None:
+    """Refuse (ClscatterError, one line) when the peak exceeds ``budget``; the message names
+    the key of the largest stage and the estimate."""
+    peak = peak_bytes(estimates)
+    if peak > budget:
+        worst = max(estimates, key=lambda e: e.bytes)
+        raise ClscatterError(
+            f"{worst.key}: this render needs about {human_bytes(peak)} ({worst.stage}: "
+            f"{human_bytes(worst.bytes)}), more than the {human_bytes(budget)} allowed "
+            f"({source}); lower {worst.key}")
+
+
+def long_work_notes(estimates: list[Estimate]) -> list[str]:
+    """One line per stage whose work exceeds :data:`LONG_WORK`."""
+    return [f"{e.stage}: about {e.work:.2g} {e.unit} ({e.key}); this will take a while "
+            "(Ctrl-C stops cleanly)" for e in estimates if e.work > LONG_WORK]
