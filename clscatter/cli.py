@@ -249,6 +249,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("clscatter: interrupted; nothing was written", file=sys.stderr)
         return 130
+    except BrokenPipeError:          # e.g. `clscatter scenes | head`
+        sys.stderr.close()
+        return 0
     finally:
         signal.signal(signal.SIGTERM, previous)
 

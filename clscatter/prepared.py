@@ -47,6 +47,7 @@ class PreparedScene:
     camera: np.ndarray          # structs.CAMERA (host copy)
     lights: np.ndarray          # structs.LIGHT array (host copy)
     dev: SceneBuffers | None    # device buffers (None once released)
+    materials: np.ndarray | None = None   # structs.MATERIAL (host copy)
 
     @property
     def num_lights(self) -> int:
@@ -102,4 +103,44 @@ def prepare_scene(scene: Scene, engine: Engine, stats: Stats | None = None) -> P
             camera=engine.to_device(camera.reshape(1)),
         )
     stats.set(triangles=int(len(order)), bvh_nodes=int(len(bvh.nodes)), lights=int(len(lights)))
-    return PreparedScene(scene, engine, frame, bvh, medium, camera, lights, dev)
+    return PreparedScene(scene, engine, frame, bvh, medium, camera, lights, dev, soup.materials)
+
+
+def refresh(ps: PreparedScene, scene: Scene, stats: Stats | None = None) -> list[str]:
+    """Bring ``ps`` to ``scene`` *with the same geometry*, re-uploading only the device
+    buffers whose contents changed (lights, camera, medium, materials); the BVH and the
+    triangle buffers are kept. Returns the names of the buffers replaced.
+
+    The caller guarantees that objects and volumes are unchanged (and so is the normalised
+    frame; :func:`same_frame` checks it): otherwise prepare the scene anew.
+    """
+    stats = stats or Stats()
+    eng = ps.engine
+    frame = ps.frame
+    fresh = {"medium": medium_struct(scene.medium, frame),
+             "camera": camera_struct(scene.camera, frame),
+             "lights": light_structs(scene.lights, frame)}
+    changed = []
+    with stats.stage("upload"):
+        for name, host in fresh.items():
+            if host.tobytes() == np.asarray(getattr(ps, name)).tobytes():
+                continue
+            dev_host = host.reshape(-1) if host.size else np.zeros(1, structs.LIGHT)
+            eng.free(getattr(ps.dev, name))
+            setattr(ps.dev, name, eng.to_device(dev_host))
+            setattr(ps, name, host)
+            changed.append(name)
+        materials = triangle_soup(scene, frame, materials_only=True).materials
+        if materials.tobytes() != ps.materials.tobytes():
+            eng.free(ps.dev.materials)
+            ps.dev.materials = eng.to_device(materials)
+            ps.materials = materials
+            changed.append("materials")
+    ps.scene = scene
+    return changed
+
+
+def same_frame(ps: PreparedScene, scene: Scene) -> bool:
+    """True when ``scene`` maps to the same normalised frame as ``ps``."""
+    f = Frame.for_scene(scene)
+    return f.scale == ps.frame.scale and bool(np.all(f.centre == ps.frame.centre))

@@ -1,8 +1,11 @@
-"""NumPy dtypes mirroring the C structs of ``cl_kernels/common.h``.
+"""NumPy dtypes mirroring C structs of ``cl_kernels/``, and the registry of all of them.
 
-One place for each host/device struct. ``tests/test_structs.py`` compiles a kernel that
-reports ``sizeof`` and ``offsetof`` for every struct and checks them against these
-dtypes, so the two declarations cannot drift apart silently.
+One place for each host/device struct: the dtypes of ``common.h`` are here; a method's own
+structs live in its package and are registered with :func:`register_struct`. The layout
+test (``tests/test_structs.py``) compiles a kernel that reports ``sizeof`` and ``offsetof``
+of every registered struct and compares them with the dtypes, so the two declarations
+cannot drift apart silently; it also fails on a ``typedef struct`` in a kernel file that is
+neither registered nor listed in :data:`DEVICE_ONLY`.
 """
 from __future__ import annotations
 
@@ -54,10 +57,39 @@ LIGHT_SEGMENT = np.dtype([
     ("light", np.int32), ("depth", np.int32), ("ray", np.int32), ("branch", np.int32),
 ], align=True)
 
-# name in common.h -> dtype; used by the layout test
+# RayPiece.end values (PIECE_* in common.h)
+PIECE_DIFFUSE, PIECE_BLACK, PIECE_ESCAPED = 0, 1, 2
+
+RAY_PIECE = np.dtype([
+    ("a", *F4), ("b", *F4), ("flux", *F4),
+    ("light", np.int32), ("depth", np.int32), ("ray", np.int32), ("branch", np.int32),
+    ("end", np.int32), ("pad0", np.int32), ("pad1", np.int32), ("pad2", np.int32),
+], align=True)
+
+DIFFUSE_HIT = np.dtype([
+    ("p", *F4), ("n", *F4), ("weight", *F4),
+    ("pixel", np.int32), ("sample", np.int32), ("depth", np.int32), ("branch", np.int32),
+], align=True)
+
+# C struct name -> (header that declares it, host dtype)
+REGISTRY: dict[str, tuple[str, np.dtype]] = {}
+
+# structs that live and die inside a kernel (no host copy exists, so no twin is needed)
+DEVICE_ONLY = frozenset({"Hit", "BvhRay", "Rng", "Branch", "SurfaceFrame", "ViewQuery", "Tri"})
+
+
+def register_struct(header: str, cname: str, dtype: np.dtype) -> np.dtype:
+    """Declare that ``dtype`` mirrors ``typedef struct {...} cname`` of ``cl_kernels/header``."""
+    REGISTRY[cname] = (header, np.dtype(dtype))
+    return dtype
+
+
+# the structs of common.h
 ALL = {"Material": MATERIAL, "Light": LIGHT, "Medium": MEDIUM, "Camera": CAMERA,
        "BVHNode": BVH_NODE, "ViewSegment": VIEW_SEGMENT,
-       "LightSegment": LIGHT_SEGMENT}
+       "LightSegment": LIGHT_SEGMENT, "RayPiece": RAY_PIECE, "DiffuseHit": DIFFUSE_HIT}
+for _name, _dt in ALL.items():
+    register_struct("common.h", _name, _dt)
 
 
 def vec4(xyz, w: float = 0.0) -> np.ndarray:

@@ -45,12 +45,13 @@ def test_misspelled_key_is_reported_with_every_optional_dependency_missing(tmp_p
 
 def test_range_errors_come_before_any_device_work(monkeypatch):
     import clscatter.render as render_mod
+    import clscatter.session as session_mod
 
     def no_device(*a, **k):
         raise AssertionError("a device was requested before the parameters were checked")
 
-    monkeypatch.setattr(render_mod, "get_engine", no_device)
-    monkeypatch.setattr(render_mod, "prepare_scene", no_device)
+    monkeypatch.setattr(session_mod, "get_engine", no_device)
+    monkeypatch.setattr(session_mod, "prepare_scene", no_device)
     # an unused method's table is still checked
     scene = load_scene("builtin:shafts", ["render.lsg.radius=-0.01"])
     with pytest.raises(SceneError) as e:

@@ -140,8 +140,9 @@ class TriangleSoup:
     materials: np.ndarray     # structs.MATERIAL array
 
 
-def triangle_soup(scene: Scene, frame: Frame) -> TriangleSoup:
-    """Flatten every object of ``scene`` into one triangle soup in the normalised frame."""
+def triangle_soup(scene: Scene, frame: Frame, materials_only: bool = False) -> TriangleSoup:
+    """Flatten every object of ``scene`` into one triangle soup in the normalised frame
+    (``materials_only``: just the material table, in the same order; no triangles)."""
     mats: list = []
     mat_index: dict[int, int] = {}
     tris, norms, tri_mat = [], [], []
@@ -150,6 +151,8 @@ def triangle_soup(scene: Scene, frame: Frame) -> TriangleSoup:
         if key not in mat_index:
             mat_index[key] = len(mats)
             mats.append(obj.material)
+        if materials_only:
+            continue
         v = frame.point(obj.vertices)
         f = np.asarray(obj.faces, np.int64)
         t = v[f]

@@ -594,9 +594,9 @@ def read_toml(path: Path | str) -> dict:
         raise _err(name, f"invalid TOML: {msg}") from None
 
 
-def load_scene(spec: str | Path, overrides: Sequence[str] = ()) -> Scene:
-    """Load a scene: ``spec`` is a .toml path or ``builtin:NAME``; ``overrides`` are
-    ``--set key=value`` strings applied before validation."""
+def scene_source(spec: str | Path) -> tuple[dict, Path]:
+    """The raw scene dict of ``spec`` (a .toml path or ``builtin:NAME``) and the folder its
+    relative paths are resolved against; nothing is validated yet."""
     spec = str(spec)
     if spec.startswith("builtin:"):
         from .builtin import BUILTIN
@@ -604,7 +604,12 @@ def load_scene(spec: str | Path, overrides: Sequence[str] = ()) -> Scene:
         name = spec[len("builtin:"):]
         if name not in BUILTIN:
             raise _err(spec, f"unknown built-in scene '{name}' (one of {', '.join(BUILTIN)})")
-        data, base_dir = BUILTIN[name](), Path.cwd()
-    else:
-        data, base_dir = read_toml(spec), Path(spec).parent
-    return scene_from_dict(apply_overrides(data, overrides), base_dir, spec)
+        return BUILTIN[name](), Path.cwd()
+    return read_toml(spec), Path(spec).parent
+
+
+def load_scene(spec: str | Path, overrides: Sequence[str] = ()) -> Scene:
+    """Load a scene: ``spec`` is a .toml path or ``builtin:NAME``; ``overrides`` are
+    ``--set key=value`` strings applied before validation."""
+    data, base_dir = scene_source(spec)
+    return scene_from_dict(apply_overrides(data, overrides), base_dir, str(spec))

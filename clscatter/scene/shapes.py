@@ -127,15 +127,33 @@ def quad(origin: np.ndarray, edge_u: np.ndarray, edge_v: np.ndarray) -> Mesh:
     return v, np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int64), None
 
 
-def load_mesh(path: Path, key: str, smooth: bool = False) -> Mesh:
-    """Load any mesh trimesh reads; SceneError ``key`` naming the file on any failure."""
-    import trimesh
+_MESH_CACHE: dict[tuple, Mesh] = {}
+_MESH_CACHE_SIZE = 8
 
+
+def load_mesh(path: Path, key: str, smooth: bool = False) -> Mesh:
+    """Load any mesh trimesh reads; SceneError ``key`` naming the file on any failure.
+
+    Parsed meshes are cached by (path, size, mtime, smooth), so a relighting session that
+    re-validates its scene after each change does not parse the file again."""
     path = Path(path)
     if not path.exists():
         raise SceneError(key, f"mesh file not found: {path}")
     if not path.is_file():
         raise SceneError(key, f"mesh path is not a file: {path}")
+    st = path.stat()
+    ck = (str(path.resolve()), st.st_size, st.st_mtime_ns, bool(smooth))
+    if ck not in _MESH_CACHE:
+        if len(_MESH_CACHE) >= _MESH_CACHE_SIZE:
+            _MESH_CACHE.pop(next(iter(_MESH_CACHE)))
+        _MESH_CACHE[ck] = _read_mesh(path, key, smooth)
+    v, f, n = _MESH_CACHE[ck]
+    return v.copy(), f.copy(), None if n is None else n.copy()
+
+
+def _read_mesh(path: Path, key: str, smooth: bool) -> Mesh:
+    import trimesh
+
     try:
         # process=False: trimesh's processing would silently drop NaN vertices, and with
         # them the faces that use them; a file with NaN coordinates is an error instead

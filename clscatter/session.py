@@ -1,0 +1,260 @@
+"""The warm path: a prepared scene kept on the device, re-rendered after changes.
+
+A :class:`RenderSession` holds everything a render builds (the device and its programs, the
+normalised frame, the BVH and the scene's device buffers, the view paths) and, when the
+scene changes, re-runs only what the change invalidates:
+
+==========================  ==============================================================
+what changed                what runs again
+==========================  ==============================================================
+objects or volumes          everything (a new BVH; the normalised frame may move)
+materials                   the material buffer, view paths, passes
+lights                      the light buffer, view paths (surface shading), passes
+camera                      the camera buffer, view paths, passes
+medium                      the medium buffer, view paths (segment weights), passes
+render.max_depth / seed     view paths, passes
+method or its parameters    passes only
+==========================  ==============================================================
+
+A one-off :func:`clscatter.render.render` is a session used once, so a warm re-render and
+a fresh render run the same code and give the same image. ``stats["stages_run"]`` lists
+what ran and ``stats["reused"]`` what was kept; ``stats["stages"]`` times them.
+
+Sources: :meth:`RenderSession.from_source` keeps the scene's raw TOML data, so changes can
+be given as ``--set``-style overrides (:meth:`set`, validated exactly like the command
+line; a bad value raises the same one-line :class:`SceneError` and leaves the session as it
+was) and the current scene can be saved as TOML (:meth:`to_toml`).
+"""
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from . import budget
+from .device import Engine, get_engine
+from .methods import get_method
+from .prepared import PreparedScene, prepare_scene, refresh, same_frame
+from .scene.loader import apply_overrides, scene_from_dict, scene_source
+from .scene.model import Scene
+from .stats import Stats
+from .view_paths import ViewPaths, trace_view_paths
+
+
+class Cancelled(Exception):
+    """A render was stopped by its ``cancel`` callback (between stages)."""
+
+
+def _geometry_key(scene: Scene) -> tuple:
+    """Identity of the geometry: object and volume arrays (values, not object ids)."""
+    parts = []
+    for o in scene.objects:
+        parts.append((o.vertices.tobytes(), o.faces.tobytes(),
+                      None if o.normals is None else o.normals.tobytes()))
+    for v in scene.volumes:
+        parts.append((repr(v.key), None if v.mesh is None else v.mesh.vertices.tobytes(),
+                      None if v.grid is None else v.grid.tobytes(), repr(v.grid_bounds),
+                      float(v.ior), v.sigma_s.tobytes(), v.sigma_a.tobytes()))
+    return tuple(parts)
+
+
+def _view_key(scene: Scene) -> tuple:
+    """What the view paths depend on besides the device buffers: depth and seed."""
+    return scene.render.max_depth, scene.render.seed
+
+
+class RenderSession:
+    """A scene prepared on one device, rendered again and again (see the module docstring)."""
+
+    def __init__(self, scene: Scene, method: str | None = None, engine: Engine | None = None,
+                 device: str | None = None, max_memory: float | None = None):
+        self.scene = scene
+        self.method = method
+        self.max_memory = max_memory
+        self._engine = engine
+        self._device = device
+        self._ps: PreparedScene | None = None
+        self._geometry: tuple | None = None
+        self._paths: ViewPaths | None = None
+        self._paths_key: tuple | None = None
+        self._pending: list[str] = []       # buffers re-uploaded since the last render
+        self._data: dict | None = None
+        self._base_dir = Path.cwd()
+        self._source = scene.source
+        self._overrides: list[str] = []
+
+    # ---- sources and changes ---------------------------------------------------------------
+    @classmethod
+    def from_source(cls, spec: str | Path, overrides: Sequence[str] = (), **kw) -> "RenderSession":
+        """A session on ``spec`` (TOML path or ``builtin:NAME``) with ``--set`` overrides."""
+        data, base_dir = scene_source(spec)
+        scene = scene_from_dict(apply_overrides(data, overrides), base_dir, str(spec))
+        s = cls(scene, **kw)
+        s._data, s._base_dir, s._source = data, base_dir, str(spec)
+        s._overrides = list(overrides)
+        return s
+
+    def set(self, overrides: Sequence[str]) -> None:
+        """Apply ``--set key=value`` overrides on top of the current ones. Validation is the
+        loader's; on error (:class:`SceneError`) nothing changes."""
+        if self._data is None:
+            raise TypeError("set() needs a session made by RenderSession.from_source")
+        merged = self._overrides + list(overrides)
+        scene = scene_from_dict(apply_overrides(self._data, merged), self._base_dir, self._source)
+        self._overrides = merged
+        self.update(scene)
+
+    def update(self, scene: Scene) -> None:
+        """Move the session to ``scene``; the next :meth:`render` re-runs what changed."""
+        self.scene = scene
+
+    def current_data(self) -> dict:
+        """The scene's raw data with every override applied (what :meth:`to_toml` writes)."""
+        if self._data is None:
+            raise TypeError("needs a session made by RenderSession.from_source")
+        data = apply_overrides(self._data, self._overrides)
+        return _absolute_paths(copy.deepcopy(data), self._base_dir)
+
+    def to_toml(self) -> str:
+        """The current scene as a TOML file that ``clscatter render`` reproduces exactly
+        (relative mesh and grid paths made absolute)."""
+        from .scene.builtin import to_toml
+        return to_toml(self.current_data())
+
+    @property
+    def engine(self) -> Engine:
+        if self._engine is None:
+            self._engine = get_engine(self._device)
+        return self._engine
+
+    # ---- rendering -------------------------------------------------------------------------
+    def render(self, show_progress: bool = True, cancel: Callable[[], bool] | None = None,
+               on_note: Callable[[str], None] | None = None, preview: bool = False):
+        """Render the current scene, re-running only what changed since the last render.
+
+        ``preview`` renders at a quarter of the resolution with one sample per pixel (the
+        stats say so); ``cancel()`` is polled between stages and raises :class:`Cancelled`.
+        """
+        from .render import RenderResult, check, scene_notes
+
+        scene = _preview_scene(self.scene) if preview else self.scene
+        stats = Stats()
+        ran: list[str] = []
+        reused: list[str] = []
+
+        def stop_if_asked() -> None:
+            if cancel is not None and cancel():
+                raise Cancelled("render cancelled")
+
+        with stats.stage("configure"):
+            req = check(scene, self.method)
+        with stats.stage("device"):
+            engine = self.engine
+        limit, source = budget.memory_budget(engine, self.max_memory)
+        budget.check_budget(req.estimates, limit, source)
+        for line in budget.long_work_notes(req.estimates) + scene_notes(scene):
+            if on_note is not None:
+                on_note(line)
+        if scene.dropped_triangles():
+            stats.set(degenerate_triangles_dropped=scene.dropped_triangles())
+        stats.set(estimated_peak_bytes=int(budget.peak_bytes(req.estimates)))
+        engine.reset_peak()
+        stop_if_asked()
+
+        # ---- prepared scene: BVH and device buffers ----
+        geometry = _geometry_key(scene)
+        if self._ps is not None and geometry == self._geometry and same_frame(self._ps, scene):
+            changed = refresh(self._ps, scene, stats)
+            reused.append("bvh")
+            ran += [f"upload_{c}" for c in changed]
+            self._pending += changed
+        else:
+            self.release()
+            self._ps = prepare_scene(scene, engine, stats)
+            self._geometry = geometry
+            ran.append("prepare_scene")
+            self._pending = ["all"]
+        ps = self._ps
+        stop_if_asked()
+
+        # ---- view paths ----
+        key = _view_key(scene)
+        if self._paths is None or self._pending or key != self._paths_key:
+            self._paths = trace_view_paths(ps, stats, show_progress)
+            self._paths_key = key
+            self._pending = []
+            ran.append("view_paths")
+        else:
+            reused.append("view_paths")
+            stats.set(view_segments=int(len(self._paths.segments)))
+        paths = self._paths
+
+        # ---- passes ----
+        cam = scene.camera
+        surface = paths.surface.copy()
+        medium = np.zeros((cam.height, cam.width, 3), np.float32)
+        for p in req.passes:
+            stop_if_asked()
+            m = get_method(p.method)({**(scene.render.params.get(p.method) or {}), **p.params})
+            out = m.render(ps, paths, stats, show_progress)
+            ran.append(p.method)
+            if p.role == "surface_caustics":
+                surface = surface + out
+            elif isinstance(out, dict):      # a method that splits its own terms
+                surface = surface + out.get("surface", 0.0)
+                medium = medium + out.get("medium", 0.0)
+            else:
+                medium = medium + out
+        image = surface + medium
+        bad = ~np.isfinite(image)
+        if bad.any():
+            stats.set(nonfinite_pixels_zeroed=int(bad.any(axis=-1).sum()))
+            image = np.where(bad, 0.0, image)
+        chosen = "+".join(p.method for p in req.passes) or "none"
+        stats.set(method=chosen, requested_method=req.requested, plan=req.notes,
+                  passes=[{"method": p.method, "role": p.role} for p in req.passes],
+                  device=engine.name, width=cam.width, height=cam.height, spp=cam.spp,
+                  peak_bytes=int(engine.bytes_peak), stages_run=ran, reused=reused,
+                  preview=bool(preview))
+        return RenderResult(image.astype(np.float32), stats.to_dict(),
+                            surface.astype(np.float32), medium.astype(np.float32))
+
+    def release(self) -> None:
+        """Free the device buffers (the session can render again; it prepares anew)."""
+        if self._ps is not None:
+            self._ps.release()
+        self._ps = None
+        self._paths = None
+        self._geometry = None
+
+    close = release
+
+    def __enter__(self) -> "RenderSession":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+def _preview_scene(scene: Scene) -> Scene:
+    """``scene`` at a quarter of the resolution (at least 16 pixels wide) and 1 spp."""
+    cam = copy.copy(scene.camera)
+    f = max(1, min(4, cam.width // 16))
+    cam.width, cam.height = max(1, cam.width // f), max(1, cam.height // f)
+    cam.spp = 1
+    out = copy.copy(scene)
+    out.camera = cam
+    return out
+
+
+def _absolute_paths(data: dict, base_dir: Path) -> dict:
+    """Make the ``file`` of mesh objects/volumes and ``grid`` of volumes absolute."""
+    for section in ("objects", "volumes"):
+        for item in data.get(section, []) or []:
+            for key in ("file", "grid"):
+                if isinstance(item, dict) and isinstance(item.get(key), str):
+                    p = Path(item[key])
+                    item[key] = str(p if p.is_absolute() else (base_dir / p).resolve())
+    return data

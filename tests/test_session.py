@@ -1,0 +1,75 @@
+"""The warm path: after each kind of change a session re-runs only what the change
+invalidates, and its image equals a fresh render of the changed scene."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from clscatter.errors import SceneError
+from clscatter.render import render
+from clscatter.scene import load_scene
+from clscatter.session import Cancelled, RenderSession
+
+SMALL = ["camera.resolution=[40,30]", "camera.spp=1"]
+
+# (change, stages that must run, stages that must be reused)
+CHANGES = [
+    (["lights[0].position=[0.5,2.5,0.3]"], {"upload_lights", "view_paths", "raymarch"}, {"bvh"}),
+    (["camera.origin=[0.3,1.2,5.5]"], {"upload_camera", "view_paths", "raymarch"}, {"bvh"}),
+    (["medium.sigma_s=0.3"], {"upload_medium", "view_paths", "raymarch"}, {"bvh"}),
+    (["materials.floor.albedo=0.9"], {"upload_materials", "view_paths", "raymarch"}, {"bvh"}),
+    (["render.raymarch.steps=16"], {"raymarch"}, {"bvh", "view_paths"}),
+    (["objects[1].radius=0.7"], {"prepare_scene", "view_paths", "raymarch"}, set()),
+]
+
+
+@pytest.fixture(scope="module")
+def session(engine):
+    s = RenderSession.from_source("builtin:occluder", SMALL, engine=engine)
+    s.render(show_progress=False)
+    yield s
+    s.close()
+
+
+@pytest.mark.parametrize("change, runs, kept", CHANGES, ids=[c[0][0] for c in CHANGES])
+def test_warm_render_reruns_only_what_changed(session, engine, change, runs, kept):
+    session.set(change)
+    warm = session.render(show_progress=False)
+    ran = set(warm.stats["stages_run"])
+    assert runs <= ran, (ran, runs)
+    assert not (ran & {"prepare_scene"}) or "prepare_scene" in runs
+    assert kept <= set(warm.stats["reused"]), warm.stats["reused"]
+    fresh = render(load_scene("builtin:occluder", SMALL + session._overrides[len(SMALL):]),
+                   engine=engine, show_progress=False)
+    np.testing.assert_allclose(warm.image, fresh.image, rtol=1e-5, atol=1e-7)
+
+
+def test_nothing_changed_reuses_everything_but_the_passes(session):
+    res = session.render(show_progress=False)
+    assert set(res.stats["stages_run"]) == {"raymarch"}
+    assert {"bvh", "view_paths"} <= set(res.stats["reused"])
+
+
+def test_a_bad_change_leaves_the_session_as_it_was(session):
+    before = session.render(show_progress=False).image
+    with pytest.raises(SceneError) as e:
+        session.set(["medium.g=3"])
+    assert e.value.key == "medium.g"
+    np.testing.assert_array_equal(session.render(show_progress=False).image, before)
+
+
+def test_preview_and_cancel(session):
+    res = session.render(show_progress=False, preview=True)
+    assert res.stats["preview"] and res.image.shape == (15, 20, 3)   # halved: kept >= 16 px wide
+    with pytest.raises(Cancelled):
+        session.render(show_progress=False, cancel=lambda: True)
+    full = session.render(show_progress=False)
+    assert full.image.shape == (30, 40, 3)
+
+
+def test_saved_toml_reproduces_the_image(session, engine, tmp_path):
+    p = tmp_path / "saved.toml"
+    p.write_text(session.to_toml())
+    a = session.render(show_progress=False).image
+    b = render(load_scene(p), engine=engine, show_progress=False).image
+    np.testing.assert_allclose(a, b, rtol=1e-6, atol=0)
