@@ -88,28 +88,34 @@ def _note(line: str) -> None:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from .budget import parse_bytes
-    from .image import write_image
-    from .outputs import check_output, write_all
-    from .render import render
-    from .scene import DEFAULT_BUILTIN, load_scene
-    from .stats import write_json
+    stats = args.stats_obj
+    with stats.stage("startup"):     # imports of the render path, and the output checks
+        from .budget import parse_bytes
+        from .image import write_image
+        from .outputs import check_output, write_all
+        from .render import render
+        from .scene import DEFAULT_BUILTIN, load_scene
+        from .stats import write_json
 
-    # every output is checked before any work: nothing is rendered for nothing
-    outputs = [check_output(o, IMAGE_SUFFIXES, "-o") for o in (args.output or [DEMO_OUTPUT])]
-    stats_path = check_output(args.stats, (".json",), "--stats") if args.stats else None
-    dests = [p.resolve() for p in outputs] + ([stats_path.resolve()] if stats_path else [])
-    if len(set(dests)) != len(dests):
-        raise ClscatterError(f"{_first_duplicate(dests)}: the same file is given twice as output")
-    max_memory = parse_bytes(args.max_memory) if args.max_memory is not None else None
-    scene = load_scene(args.scene or f"builtin:{DEFAULT_BUILTIN}", args.overrides)
-    result = render(scene, method=args.method, device=args.device,
+        # every output is checked before any work: nothing is rendered for nothing
+        outputs = [check_output(o, IMAGE_SUFFIXES, "-o") for o in (args.output or [DEMO_OUTPUT])]
+        stats_path = check_output(args.stats, (".json",), "--stats") if args.stats else None
+        dests = [p.resolve() for p in outputs] + ([stats_path.resolve()] if stats_path else [])
+        if len(set(dests)) != len(dests):
+            raise ClscatterError(f"{_first_duplicate(dests)}: the same file is given twice "
+                                 "as output")
+        max_memory = parse_bytes(args.max_memory) if args.max_memory is not None else None
+    with stats.stage("load_scene"):
+        scene = load_scene(args.scene or f"builtin:{DEFAULT_BUILTIN}", args.overrides)
+    result = render(scene, method=args.method, device=args.device, stats=stats,
                     show_progress=not args.no_progress, max_memory=max_memory, on_note=_note)
     writes = [(o, lambda tmp, o=o: write_image(tmp, result.image, exposure=args.exposure))
               for o in outputs]
     if stats_path:
-        writes.append((stats_path, lambda tmp: write_json(tmp, result.stats)))
-    write_all(writes)
+        # the statistics are final when this runs: the image writes before it are timed
+        writes.append((stats_path, lambda tmp: write_json(tmp, _final(stats, result.stats))))
+    with stats.stage("write_outputs"):
+        write_all(writes)
     st = result.stats
     print(f"{scene.source}: {st['width']}x{st['height']} by {st['method']} in "
           f"{st['seconds_total']:.2f} s -> {', '.join(map(str, outputs))}")
@@ -156,6 +162,16 @@ def diff_command(
             value = metrics[key]
             print(f"{key}: {value if not math.isfinite(value) else format(value, '.6g')}{unit}")
     return 0
+
+
+def _final(stats, rendered: dict) -> dict:
+    """The render's statistics with the CLI's own stages (scene loading, output writing)
+    and the total up to now."""
+    final = dict(rendered)
+    now = stats.to_dict()
+    final["stages"] = now["stages"]
+    final["seconds_total"] = now["seconds_total"]
+    return final
 
 
 def _first_duplicate(paths: list[Path]) -> Path:
@@ -227,9 +243,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv:
         argv = ["render"]
+    from .stats import Stats
+    stats = Stats()          # seconds_total counts from here: argument parsing onwards
     parser = _build_parser()
     try:
         args = parser.parse_args(argv)
+        args.stats_obj = stats
     except SystemExit as e:          # argparse: usage errors (one line, status 2) and --help
         return int(e.code or 0)
     if args.command is None:

@@ -105,6 +105,49 @@ def _probe(device) -> str:
     return ""
 
 
+def _probe_cache_path() -> Path:
+    return Path(os.environ.get(ENV_CACHE) or Path.home() / ".cache" / "clscatter" / "kernels") \
+        / "probe.json"
+
+
+def _device_identity(device) -> str:
+    """Platform, device and driver versions: a cached probe result is valid only while
+    all of these are unchanged."""
+    cl = _cl()
+    parts = [device.platform.name, device.platform.version, device.name, device.version,
+             device.driver_version, cl.VERSION_TEXT, str(kernel_dir() / "probe.cl")]
+    return hashlib.sha256("|".join(map(str, parts)).encode()).hexdigest()[:24]
+
+
+def _cached_probe(device) -> str:
+    """:func:`_probe`, remembered across runs for devices that passed (keyed by
+    :func:`_device_identity`); ``clscatter devices`` always probes afresh. A device that
+    failed is probed again every time (it may have been fixed)."""
+    import json
+    path = _probe_cache_path()
+    try:
+        ident = _device_identity(device)
+    except Exception:        # a device that cannot even describe itself: probe it, no cache
+        return _probe(device)
+    try:
+        cache = json.loads(path.read_text())
+    except (OSError, ValueError):
+        cache = {}
+    if cache.get(ident) == "ok":
+        return ""
+    reason = _probe(device)
+    if not reason:
+        cache[ident] = "ok"
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".{os.getpid()}.tmp")
+            tmp.write_text(json.dumps(cache))
+            tmp.replace(path)
+        except OSError:
+            pass
+    return reason
+
+
 def list_devices(probe: bool = True) -> tuple[list[DeviceInfo], list[str]]:
     """All platforms' devices, probed; plus messages for platforms that failed outright."""
     cl = _cl()
@@ -152,7 +195,7 @@ def choose_device(spec: str | None = None) -> DeviceInfo:
             listing = "; ".join(i.label for i in infos) or "none"
             raise DeviceError(f"device '{spec}' not found (available: {listing})")
         info = chosen[0]
-        info.reason = _probe(info.handle)
+        info.reason = _cached_probe(info.handle)
         info.ok = not info.reason
         if not info.ok:
             raise DeviceError(f"device '{info.label}' fails its probe: {info.reason}")
@@ -161,7 +204,7 @@ def choose_device(spec: str | None = None) -> DeviceInfo:
     ordered = sorted(infos, key=lambda i: 0 if i.handle.type & cl.device_type.GPU else 1)
     reasons = list(problems)
     for info in ordered:
-        info.reason = _probe(info.handle)
+        info.reason = _cached_probe(info.handle)
         info.ok = not info.reason
         if info.ok:
             return info

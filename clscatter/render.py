@@ -44,7 +44,7 @@ def check(scene: Scene, method: str | None = None) -> Prepared:
 
 def render(scene: Scene, method: str | None = None, engine: Engine | None = None,
            device: str | None = None, show_progress: bool = True,
-           max_memory: float | None = None, on_note=None) -> RenderResult:
+           max_memory: float | None = None, on_note=None, stats=None) -> RenderResult:
     """Render ``scene`` with ``method`` (default: the scene's render.method).
 
     :func:`check` runs first; a render whose estimated peak memory exceeds ``max_memory``
@@ -56,7 +56,7 @@ def render(scene: Scene, method: str | None = None, engine: Engine | None = None
 
     with RenderSession(scene, method, engine=engine, device=device,
                        max_memory=max_memory) as session:
-        return session.render(show_progress=show_progress, on_note=on_note)
+        return session.render(show_progress=show_progress, on_note=on_note, stats=stats)
 
 
 def scene_notes(scene: Scene) -> list[str]:

@@ -131,16 +131,19 @@ class RenderSession:
 
     # ---- rendering -------------------------------------------------------------------------
     def render(self, show_progress: bool = True, cancel: Callable[[], bool] | None = None,
-               on_note: Callable[[str], None] | None = None, preview: bool = False):
+               on_note: Callable[[str], None] | None = None, preview: bool = False,
+               stats: Stats | None = None):
         """Render the current scene, re-running only what changed since the last render.
 
         ``preview`` renders at a quarter of the resolution with one sample per pixel (the
         stats say so); ``cancel()`` is polled between stages and raises :class:`Cancelled`.
+        ``stats`` may be one the caller started earlier (the CLI times scene loading and
+        output writing in it too).
         """
         from .render import RenderResult, check, scene_notes
 
         scene = _preview_scene(self.scene) if preview else self.scene
-        stats = Stats()
+        stats = stats or Stats()
         ran: list[str] = []
         reused: list[str] = []
 

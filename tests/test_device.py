@@ -99,3 +99,19 @@ def test_buffers_are_tracked(engine):
     assert engine.bytes_live == before + 4000 and engine.bytes_peak >= before + 4000
     engine.free(b)
     assert engine.bytes_live == before
+
+
+def test_probe_results_are_cached_across_runs(tmp_path, monkeypatch):
+    """A device that passed its probe is not probed again while platform, device and
+    driver versions are unchanged; ``clscatter devices`` (list_devices) always probes."""
+    monkeypatch.setenv(dev.ENV_CACHE, str(tmp_path))
+    calls = []
+    real_probe = dev._probe
+    monkeypatch.setattr(dev, "_probe", lambda d: calls.append(d) or real_probe(d))
+    monkeypatch.delenv(dev.ENV_DEVICE, raising=False)
+    first = dev.choose_device()
+    assert len(calls) == 1 and (tmp_path / "probe.json").is_file()
+    second = dev.choose_device()
+    assert len(calls) == 1 and second.label == first.label
+    dev.list_devices(probe=True)
+    assert len(calls) == 1 + len(dev.list_devices(probe=False)[0])

@@ -9,7 +9,8 @@ are per-vertex unit shading normals for smooth shapes, None for flat shading.
 * ``box``     12 triangles, outward-facing counter-clockwise winding, flat.
 * ``quad``    2 triangles origin, origin + edge_u, origin + edge_u + edge_v, origin + edge_v
   (geometric normal edge_u x edge_v; the quad is two-sided anyway), flat.
-* ``mesh``    any file trimesh reads (vertices merged), flat unless ``smooth``.
+* ``mesh``    OBJ files read with NumPy, any other format trimesh reads (vertices merged),
+  flat unless ``smooth`` (area-weighted vertex normals).
 
 A transform ``{translate, rotate = [ax, ay, az, degrees], scale}`` is applied in the order
 scale, rotate, translate (M = T R S). Normals go through the inverse transpose of the
@@ -98,15 +99,37 @@ def _normalise_rows(n: np.ndarray) -> np.ndarray:
 
 # ---- Builders -------------------------------------------------------------------------
 
+def unit_icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unit icosphere: the icosahedron with every triangle split into four at the edge
+    midpoints ``subdivisions`` times, vertices projected onto the sphere; faces wind
+    counter-clockwise seen from outside. 20 * 4^s triangles, 10 * 4^s + 2 vertices."""
+    t = (1.0 + math.sqrt(5.0)) / 2.0
+    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
+                  [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]],
+                 np.float64)
+    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9],
+                  [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2],
+                  [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10],
+                  [8, 6, 7], [9, 8, 1]], np.int64)
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    for _ in range(int(subdivisions)):
+        edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        uniq, inv = np.unique(edges, axis=0, return_inverse=True)
+        mid = v[uniq[:, 0]] + v[uniq[:, 1]]
+        mid /= np.linalg.norm(mid, axis=1, keepdims=True)
+        m = len(v) + inv.reshape(3, -1)            # midpoint of edge (0,1), (1,2), (2,0)
+        a, b, c = f[:, 0], f[:, 1], f[:, 2]
+        f = np.concatenate([np.stack([a, m[0], m[2]], 1), np.stack([b, m[1], m[0]], 1),
+                            np.stack([c, m[2], m[1]], 1), np.stack([m[0], m[1], m[2]], 1)])
+        v = np.concatenate([v, mid])
+    return v, f
+
+
 def sphere(center: np.ndarray, radius: float, subdivisions: int = 4) -> Mesh:
     """Icosphere with vertices exactly on the sphere and exact unit normals."""
-    import trimesh
-
-    ico = trimesh.creation.icosphere(subdivisions=int(subdivisions), radius=1.0)
-    u = np.asarray(ico.vertices, dtype=np.float64)
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    u, f = unit_icosphere(subdivisions)
     v = np.asarray(center, dtype=np.float64) + radius * u
-    return v, np.asarray(ico.faces, dtype=np.int64), u.copy()
+    return v, f, u.copy()
 
 
 def box(lo: np.ndarray, hi: np.ndarray) -> Mesh:
@@ -151,29 +174,74 @@ def load_mesh(path: Path, key: str, smooth: bool = False) -> Mesh:
     return v.copy(), f.copy(), None if n is None else n.copy()
 
 
-def _read_mesh(path: Path, key: str, smooth: bool) -> Mesh:
-    import trimesh
+def read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and triangles of a Wavefront OBJ file, read with NumPy (trimesh's import
+    alone costs seconds). ``v`` lines give positions, ``f`` lines polygons (``i``, ``i/t``,
+    ``i/t/n``, ``i//n``; negative indices count from the end), fanned into triangles;
+    everything else is ignored. ValueError when a line cannot be read."""
+    verts: list[list[float]] = []
+    tris: list[list[int]] = []
+    with open(path, "r", errors="strict") as fh:
+        for line in fh:
+            parts = line.split()
+            if not parts:
+                continue
+            if parts[0] == "v":
+                verts.append([float(x) for x in parts[1:4]])
+                if len(verts[-1]) != 3:
+                    raise ValueError(f"vertex line with fewer than 3 numbers: {line.strip()!r}")
+            elif parts[0] == "f":
+                idx = [int(p.split("/")[0]) for p in parts[1:]]
+                idx = [i - 1 if i > 0 else len(verts) + i for i in idx]
+                if len(idx) < 3:
+                    raise ValueError(f"face with fewer than 3 vertices: {line.strip()!r}")
+                tris += [[idx[0], idx[k], idx[k + 1]] for k in range(1, len(idx) - 1)]
+    return np.array(verts, np.float64).reshape(-1, 3), np.array(tris, np.int64).reshape(-1, 3)
 
+
+def _merge_vertices(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices with identical positions merged (so smooth normals average across faces
+    that a file stored with separate copies of a corner); unused vertices dropped."""
+    used = np.unique(f)
+    uniq, inv = np.unique(v[used], axis=0, return_inverse=True)
+    remap = np.full(len(v), -1, np.int64)
+    remap[used] = inv.reshape(-1)
+    return uniq, remap[f]
+
+
+def vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (the sum of the unnormalised face normals)."""
+    t = v[f]
+    fn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    n = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(n, f[:, k], fn)
+    return _normalise_rows(n)
+
+
+def _read_mesh(path: Path, key: str, smooth: bool) -> Mesh:
     try:
-        # process=False: trimesh's processing would silently drop NaN vertices, and with
-        # them the faces that use them; a file with NaN coordinates is an error instead
-        mesh = trimesh.load(str(path), force="mesh", process=False)
-    except Exception as exc:  # trimesh raises many kinds; all mean "cannot read this file"
+        if path.suffix.lower() == ".obj":
+            v, f = read_obj(path)
+        else:
+            import trimesh
+            # process=False: trimesh's processing would silently drop NaN vertices, and with
+            # them the faces that use them; a file with NaN coordinates is an error instead
+            mesh = trimesh.load(str(path), force="mesh", process=False)
+            faces = getattr(mesh, "faces", None)
+            v = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), dtype=np.float64)
+            f = np.asarray(faces if faces is not None else np.zeros((0, 3)), np.int64).reshape(-1, 3)
+    except Exception as exc:  # a parser raises many kinds; all mean "cannot read this file"
         raise SceneError(key, _one_line(f"cannot read mesh {path}: {exc}")) from None
-    faces = getattr(mesh, "faces", None)
-    if faces is None or len(faces) == 0:
+    if len(f) == 0:
         raise SceneError(key, f"mesh {path} has no triangles")
-    v = np.asarray(mesh.vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     if not np.all(np.isfinite(v)):
         bad = int((~np.isfinite(v)).any(axis=1).sum())
         raise SceneError(key, f"mesh {path} has {bad} vertices with NaN or infinite coordinates")
     if f.min() < 0 or f.max() >= len(v):
         raise SceneError(key, f"mesh {path} has faces that index missing vertices")
-    mesh = trimesh.Trimesh(v, f, process=True)     # merge duplicate vertices (smooth normals)
-    v = np.asarray(mesh.vertices, dtype=np.float64)
-    f = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
-    n = _normalise_rows(np.asarray(mesh.vertex_normals, dtype=np.float64)) if smooth else None
+    v, f = _merge_vertices(v, f)
+    n = vertex_normals(v, f) if smooth else None
     return v, f, n
 
 
