@@ -3,6 +3,7 @@
     clscatter                                   render the built-in demo scene
     clscatter render [SCENE] -o OUT [-o OUT2] [--method M] [--set key=value ...]
                      [--stats FILE.json] [--device SPEC] [--exposure EV]
+    clscatter relight [SCENE] -o DIR [--frames N] [--orbit light|camera] [--format png]
     clscatter check [SCENE] [--method M] [--set key=value ...] [--max-memory SIZE]
     clscatter diff A B [--heatmap FILE.png] [--json]
     clscatter devices
@@ -52,6 +53,23 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="refuse renders estimated to need more (e.g. 4G; default: the "
                         "device's and the machine's memory)")
     r.add_argument("--no-progress", action="store_true", help="never show progress bars")
+    _cluster_options(r)
+
+    a = sub.add_parser("relight", help="render an animation (light or camera orbit) into a folder, "
+                                       "re-running only what each frame changes")
+    a.add_argument("scene", nargs="?", default=None, help="scene TOML file or builtin:NAME")
+    a.add_argument("-o", "--output", required=True, metavar="DIR", help="folder for the frames")
+    a.add_argument("--frames", type=int, default=24, help="number of frames (default 24)")
+    a.add_argument("--orbit", default="light", choices=("light", "camera"),
+                   help="what turns once around the scene (default: light)")
+    a.add_argument("--format", default="png", choices=("png", "exr", "npy", "pfm"),
+                   help="frame file format (default png)")
+    a.add_argument("--method", default=None, help="override render.method")
+    a.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    a.add_argument("--device", default=None, help="OpenCL device: P:D or a name substring")
+    a.add_argument("--exposure", type=_finite_float, default=0.0, help="PNG exposure in stops")
+    a.add_argument("--no-progress", action="store_true", help="never show progress bars")
+    _cluster_options(a)
 
     c = sub.add_parser("check", help="validate a scene and print the plan and cost estimate")
     c.add_argument("scene", nargs="?", default=None, help="scene TOML file or builtin:NAME")
@@ -71,6 +89,36 @@ def _build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("scenes", help="list built-in scenes")
     s.add_argument("--dump", default=None, metavar="NAME", help="print a built-in scene as TOML")
     return p
+
+
+def _cluster_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--workers", type=_positive_int, default=None, metavar="N",
+                   help="render on a local Dask cluster of N worker processes")
+    g.add_argument("--cluster", default=None, metavar="ADDRESS",
+                   help="render on a running Dask scheduler, e.g. tcp://host:8786")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1 (got {value})")
+    return value
+
+
+def _open_cluster(args: argparse.Namespace):
+    """The Dask cluster the options ask for, or None (Dask is imported only then)."""
+    if not (args.workers or args.cluster):
+        return None
+    try:
+        from .cluster import Cluster
+    except ImportError as e:
+        raise ClscatterError(f"--workers/--cluster need dask.distributed "
+                             f"(pip install 'clscatter[cluster]'): {e}") from None
+    return Cluster(workers=args.workers, address=args.cluster, device=args.device)
 
 
 def _finite_float(text: str) -> float:
@@ -105,10 +153,19 @@ def _cmd_render(args: argparse.Namespace) -> int:
             raise ClscatterError(f"{_first_duplicate(dests)}: the same file is given twice "
                                  "as output")
         max_memory = parse_bytes(args.max_memory) if args.max_memory is not None else None
+    spec = args.scene or f"builtin:{DEFAULT_BUILTIN}"
     with stats.stage("load_scene"):
-        scene = load_scene(args.scene or f"builtin:{DEFAULT_BUILTIN}", args.overrides)
-    result = render(scene, method=args.method, device=args.device, stats=stats,
-                    show_progress=not args.no_progress, max_memory=max_memory, on_note=_note)
+        scene = load_scene(spec, args.overrides)
+    with stats.stage("cluster_start"):
+        cluster = _open_cluster(args)
+    if cluster is not None:
+        with cluster:
+            result = cluster.render(spec, args.overrides, args.method, stats=stats,
+                                    show_progress=not args.no_progress)
+    else:
+        result = render(scene, method=args.method, device=args.device, stats=stats,
+                        show_progress=not args.no_progress, max_memory=max_memory,
+                        on_note=_note)
     writes = [(o, lambda tmp, o=o: write_image(tmp, result.image, exposure=args.exposure))
               for o in outputs]
     if stats_path:
@@ -172,6 +229,60 @@ def _final(stats, rendered: dict) -> dict:
     final["stages"] = now["stages"]
     final["seconds_total"] = now["seconds_total"]
     return final
+
+
+def _cmd_relight(args: argparse.Namespace) -> int:
+    """Frames of a light or camera orbit, written to a folder with ``frames.json``."""
+    from .animation import orbit
+    from .image import write_image
+    from .outputs import write_all
+    from .scene import DEFAULT_BUILTIN, load_scene
+    from .stats import progress, write_json
+
+    spec = args.scene or f"builtin:{DEFAULT_BUILTIN}"
+    out = Path(args.output)
+    if out.exists() and not out.is_dir():
+        raise ClscatterError(f"{args.output}: -o must be a folder for the frames")
+    if not out.resolve().parent.is_dir():
+        raise ClscatterError(f"{args.output}: parent folder {out.resolve().parent} does not exist")
+    scene = load_scene(spec, args.overrides)
+    frames = orbit(scene, args.frames, args.orbit)
+    from .render import check
+    check(scene, args.method)                        # bad parameters fail before any frame
+    out.mkdir(exist_ok=True)
+    names = [out / f"frame_{i:04d}.{args.format}" for i in range(len(frames))]
+
+    def save(i: int, image, _stats) -> None:
+        write_all([(names[i], lambda tmp: write_image(tmp, image, exposure=args.exposure))])
+
+    cluster = _open_cluster(args)
+    if cluster is not None:
+        with cluster:
+            record = cluster.frames(spec, frames, args.overrides, args.method,
+                                    show_progress=not args.no_progress, on_frame=save)
+    else:
+        from .session import RenderSession
+        record = {"frames": []}
+        with RenderSession.from_source(spec, args.overrides, method=args.method,
+                                       device=args.device) as session, \
+                progress(len(frames), "frames", not args.no_progress) as bar:
+            base = list(args.overrides)
+            for i, sets in enumerate(frames):
+                session._overrides = list(base)
+                session.set(sets)
+                res = session.render(show_progress=False)
+                save(i, res.image, res.stats)
+                record["frames"].append({"frame": i, "seconds": res.stats["seconds_total"],
+                                         "stages": res.stats["stages"],
+                                         "stages_run": res.stats["stages_run"],
+                                         "reused": res.stats["reused"]})
+                bar.update(1)
+    record.update(scene=spec, orbit=args.orbit, count=len(frames),
+                  files=[n.name for n in names])
+    write_json(out / "frames.json", record)
+    total = sum(f["seconds"] for f in record["frames"])
+    print(f"{spec}: {len(frames)} frames ({args.orbit} orbit) in {total:.2f} s -> {out}/")
+    return 0
 
 
 def _first_duplicate(paths: list[Path]) -> Path:
@@ -254,7 +365,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
-    handlers = {"render": _cmd_render, "check": _cmd_check, "diff": _cmd_diff,
+    handlers = {"render": _cmd_render, "relight": _cmd_relight, "check": _cmd_check,
+                "diff": _cmd_diff,
                 "devices": _cmd_devices, "scenes": _cmd_scenes}
     previous = signal.signal(signal.SIGTERM, _terminate)
     try:

@@ -90,9 +90,15 @@ class RenderSession:
     def from_source(cls, spec: str | Path, overrides: Sequence[str] = (), **kw) -> "RenderSession":
         """A session on ``spec`` (TOML path or ``builtin:NAME``) with ``--set`` overrides."""
         data, base_dir = scene_source(spec)
-        scene = scene_from_dict(apply_overrides(data, overrides), base_dir, str(spec))
+        return cls.from_data(data, base_dir, str(spec), overrides, **kw)
+
+    @classmethod
+    def from_data(cls, data: dict, base_dir: str | Path, source: str,
+                  overrides: Sequence[str] = (), **kw) -> "RenderSession":
+        """A session on raw scene ``data`` (relative paths resolved against ``base_dir``)."""
+        scene = scene_from_dict(apply_overrides(data, overrides), Path(base_dir), source)
         s = cls(scene, **kw)
-        s._data, s._base_dir, s._source = data, base_dir, str(spec)
+        s._data, s._base_dir, s._source = data, Path(base_dir), source
         s._overrides = list(overrides)
         return s
 
@@ -132,13 +138,14 @@ class RenderSession:
     # ---- rendering -------------------------------------------------------------------------
     def render(self, show_progress: bool = True, cancel: Callable[[], bool] | None = None,
                on_note: Callable[[str], None] | None = None, preview: bool = False,
-               stats: Stats | None = None):
+               stats: Stats | None = None, samples: tuple[int, int] | None = None):
         """Render the current scene, re-running only what changed since the last render.
 
         ``preview`` renders at a quarter of the resolution with one sample per pixel (the
         stats say so); ``cancel()`` is polled between stages and raises :class:`Cancelled`.
         ``stats`` may be one the caller started earlier (the CLI times scene loading and
-        output writing in it too).
+        output writing in it too). ``samples = (lo, hi)`` renders only those camera samples
+        (see :func:`~clscatter.view_paths.trace_view_paths`).
         """
         from .render import RenderResult, check, scene_notes
 
@@ -183,9 +190,9 @@ class RenderSession:
         stop_if_asked()
 
         # ---- view paths ----
-        key = _view_key(scene)
+        key = (_view_key(scene), samples)
         if self._paths is None or self._pending or key != self._paths_key:
-            self._paths = trace_view_paths(ps, stats, show_progress)
+            self._paths = trace_view_paths(ps, stats, show_progress, sample_range=samples)
             self._paths_key = key
             self._pending = []
             ran.append("view_paths")

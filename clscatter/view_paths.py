@@ -30,14 +30,20 @@ class ViewPaths:
 
 
 def trace_view_paths(ps: PreparedScene, stats: Stats | None = None, show_progress: bool = True,
-                     samples_per_launch: int = SAMPLES_PER_LAUNCH) -> ViewPaths:
-    """Run ``view_paths.cl`` over every camera sample of ``ps`` (see the module docstring)."""
+                     samples_per_launch: int = SAMPLES_PER_LAUNCH,
+                     sample_range: tuple[int, int] | None = None) -> ViewPaths:
+    """Run ``view_paths.cl`` over every camera sample of ``ps`` (see the module docstring),
+    or over the samples ``[lo, hi)`` of ``sample_range`` only: each sample's paths depend on
+    its index alone, so disjoint ranges rendered apart sum to the whole image (how a render
+    is split across workers, :mod:`clscatter.cluster`)."""
     stats = stats or Stats()
     eng = ps.engine
     cam = ps.scene.camera
     w, h, spp = cam.width, cam.height, cam.spp
-    total = w * h * spp
-    chunk = int(min(samples_per_launch, total))
+    lo, hi = sample_range if sample_range is not None else (0, w * h * spp)
+    lo, hi = max(0, int(lo)), min(w * h * spp, int(hi))
+    total = max(hi - lo, 0)
+    chunk = int(max(1, min(samples_per_launch, total)))
     surface = np.zeros((total, 4), np.float32)
     escaped = np.zeros((total, 4), np.float32)
     seg_parts: list[np.ndarray] = []
@@ -52,7 +58,7 @@ def trace_view_paths(ps: PreparedScene, stats: Stats | None = None, show_progres
             seg_parts.append(segs.call(
                 "view_paths", "trace_view", n, **ps.scene_args("view_paths", "trace_view"),
                 cam=ps.dev.camera, max_depth=ps.scene.render.max_depth, seed=seed,
-                sample_offset=start, num_samples=n, surface=out_surf, escaped=out_esc))
+                sample_offset=lo + start, num_samples=n, surface=out_surf, escaped=out_esc))
             surface[start:start + n] = eng.read(out_surf, (chunk, 4), np.float32)[:n]
             escaped[start:start + n] = eng.read(out_esc, (chunk, 4), np.float32)[:n]
             start += n
@@ -64,8 +70,13 @@ def trace_view_paths(ps: PreparedScene, stats: Stats | None = None, show_progres
     segments = segments[np.lexsort((segments["branch"], segments["sample"]))]
     eng.note_host(surface.nbytes + escaped.nbytes + segments.nbytes)
     stats.set(view_segments=int(len(segments)), camera_samples=int(total))
-    surf_img = surface[:, :3].reshape(h * w, spp, 3).sum(axis=1).reshape(h, w, 3)
-    esc_img = escaped[:, :3].reshape(h * w, spp, 3).sum(axis=1).reshape(h, w, 3)
+    if total == w * h * spp:
+        surf_img = surface[:, :3].reshape(h * w, spp, 3).sum(axis=1).reshape(h, w, 3)
+        esc_img = escaped[:, :3].reshape(h * w, spp, 3).sum(axis=1).reshape(h, w, 3)
+    else:
+        pixels = np.arange(lo, hi) // spp
+        surf_img = accumulate_segments(surface, pixels, w, h)
+        esc_img = accumulate_segments(escaped, pixels, w, h)
     return ViewPaths(surf_img.astype(np.float32), esc_img.astype(np.float32), segments)
 
 

@@ -1,0 +1,241 @@
+"""Scale-out on a Dask cluster: frames and camera-sample sets as tasks.
+
+``clscatter render SCENE --workers N`` (a ``LocalCluster`` of N processes) or
+``--cluster ADDRESS`` (a running scheduler) renders on ``dask.distributed``; nothing here
+is imported without those options, and Dask is an optional extra (``pip install
+clscatter[cluster]``).
+
+Work units
+    *Sample sets* of one image: the camera samples are cut into contiguous ranges; a task
+    traces the view paths of its range and runs every pass of the plan on the segments it
+    produced. A sample's paths and a segment's estimate depend only on their indices and
+    the scene (deterministic seeds; the lighting rays of the caustic passes are traced by
+    every task from the same seeds), so the partial images sum to the single-process image
+    up to float summation order. The driver adds them in unit order, whatever order they
+    finish in.
+    *Frames* of an animation (a list of ``--set`` overrides per frame): one task each.
+
+Per worker, a :class:`ClscatterPlugin` opens the OpenCL device once and keeps a
+:class:`~clscatter.session.RenderSession` per scene, so the scene is sent once per worker
+(``client.scatter(..., broadcast=True)``) and its BVH and device buffers are built once;
+frames that follow on the same worker re-use them (the warm path).
+
+Fault tolerance is Dask's: a worker that dies loses its in-flight tasks, the scheduler runs
+them again elsewhere, and since a unit is deterministic the retried result is identical.
+Statistics (``--stats``): ``cluster_workers``, ``cluster_tasks``, ``cluster_task_seconds``
+(per task), ``cluster_bytes_in`` (scene payload x workers) and ``cluster_bytes_out``
+(results returned).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from .stats import Stats, progress
+
+PLUGIN_NAME = "clscatter"
+
+
+def _plugin_base():
+    from distributed.diagnostics.plugin import WorkerPlugin
+    return WorkerPlugin
+
+
+def make_plugin(device: str | None = None):
+    """A worker plugin that opens the OpenCL device once per worker and holds the
+    worker's render sessions (one per scene)."""
+    base = _plugin_base()
+
+    class ClscatterPlugin(base):
+        name = PLUGIN_NAME
+
+        def __init__(self, device: str | None):
+            self.device = device
+            self.sessions: dict[str, Any] = {}
+
+        def setup(self, worker) -> None:
+            from .device import get_engine
+            self.engine = get_engine(self.device)
+
+        def teardown(self, worker) -> None:
+            for s in self.sessions.values():
+                s.close()
+            self.sessions.clear()
+
+    return ClscatterPlugin(device)
+
+
+def _worker_session(payload: dict, method: str | None):
+    """The calling worker's session for ``payload`` (made on first use)."""
+    from distributed import get_worker
+
+    from .session import RenderSession
+    plugin = get_worker().plugins[PLUGIN_NAME]
+    key = payload["key"] + "|" + str(method)
+    if key not in plugin.sessions:
+        plugin.sessions[key] = RenderSession.from_data(
+            payload["data"], payload["base_dir"], payload["source"], payload["overrides"],
+            method=method, engine=plugin.engine)
+    return plugin.sessions[key]
+
+
+def _render_samples(payload: dict, method: str | None, lo: int, hi: int) -> dict:
+    """Task: camera samples [lo, hi) of the image, every pass."""
+    t = time.perf_counter()
+    res = _worker_session(payload, method).render(show_progress=False, samples=(lo, hi))
+    return {"surface": res.surface, "medium": res.medium, "stats": res.stats,
+            "seconds": time.perf_counter() - t}
+
+
+def _render_frame(payload: dict, method: str | None, overrides: list[str]) -> dict:
+    """Task: one whole frame (the worker's session moves to the frame's overrides)."""
+    t = time.perf_counter()
+    s = _worker_session(payload, method)
+    s._overrides = list(payload["overrides"])          # frames are absolute, not cumulative
+    s.set(overrides)
+    res = s.render(show_progress=False)
+    return {"image": res.image, "stats": res.stats, "seconds": time.perf_counter() - t}
+
+
+def scene_payload(spec: str, overrides: Sequence[str] = ()) -> dict:
+    """What a worker needs to rebuild the scene: raw data, base folder, overrides."""
+    from .scene.loader import scene_source
+    data, base_dir = scene_source(spec)
+    blob = json.dumps([data, str(base_dir), str(spec), list(overrides)], sort_keys=True,
+                      default=str)
+    return {"key": hashlib.sha256(blob.encode()).hexdigest()[:20], "data": data,
+            "base_dir": str(base_dir), "source": str(spec), "overrides": list(overrides),
+            "bytes": len(blob)}
+
+
+class Cluster:
+    """A Dask client for clscatter: ``Cluster(workers=2)`` starts a LocalCluster of worker
+    processes, ``Cluster(address="tcp://host:8786")`` joins a running scheduler. Use as a
+    context manager; the plugin is registered on every worker."""
+
+    def __init__(self, workers: int | None = None, address: str | None = None,
+                 device: str | None = None):
+        from distributed import Client, LocalCluster
+        from .errors import ClscatterError
+        self._local = None
+        if address:
+            try:
+                self.client = Client(address, timeout="10s")
+            except OSError as e:
+                raise ClscatterError(f"--cluster {address}: cannot reach the scheduler ({e})") from None
+        else:
+            n = int(workers or 2)
+            self._local = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                       dashboard_address=None, silence_logs=40)
+            self.client = Client(self._local)
+        self.client.register_plugin(make_plugin(device), name=PLUGIN_NAME)
+
+    def workers(self) -> int:
+        return len(self.client.scheduler_info()["workers"])
+
+    def close(self) -> None:
+        self.client.close()
+        if self._local is not None:
+            self._local.close()
+
+    def __enter__(self) -> "Cluster":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ---- one image --------------------------------------------------------------------------
+    def render(self, spec: str, overrides: Sequence[str] = (), method: str | None = None,
+               units: int | None = None, show_progress: bool = True,
+               stats: Stats | None = None):
+        """The image of ``spec``, rendered as ``units`` camera-sample sets (default: four
+        per worker), summed in unit order. Returns a :class:`~clscatter.render.RenderResult`."""
+        from distributed import as_completed
+
+        from .render import RenderResult, check
+        from .scene.loader import load_scene
+
+        stats = stats or Stats()
+        scene = load_scene(spec, overrides)
+        check(scene, method)                      # bad input fails here, not on a worker
+        cam = scene.camera
+        total = cam.width * cam.height * cam.spp
+        n = max(1, min(int(units or 4 * max(1, self.workers())), total))
+        bounds = [total * k // n for k in range(n + 1)]
+        payload = scene_payload(spec, overrides)
+        with stats.stage("cluster_scatter"):
+            fut = self.client.scatter(payload, broadcast=True, hash=False)
+        parts: dict[int, dict] = {}
+        with stats.stage("cluster_render"), progress(n, "tasks", show_progress) as bar:
+            futures = {self.client.submit(_render_samples, fut, method, bounds[k], bounds[k + 1],
+                                          pure=False, retries=2): k for k in range(n)}
+            for f in as_completed(futures):
+                parts[futures[f]] = f.result()
+                bar.update(1)
+        with stats.stage("cluster_sum"):
+            surface = np.zeros((cam.height, cam.width, 3), np.float64)
+            medium = np.zeros_like(surface)
+            for k in range(n):                     # fixed order: the same sum every run
+                surface += parts[k]["surface"]
+                medium += parts[k]["medium"]
+        first = parts[0]["stats"]
+        image = (surface + medium).astype(np.float32)
+        out_bytes = sum(p["surface"].nbytes + p["medium"].nbytes for p in parts.values())
+        stats.set(**{k: first[k] for k in ("method", "requested_method", "plan", "passes",
+                                           "device") if k in first},
+                  width=cam.width, height=cam.height, spp=cam.spp,
+                  peak_bytes=max(int(p["stats"].get("peak_bytes", 0)) for p in parts.values()),
+                  cluster_workers=self.workers(), cluster_tasks=n, cluster_unit="samples",
+                  cluster_task_seconds=[round(parts[k]["seconds"], 4) for k in range(n)],
+                  cluster_bytes_in=int(payload["bytes"]) * self.workers(),
+                  cluster_bytes_out=int(out_bytes))
+        return RenderResult(image, stats.to_dict(), surface.astype(np.float32),
+                            medium.astype(np.float32))
+
+    # ---- frames -----------------------------------------------------------------------------
+    def frames(self, spec: str, frame_overrides: Sequence[Sequence[str]],
+               overrides: Sequence[str] = (), method: str | None = None,
+               show_progress: bool = True,
+               on_frame: Callable[[int, np.ndarray, dict], None] | None = None) -> dict:
+        """Render one task per frame; ``on_frame(i, image, stats)`` is called in frame order
+        as soon as every earlier frame is done. Returns per-frame statistics."""
+        from distributed import as_completed
+
+        payload = scene_payload(spec, overrides)
+        fut = self.client.scatter(payload, broadcast=True, hash=False)
+        futures = {self.client.submit(_render_frame, fut, method, list(fo), pure=False,
+                                      retries=2): i for i, fo in enumerate(frame_overrides)}
+        done: dict[int, dict] = {}
+        next_out = 0
+        per_frame = []
+        with progress(len(futures), "frames", show_progress) as bar:
+            for f in as_completed(futures):
+                done[futures[f]] = f.result()
+                bar.update(1)
+                while next_out in done:
+                    r = done.pop(next_out)
+                    if on_frame is not None:
+                        on_frame(next_out, r["image"], r["stats"])
+                    per_frame.append({"frame": next_out, "seconds": r["seconds"],
+                                      "stages": r["stats"].get("stages", {}),
+                                      "stages_run": r["stats"].get("stages_run", [])})
+                    next_out += 1
+        return {"frames": per_frame, "cluster_workers": self.workers(),
+                "cluster_tasks": len(futures)}
+
+
+def frames_dir(path: str | Path) -> Path:
+    """Check a frames output folder before rendering (exists or can be made; writable)."""
+    from .errors import ClscatterError
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ClscatterError(f"{path}: frames output must be a folder")
+    parent = p.resolve().parent
+    if not parent.is_dir():
+        raise ClscatterError(f"{path}: parent folder {parent} does not exist")
+    return p

@@ -1,0 +1,92 @@
+"""Scale-out on Dask: a LocalCluster of 2 worker processes renders the same images as one
+process (to float summation tolerance), whatever order tasks finish in, also when a
+worker is killed mid-render."""
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import numpy as np
+import pytest
+
+distributed = pytest.importorskip("distributed", reason="dask.distributed is the 'cluster' extra")
+
+from clscatter.animation import orbit                     # noqa: E402
+from clscatter.cluster import Cluster                     # noqa: E402
+from clscatter.render import render                       # noqa: E402
+from clscatter.scene import load_scene                    # noqa: E402
+from clscatter.session import RenderSession               # noqa: E402
+
+SMALL = ["camera.resolution=[48,36]", "camera.spp=1"]
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    with Cluster(workers=2) as c:
+        yield c
+
+
+def _single(spec, overrides, engine):
+    return render(load_scene(spec, overrides), engine=engine, show_progress=False).image
+
+
+def test_direct_scene_equals_single_process(cluster, engine):
+    res = cluster.render("builtin:occluder", SMALL, units=7, show_progress=False)
+    ref = _single("builtin:occluder", SMALL, engine)
+    assert res.image.max() > 0
+    np.testing.assert_allclose(res.image, ref, rtol=1e-5, atol=1e-6 * ref.max())
+    st = res.stats
+    assert st["cluster_workers"] == 2 and st["cluster_tasks"] == 7
+    assert len(st["cluster_task_seconds"]) == 7 and st["cluster_bytes_out"] > 0
+
+
+def test_caustic_scene_equals_single_process(cluster, engine):
+    sets = SMALL + ["render.method=lsg", "render.lsg.light_rays=20000", "render.lsg.radius=0.01"]
+    res = cluster.render("builtin:caustic_sphere", sets, units=5, show_progress=False)
+    ref = _single("builtin:caustic_sphere", sets, engine)
+    assert res.image.max() > 0
+    np.testing.assert_allclose(res.image, ref, rtol=1e-4, atol=1e-6 * ref.max())
+
+
+def test_animation_frames_equal_single_process(cluster, engine):
+    scene = load_scene("builtin:occluder", SMALL)
+    frames = orbit(scene, 4, "light")
+    got = {}
+    rec = cluster.frames("builtin:occluder", frames, SMALL, show_progress=False,
+                         on_frame=lambda i, img, st: got.__setitem__(i, img))
+    assert sorted(got) == [0, 1, 2, 3] and [f["frame"] for f in rec["frames"]] == [0, 1, 2, 3]
+    with RenderSession.from_source("builtin:occluder", SMALL, engine=engine) as s:
+        for i, sets in enumerate(frames):
+            s._overrides = list(SMALL)
+            s.set(sets)
+            ref = s.render(show_progress=False).image
+            np.testing.assert_allclose(got[i], ref, rtol=1e-5, atol=1e-7)
+    assert not np.allclose(got[0], got[2])               # the light really moved
+
+
+def test_a_worker_killed_mid_render_loses_nothing(cluster, engine):
+    """Kill one worker process while tasks are running; Dask re-runs its tasks elsewhere
+    and the deterministic units give the same image."""
+    sets = SMALL + ["camera.resolution=[64,48]", "render.raymarch.steps=256"]
+    pids = cluster.client.run(os.getpid)
+    victim = sorted(pids.values())[0]
+
+    def kill_soon():
+        time.sleep(1.5)
+        try:
+            os.kill(victim, 9)
+        except ProcessLookupError:
+            pass
+
+    t = threading.Thread(target=kill_soon)
+    t.start()
+    t0 = time.perf_counter()
+    res = cluster.render("builtin:occluder", sets, units=16, show_progress=False)
+    elapsed = time.perf_counter() - t0
+    t.join()
+    assert elapsed > 1.5, "the render ended before the worker was killed: make it longer"
+    ref = _single("builtin:occluder", sets, engine)
+    np.testing.assert_allclose(res.image, ref, rtol=1e-5, atol=1e-6 * ref.max())
+    with pytest.raises(ProcessLookupError):
+        os.kill(victim, 0)                                # the victim is really gone
