@@ -102,6 +102,11 @@ def _render_frame(payload: dict, method: str | None, overrides: list[str]) -> di
     return {"image": res.image, "stats": res.stats, "seconds": time.perf_counter() - t}
 
 
+def _lost_data_errors() -> tuple[type, ...]:
+    from distributed.client import FutureCancelledError
+    return (FutureCancelledError,)
+
+
 def scene_payload(spec: str, overrides: Sequence[str] = ()) -> dict:
     """What a worker needs to rebuild the scene: raw data, base folder, overrides."""
     from .scene.loader import scene_source
@@ -168,15 +173,30 @@ class Cluster:
         n = max(1, min(int(units or 4 * max(1, self.workers())), total))
         bounds = [total * k // n for k in range(n + 1)]
         payload = scene_payload(spec, overrides)
-        with stats.stage("cluster_scatter"):
-            fut = self.client.scatter(payload, broadcast=True, hash=False)
         parts: dict[int, dict] = {}
+        scatters = 0
         with stats.stage("cluster_render"), progress(n, "tasks", show_progress) as bar:
-            futures = {self.client.submit(_render_samples, fut, method, bounds[k], bounds[k + 1],
-                                          pure=False, retries=2): k for k in range(n)}
-            for f in as_completed(futures):
-                parts[futures[f]] = f.result()
-                bar.update(1)
+            for attempt in range(3):
+                # the scene goes to every worker once; if the workers holding it all died
+                # (its tasks then fail with "lost dependencies"), send it again and re-run
+                # the units still missing
+                fut = self.client.scatter(payload, broadcast=True, hash=False)
+                scatters += 1
+                futures = {self.client.submit(_render_samples, fut, method, bounds[k],
+                                              bounds[k + 1], pure=False, retries=2): k
+                           for k in range(n) if k not in parts}
+                for f in as_completed(futures):
+                    try:
+                        parts[futures[f]] = f.result()
+                        bar.update(1)
+                    except _lost_data_errors():
+                        pass
+                if len(parts) == n:
+                    break
+            else:
+                from .errors import ClscatterError
+                raise ClscatterError("the cluster lost the scene three times; "
+                                     "are its workers dying?")
         with stats.stage("cluster_sum"):
             surface = np.zeros((cam.height, cam.width, 3), np.float64)
             medium = np.zeros_like(surface)
@@ -192,7 +212,7 @@ class Cluster:
                   peak_bytes=max(int(p["stats"].get("peak_bytes", 0)) for p in parts.values()),
                   cluster_workers=self.workers(), cluster_tasks=n, cluster_unit="samples",
                   cluster_task_seconds=[round(parts[k]["seconds"], 4) for k in range(n)],
-                  cluster_bytes_in=int(payload["bytes"]) * self.workers(),
+                  cluster_bytes_in=int(payload["bytes"]) * self.workers() * scatters,
                   cluster_bytes_out=int(out_bytes))
         return RenderResult(image, stats.to_dict(), surface.astype(np.float32),
                             medium.astype(np.float32))
