@@ -157,9 +157,10 @@ class Cluster:
     # ---- one image --------------------------------------------------------------------------
     def render(self, spec: str, overrides: Sequence[str] = (), method: str | None = None,
                units: int | None = None, show_progress: bool = True,
-               stats: Stats | None = None):
+               stats: Stats | None = None, on_unit: Callable[[int, int], None] | None = None):
         """The image of ``spec``, rendered as ``units`` camera-sample sets (default: four
-        per worker), summed in unit order. Returns a :class:`~clscatter.render.RenderResult`."""
+        per worker), summed in unit order. ``on_unit(done, total)`` is called after each unit
+        arrives. Returns a :class:`~clscatter.render.RenderResult`."""
         from distributed import as_completed
 
         from .render import RenderResult, check
@@ -189,6 +190,8 @@ class Cluster:
                     try:
                         parts[futures[f]] = f.result()
                         bar.update(1)
+                        if on_unit is not None:
+                            on_unit(len(parts), n)
                     except _lost_data_errors():
                         pass
                 if len(parts) == n:
