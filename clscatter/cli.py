@@ -18,6 +18,7 @@ import argparse
 import math
 import signal
 import sys
+import time
 from pathlib import Path
 from typing import Sequence
 
@@ -168,11 +169,15 @@ def _cmd_render(args: argparse.Namespace) -> int:
                         on_note=_note)
     writes = [(o, lambda tmp, o=o: write_image(tmp, result.image, exposure=args.exposure))
               for o in outputs]
+    t_write = time.perf_counter()
     if stats_path:
-        # the statistics are final when this runs: the image writes before it are timed
-        writes.append((stats_path, lambda tmp: write_json(tmp, _final(stats, result.stats))))
-    with stats.stage("write_outputs"):
-        write_all(writes)
+        # written last, so the image writes before it are already timed in it
+        def write_stats(tmp):
+            stats.stages["write_outputs"] = time.perf_counter() - t_write
+            write_json(tmp, _final(stats, result.stats))
+        writes.append((stats_path, write_stats))
+    write_all(writes)
+    stats.stages["write_outputs"] = time.perf_counter() - t_write
     st = result.stats
     print(f"{scene.source}: {st['width']}x{st['height']} by {st['method']} in "
           f"{st['seconds_total']:.2f} s -> {', '.join(map(str, outputs))}")
@@ -356,9 +361,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         argv = ["render"]
     from .stats import Stats
     stats = Stats()          # seconds_total counts from here: argument parsing onwards
-    parser = _build_parser()
     try:
-        args = parser.parse_args(argv)
+        with stats.stage("startup"):
+            parser = _build_parser()
+            args = parser.parse_args(argv)
         args.stats_obj = stats
     except SystemExit as e:          # argparse: usage errors (one line, status 2) and --help
         return int(e.code or 0)

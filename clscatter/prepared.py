@@ -79,18 +79,20 @@ class PreparedScene:
 def prepare_scene(scene: Scene, engine: Engine, stats: Stats | None = None) -> PreparedScene:
     """Normalise, flatten and upload ``scene``; build its BVH."""
     stats = stats or Stats()
-    frame = Frame.for_scene(scene)
-    with stats.stage("bvh_build"):
+    with stats.stage("scene_structs"):
+        frame = Frame.for_scene(scene)
         soup = triangle_soup(scene, frame)
+    with stats.stage("bvh_build"):
         bvh = build_bvh(soup.triangles)
-    order = bvh.order
-    normals = np.zeros((len(order), 3, 4), np.float32)
-    normals[:, :, :3] = soup.normals[order]
-    tri_mat = np.ascontiguousarray(soup.material[order], np.int32)
-    medium = medium_struct(scene.medium, frame)
-    camera = camera_struct(scene.camera, frame)
-    lights = light_structs(scene.lights, frame)
-    lights_dev = lights if len(lights) else np.zeros(1, structs.LIGHT)
+    with stats.stage("scene_structs"):
+        order = bvh.order
+        normals = np.zeros((len(order), 3, 4), np.float32)
+        normals[:, :, :3] = soup.normals[order]
+        tri_mat = np.ascontiguousarray(soup.material[order], np.int32)
+        medium = medium_struct(scene.medium, frame)
+        camera = camera_struct(scene.camera, frame)
+        lights = light_structs(scene.lights, frame)
+        lights_dev = lights if len(lights) else np.zeros(1, structs.LIGHT)
     with stats.stage("upload"):
         dev = SceneBuffers(
             nodes=engine.to_device(bvh.nodes),

@@ -147,7 +147,7 @@ class RenderSession:
         output writing in it too). ``samples = (lo, hi)`` renders only those camera samples
         (see :func:`~clscatter.view_paths.trace_view_paths`).
         """
-        from .render import RenderResult, check, scene_notes
+        from .render import check, scene_notes
 
         scene = _preview_scene(self.scene) if preview else self.scene
         stats = stats or Stats()
@@ -162,20 +162,24 @@ class RenderSession:
             req = check(scene, self.method)
         with stats.stage("device"):
             engine = self.engine
-        limit, source = budget.memory_budget(engine, self.max_memory)
-        budget.check_budget(req.estimates, limit, source)
-        for line in budget.long_work_notes(req.estimates) + scene_notes(scene):
-            if on_note is not None:
-                on_note(line)
-        if scene.dropped_triangles():
-            stats.set(degenerate_triangles_dropped=scene.dropped_triangles())
-        stats.set(estimated_peak_bytes=int(budget.peak_bytes(req.estimates)))
-        engine.reset_peak()
+        with stats.stage("configure"):
+            limit, source = budget.memory_budget(engine, self.max_memory)
+            budget.check_budget(req.estimates, limit, source)
+            for line in budget.long_work_notes(req.estimates) + scene_notes(scene):
+                if on_note is not None:
+                    on_note(line)
+            if scene.dropped_triangles():
+                stats.set(degenerate_triangles_dropped=scene.dropped_triangles())
+            stats.set(estimated_peak_bytes=int(budget.peak_bytes(req.estimates)))
+            engine.reset_peak()
         stop_if_asked()
 
         # ---- prepared scene: BVH and device buffers ----
-        geometry = _geometry_key(scene)
-        if self._ps is not None and geometry == self._geometry and same_frame(self._ps, scene):
+        with stats.stage("scene_structs"):
+            geometry = _geometry_key(scene)
+            warm = (self._ps is not None and geometry == self._geometry
+                    and same_frame(self._ps, scene))
+        if warm:
             changed = refresh(self._ps, scene, stats)
             reused.append("bvh")
             ran += [f"upload_{c}" for c in changed]
@@ -202,6 +206,13 @@ class RenderSession:
         paths = self._paths
 
         # ---- passes ----
+        return self._run_passes(scene, req, ps, paths, stats, show_progress, stop_if_asked,
+                                ran, reused, preview)
+
+    def _run_passes(self, scene, req, ps, paths, stats, show_progress, stop_if_asked, ran,
+                    reused, preview):
+        from .render import RenderResult
+        engine = ps.engine
         cam = scene.camera
         surface = paths.surface.copy()
         medium = np.zeros((cam.height, cam.width, 3), np.float32)
@@ -217,11 +228,12 @@ class RenderSession:
                 medium = medium + out.get("medium", 0.0)
             else:
                 medium = medium + out
-        image = surface + medium
-        bad = ~np.isfinite(image)
-        if bad.any():
-            stats.set(nonfinite_pixels_zeroed=int(bad.any(axis=-1).sum()))
-            image = np.where(bad, 0.0, image)
+        with stats.stage("compose"):
+            image = surface + medium
+            bad = ~np.isfinite(image)
+            if bad.any():
+                stats.set(nonfinite_pixels_zeroed=int(bad.any(axis=-1).sum()))
+                image = np.where(bad, 0.0, image)
         chosen = "+".join(p.method for p in req.passes) or "none"
         stats.set(method=chosen, requested_method=req.requested, plan=req.notes,
                   passes=[{"method": p.method, "role": p.role} for p in req.passes],
