@@ -1,0 +1,149 @@
+"""What a user gets at the defaults: whole-process time, warm re-renders, where time goes.
+
+For every built-in scene (or ``--scenes``) and every method that applies to it, at the
+scene's own settings (or ``--set`` overrides, e.g. 640x480 and 4 spp):
+
+* **whole process**: ``clscatter render`` in a fresh Python process, wall time measured
+  outside it (imports, device choice, scene loading, rendering, writing the image);
+* **stages**: the ``--stats`` breakdown of that run, and the share outside every stage;
+* **warm re-render after a light move**: a :class:`~clscatter.session.RenderSession` renders,
+  the first light moves by 5% of the scene size, and the second render is timed;
+* **error** against a converged reference (``raymarch`` with many steps and 4x the samples
+  for direct-only scenes; for caustic scenes the reference is ``lsg`` with many rays), as
+  relMSE of the whole image.
+
+Writes ``bench_out/defaults.json`` and ``bench_out/defaults.png`` (time per scene and
+method, whole process vs warm). Usage::
+
+    .venv/bin/python tools/bench_defaults.py --scenes shafts occluder --set camera.resolution=[640,480]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from clscatter.image import read_image, relmse  # noqa: E402
+from clscatter.methods import all_methods  # noqa: E402
+from clscatter.planner import needed_terms  # noqa: E402
+from clscatter.render import render  # noqa: E402
+from clscatter.scene import BUILTIN, load_scene  # noqa: E402
+from clscatter.session import RenderSession  # noqa: E402
+
+
+def methods_for(scene) -> list[str]:
+    """``auto`` plus every method whose terms cover something the scene needs and whose
+    assumptions hold."""
+    terms, _ = needed_terms(scene)
+    out = ["auto"]
+    for name, cls in all_methods().items():
+        if set(terms) & set(cls.TERMS) and not cls.suits(scene):
+            out.append(name)
+    return out
+
+
+def whole_process(spec: str, method: str, sets: list[str]) -> tuple[float, dict, np.ndarray]:
+    with tempfile.TemporaryDirectory() as tmp:
+        out, st = Path(tmp) / "o.npy", Path(tmp) / "s.json"
+        cmd = [sys.executable, "-m", "clscatter", "render", spec, "--method", method, "-o",
+               str(out), "--stats", str(st), "--no-progress"]
+        for s in sets:
+            cmd += ["--set", s]
+        t = time.perf_counter()
+        r = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT,
+                           env={**os.environ, "PYTHONPATH": str(ROOT)})
+        wall = time.perf_counter() - t
+        if r.returncode != 0:
+            raise RuntimeError(r.stderr)
+        return wall, json.loads(st.read_text()), read_image(out)
+
+
+def warm_light_move(spec: str, method: str, sets: list[str]) -> tuple[float, list[str]]:
+    scene = load_scene(spec, sets)
+    if not scene.lights:
+        return float("nan"), []
+    bb = scene.bbox()
+    size = float(np.max(bb[1] - bb[0])) if bb is not None else 1.0
+    light = scene.lights[0]
+    with RenderSession.from_source(spec, sets, method=method) as s:
+        s.render(show_progress=False)
+        if light.type == "directional":
+            d = np.asarray(light.direction, float) + np.array([0.05, 0.0, 0.0])
+            s.set([f"lights[0].direction=[{d[0]:.6g}, {d[1]:.6g}, {d[2]:.6g}]"])
+        else:
+            p = np.asarray(light.position, float) + np.array([0.05 * size, 0.0, 0.0])
+            s.set([f"lights[0].position=[{p[0]:.6g}, {p[1]:.6g}, {p[2]:.6g}]"])
+        t = time.perf_counter()
+        res = s.render(show_progress=False)
+        return time.perf_counter() - t, res.stats["stages_run"]
+
+
+def reference(spec: str, sets: list[str], caustic: bool) -> np.ndarray:
+    if caustic:
+        extra = ["render.method=lsg", "render.lsg.light_rays=4000000"]
+    else:
+        extra = ["render.method=raymarch", "render.raymarch.steps=512"]
+    return render(load_scene(spec, sets + extra), show_progress=False).image
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", nargs="*", default=sorted(BUILTIN))
+    ap.add_argument("--set", dest="overrides", action="append", default=[])
+    ap.add_argument("--out", default=str(ROOT / "bench_out"))
+    ap.add_argument("--no-reference", action="store_true")
+    args = ap.parse_args()
+    out = Path(args.out)
+    out.mkdir(exist_ok=True)
+    rows = []
+    for name in args.scenes:
+        spec = f"builtin:{name}"
+        scene = load_scene(spec, args.overrides)
+        terms, _ = needed_terms(scene)
+        ref = None if args.no_reference else reference(spec, args.overrides, "caustics" in terms)
+        for method in methods_for(scene):
+            wall, st, img = whole_process(spec, method, args.overrides)
+            warm, ran = warm_light_move(spec, method, args.overrides)
+            covered = sum(st["stages"].values())
+            row = {"scene": name, "method": method, "ran": st["method"], "wall": wall,
+                   "seconds_total": st["seconds_total"], "stages": st["stages"],
+                   "outside_stages": st["seconds_total"] - covered,
+                   "process_overhead": wall - st["seconds_total"], "warm_light_move": warm,
+                   "warm_stages_run": ran,
+                   "relmse": None if ref is None else float(relmse(img, ref))}
+            rows.append(row)
+            print(f"{name:>16} {method:>9} ({st['method']}): whole {wall:6.2f} s, in-process "
+                  f"{st['seconds_total']:6.2f} s, warm light move {warm:6.3f} s"
+                  + ("" if ref is None else f", relMSE {row['relmse']:.2e}"), flush=True)
+    (out / "defaults.json").write_text(json.dumps({"overrides": args.overrides, "rows": rows},
+                                                  indent=2))
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        labels = [f"{r['scene']}\n{r['method']}" for r in rows]
+        x = np.arange(len(rows))
+        fig, ax = plt.subplots(figsize=(max(6, 0.55 * len(rows)), 3.6))
+        ax.bar(x - 0.2, [r["wall"] for r in rows], 0.4, label="whole process")
+        ax.bar(x + 0.2, [r["warm_light_move"] for r in rows], 0.4, label="warm, light moved")
+        ax.set_xticks(x, labels, rotation=90, fontsize=6)
+        ax.set_ylabel("seconds")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(out / "defaults.png", dpi=120)
+    except ImportError:
+        pass
+
+
+if __name__ == "__main__":
+    main()
