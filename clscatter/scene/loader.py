@@ -46,6 +46,7 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib  # type: ignore[no-redef]
 
 from ..errors import SceneError
+from ..geometry import unit
 from . import shapes
 from .model import (METHOD_NAMES, Camera, Light, Material, Medium, Object, RenderSettings, Scene,
                     Volume)
@@ -257,10 +258,6 @@ def _array_of_tables(root: _Table, name: str) -> list[tuple[str, _Table]]:
     return [(f"{root.k(name)}[{i}]", _Table(t, f"{root.k(name)}[{i}]")) for i, t in enumerate(v)]
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v)
-
-
 # ---- Sections ---------------------------------------------------------------------------
 
 def _camera(t: _Table) -> Camera:
@@ -284,7 +281,7 @@ def _camera(t: _Table) -> Camera:
     view = target - origin
     if not np.any(view):
         raise _err(t.k("target"), "camera target equals its origin (no view direction)")
-    if np.linalg.norm(np.cross(_unit(view), _unit(up))) < 1e-6:
+    if np.linalg.norm(np.cross(unit(view), unit(up))) < 1e-6:
         raise _err(t.k("up"), "up is parallel to the view direction (target - origin)")
     return Camera(origin=origin, target=target, up=up, fov=fov, fov_axis=fov_axis,
                   width=width, height=height, spp=spp)
@@ -321,9 +318,9 @@ def _light(t: _Table) -> Light:
             raise _err(t.k("target"), "spot light target equals its position (no direction)")
         cutoff = t.number("cutoff_angle", lo=0.0, lo_open=True, hi=90.0)
         return Light(type=kind, power=t.colour("intensity"), position=position,
-                     direction=_unit(target - position), cutoff_angle=cutoff)
+                     direction=unit(target - position), cutoff_angle=cutoff)
     direction = t.vec3("direction", nonzero=True)
-    return Light(type=kind, power=t.colour("irradiance"), direction=_unit(direction))
+    return Light(type=kind, power=t.colour("irradiance"), direction=unit(direction))
 
 
 def _material(t: _Table, name: str) -> Material:
