@@ -47,15 +47,17 @@ BVH_NODE = np.dtype([
     ("bmax", np.float32, 3), ("count", np.int32),
 ], align=True)
 
-VIEW_SEGMENT = np.dtype([
-    ("a", *F4), ("b", *F4), ("weight", *F4),
-    ("pixel", np.int32), ("depth", np.int32), ("sample", np.int32), ("branch", np.int32),
-], align=True)
+def _segment(value: str, owner: str, index: str) -> np.dtype:
+    """The one layout of a straight path piece (64 bytes): ends a, b, an rgb ``value``, the
+    ``owner`` (pixel or light), the specular depth, the ``index`` of the path (camera sample
+    or lighting ray) and the branch within that path's tree. View and light segments share
+    it; their fields keep their own names because they mean different things."""
+    return np.dtype([("a", *F4), ("b", *F4), (value, *F4), (owner, np.int32),
+                     ("depth", np.int32), (index, np.int32), ("branch", np.int32)], align=True)
 
-LIGHT_SEGMENT = np.dtype([
-    ("a", *F4), ("b", *F4), ("flux", *F4),
-    ("light", np.int32), ("depth", np.int32), ("ray", np.int32), ("branch", np.int32),
-], align=True)
+
+VIEW_SEGMENT = _segment("weight", "pixel", "sample")
+LIGHT_SEGMENT = _segment("flux", "light", "ray")
 
 # RayPiece.end values (PIECE_* in common.h)
 PIECE_DIFFUSE, PIECE_BLACK, PIECE_ESCAPED = 0, 1, 2
