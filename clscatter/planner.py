@@ -15,8 +15,9 @@ term                      needed when the scene has
 For every needed term the planner takes, among the implemented methods that declare an
 ``AUTO`` role for it and whose assumptions hold for the scene (``Method.suits``), the one
 with the highest priority; no method name is written here. An explicit method runs alone
-and computes its ``TERMS``; the notes say which needed terms that leaves out. Every
-decision is recorded in ``--stats`` under ``plan``.
+and computes its ``TERMS``; the notes say which needed terms that leaves out. A method
+that declares ``ALONE`` (the voxel pipeline) replaces every other pass once it is chosen.
+Every decision is recorded in ``--stats`` under ``plan``.
 """
 from __future__ import annotations
 
@@ -95,4 +96,11 @@ def plan(scene: Scene, requested: str) -> tuple[list[Pass], list[str]]:
         _, name, role = max(candidates)
         passes.append(Pass(name, term, dict(role.params or {})))
         notes.append(f"{term} by {name}")
+    for p in passes:
+        cls = methods[p.method]
+        if cls.ALONE:
+            others = [f"{q.role} by {q.method}" for q in passes if q is not p]
+            notes.append(f"{p.method} renders the whole image alone"
+                         + (f" (instead of {', '.join(others)})" if others else ""))
+            return [Pass(p.method, "all", p.params)], notes
     return passes, notes

@@ -116,3 +116,13 @@ def test_bad_method_parameters_name_their_key():
                                ("lsg", "light_rays", 0), ("epipolar", "lookup", "nope")):
         with pytest.raises(SceneError, match=f"render.{method}.{key}: .*got"):
             get_method(method)({key: value})
+
+
+def test_volumes_make_the_voxel_pipeline_render_alone():
+    """A graded-index volume: nothing but the voxel pipeline bends rays, and it owns the
+    whole image (a separate direct pass would count the light twice)."""
+    d = copy.deepcopy(BASE)
+    d["volumes"] = [{"shape": "sphere", "center": [0.0, 1.5, 0.0], "radius": 0.5, "ior": 1.3}]
+    passes, notes = _plan(d)
+    assert _roles(passes) == [("voxel", "all")]
+    assert any("renders the whole image alone" in n and "direct by raymarch" in n for n in notes)

@@ -10,7 +10,8 @@ A method is one class in one module (or package) of :mod:`clscatter.methods`:
 * capabilities the ``auto`` planner reads instead of method names: ``TERMS`` (what the
   method computes when it runs alone), ``LIGHTS`` (light types it handles; others it leaves
   to a fallback it documents), ``AUTO`` (the roles it can take in an ``auto`` plan, with a
-  priority and parameter overrides for that role);
+  priority and parameter overrides for that role), ``ALONE`` (once chosen it renders the
+  whole image by itself: the voxel pipeline, which owns everything its grid touches);
 * ``render(ps, paths, stats, show_progress)`` — the radiance it adds to the image.
 
 Terms (the pieces an image is made of):
@@ -119,6 +120,9 @@ class Method:
     TERMS: ClassVar[frozenset[str]] = frozenset()
     LIGHTS: ClassVar[frozenset[str]] = LIGHT_KINDS
     AUTO: ClassVar[dict[str, AutoRole]] = {}
+    # True for a method that, once auto picks it, renders the whole image alone (it computes
+    # the other terms its own way, so another pass would count light twice)
+    ALONE: ClassVar[bool] = False
 
     def __init__(self, params: dict | None = None):
         self.params: dict[str, Any] = configure(type(self), params)

@@ -146,8 +146,10 @@ def _register_technique_scenes() -> None:
     """Add the scenes written for each technique (their modules import helpers from here)."""
     from .builtin_caustics import CAUSTIC_SCENES
     from .builtin_epipolar import EPIPOLAR_SCENES
+    from .builtin_volumes import VOLUME_SCENES
     BUILTIN.update(CAUSTIC_SCENES)
     BUILTIN.update(EPIPOLAR_SCENES)
+    BUILTIN.update(VOLUME_SCENES)
 
 
 _register_technique_scenes()

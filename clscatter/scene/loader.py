@@ -75,7 +75,7 @@ SHAPE_KEYS = {
 }
 TRANSFORM_KEYS = ("translate", "rotate", "scale")
 VOLUME_KEYS = ("ior", "sigma_s", "sigma_a", "resolution")
-VOLUME_GRID_KEYS = ("grid", "bounds", "sigma_s", "sigma_a")
+VOLUME_GRID_KEYS = ("grid", "bounds", "sigma_s", "sigma_a", "sigma_s_grid", "sigma_a_grid")
 RENDER_KEYS = ("method", "max_depth", "seed")
 
 # a --set value that is not TOML but looks like one word is taken as a string
@@ -423,8 +423,16 @@ def _volume(t: _Table, base_dir: Path) -> Volume:
         t.allow(VOLUME_GRID_KEYS, " for a grid volume (the grid holds the index of refraction)")
         grid = _load_grid(base_dir / t.string("grid"), t.k("grid"))
         bounds = _bounds(t.table("bounds"))
+        per_voxel = {}
+        for name in ("sigma_s_grid", "sigma_a_grid"):
+            if t.has(name):
+                g = _load_grid(base_dir / t.string(name), t.k(name), positive=False)
+                if g.shape != grid.shape:
+                    raise _err(t.k(name), f"shape {g.shape} differs from grid's {grid.shape}")
+                per_voxel[name] = g
         return Volume(ior=float(grid.max()), sigma_s=sigma_s, sigma_a=sigma_a,
-                      resolution=int(max(grid.shape)), grid=grid, grid_bounds=bounds, key=t.key)
+                      resolution=int(max(grid.shape)), grid=grid, grid_bounds=bounds, key=t.key,
+                      **per_voxel)
     if not t.has("shape"):
         raise _err(t.k("shape"), "missing required key (a volume needs a shape or a grid)")
     shape = t.choice("shape", ("mesh", "sphere", "box"))
@@ -439,7 +447,7 @@ def _volume(t: _Table, base_dir: Path) -> Volume:
                   mesh=mesh, key=t.key)
 
 
-def _load_grid(path: Path, key: str) -> np.ndarray:
+def _load_grid(path: Path, key: str, positive: bool = True) -> np.ndarray:
     if not path.is_file():
         raise _err(key, f"grid file not found: {path}")
     try:
@@ -452,8 +460,10 @@ def _load_grid(path: Path, key: str) -> np.ndarray:
     if not np.issubdtype(grid.dtype, np.number) or np.issubdtype(grid.dtype, np.complexfloating):
         raise _err(key, f"grid {path} must hold real numbers (got {grid.dtype})")
     grid = grid.astype(np.float64)
-    if not np.all(np.isfinite(grid)) or np.any(grid <= 0.0):
+    if positive and (not np.all(np.isfinite(grid)) or np.any(grid <= 0.0)):
         raise _err(key, f"grid {path} must hold finite indices of refraction > 0")
+    if not positive and (not np.all(np.isfinite(grid)) or np.any(grid < 0.0)):
+        raise _err(key, f"grid {path} must hold finite coefficients >= 0")
     return grid
 
 

@@ -84,7 +84,8 @@ class Object:
 
 @dataclass
 class Volume:
-    """A graded-index refractive volume for the voxel pipeline (stored, not yet rendered)."""
+    """A graded-index refractive volume, rendered by the voxel pipeline (docs/scene_format.md,
+    "What a volume means")."""
 
     ior: float
     sigma_s: RGB
@@ -94,6 +95,8 @@ class Volume:
     grid: np.ndarray | None = None
     grid_bounds: tuple[np.ndarray, np.ndarray] | None = None
     key: str = ""
+    sigma_s_grid: np.ndarray | None = None   # per-voxel coefficients of a grid volume
+    sigma_a_grid: np.ndarray | None = None
 
 
 # the method names the scene format reserves (render.method, [render.<name>] tables)

@@ -1,0 +1,207 @@
+"""``voxel``: graded-index volumes by voxelisation and adaptive curved photon marching."""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+
+import numpy as np
+
+from ...errors import SceneError
+from ...prepared import prepare_scene
+from ...scene.model import Scene, Volume
+from ..base import AutoRole, Method, Param
+from .. import register
+from .pipeline import Pipeline
+
+
+def as_volume_scene(scene: Scene, voxelise_dielectrics: bool) -> Scene:
+    """``scene`` with its dielectric objects turned into constant-index volumes (their
+    interior absorption and scattering as the volume's coefficients), when asked and when
+    there are any; the scene itself otherwise."""
+    if not voxelise_dielectrics:
+        return scene
+    keep, vols = [], []
+    for o in scene.objects:
+        if o.material.type == "dielectric":
+            vols.append(Volume(ior=o.material.ior, sigma_s=np.asarray(o.material.interior_sigma_s, float),
+                               sigma_a=np.asarray(o.material.interior_sigma_a, float), resolution=0,
+                               mesh=o, key=o.key))
+        else:
+            keep.append(o)
+    if not vols:
+        return scene
+    return dataclasses.replace(scene, objects=keep, volumes=[*scene.volumes, *vols])
+
+
+@register
+class Voxel(Method):
+    """``voxel``: refractive volumes relit interactively (Sun et al. 2008).
+
+    The region around the scene's ``[[volumes]]`` (their union's box grown by ``margin``)
+    becomes a grid of ``resolution`` voxels along its longest side. Volumes are voxelised
+    (inside test at voxel centres, 4^3 coverage where the 3x3x3 neighbourhood disagrees,
+    9^3 Gaussian blur with sigma 1.5 voxels) into the index n, scattering and extinction
+    (mixed with the scene medium by the blurred weights) and grad n; an octree stored as a
+    dense level grid (min/max pyramid, tolerance ``eps``) and a step limit (``step_max``
+    voxels where the node's index range lies between ``eps`` and ``eps2``) pace the
+    photons. ``photons`` photons per light start where its light enters the grid
+    (stratified, shadowed and attenuated on the way) and march the ray equation
+    x += ds/n v, v += ds grad n with adaptive steps, depositing flux x length into every
+    voxel each step's segment crosses; the result is smoothed 3x3x3. View rays are traced
+    as the engine traces them until they enter the grid, then bent through it at one-voxel
+    steps, collecting sigma_s p_HG(stored mean direction) x fluence with attenuation, then
+    continue straight.
+
+    The join: every piece of every view path lies inside the grid (all its light from the
+    photons: direct light and light bent by volumes alike) or outside it (direct single
+    scattering by ``raymarch``, shadow rays through the scene). Nothing is counted twice.
+    Approximations: outside the grid light is not bent (a caustic beyond the grid's faces
+    is cut there: grow ``margin`` to include it); photons end at any surface (no specular
+    bounces inside the grid, no surface caustics: surfaces are lit by the engine's direct
+    light); dielectric objects are voxelised as constant-index volumes
+    (``voxelise_dielectrics``), so glass is rendered by the ray equation, not by Snell's
+    law (no Fresnel reflection).
+
+    Usage: ``clscatter render scene.toml --method voxel --set render.voxel.resolution=128``;
+    ``--stats`` reports the grid (``voxel_grid``: min, max, dims, voxel size in scene
+    units), photons, marching steps and launches, and per-stage seconds.
+    """
+
+    NAME = "voxel"
+    PARAMS = (
+        Param("resolution", 64, "voxels along the grid's longest side", lo=8, hi=1024),
+        Param("margin", 0.25, "grid margin around the volumes, per side, relative to their extent", lo=0.0),
+        Param("photons", 1 << 16, "photons per light (rounded up to a square)", lo=1),
+        Param("eps", 0.005, "octree tolerance: index range of a node marched to its face", lo=0.0, lo_open=True),
+        Param("eps2", 0.02, "second tolerance: nodes with range in [eps, eps2) limit steps to step_max",
+              lo=0.0, lo_open=True),
+        Param("step_min", 1.0, "smallest photon step, voxels", lo=0.0, lo_open=True),
+        Param("step_max", 8.0, "photon step limit in nodes with range in [eps, eps2), voxels", lo=0.0, lo_open=True),
+        Param("adaptive", True, "octree-adaptive photon steps (false: every step is step_min)"),
+        Param("steps_per_launch", 16, "photon steps per kernel launch", lo=1),
+        Param("done_fraction", 0.999, "stop marching when this fraction of photons has finished",
+              lo=0.0, hi=1.0, lo_open=True),
+        Param("min_flux", 1e-3, "a photon ends below this fraction of its starting flux", lo=0.0),
+        Param("smoothing", True, "3x3x3 smoothing of the deposited radiance"),
+        Param("view_rounds", 4, "grid passes per view path (in, out, back in after a mirror...)", lo=1),
+        Param("direct_steps", 32, "raymarch samples per view segment outside the grid", lo=1),
+        Param("beyond", "grid", "how light that left the grid scatters outside it: 'grid' (deposited "
+              "in a coarse outer grid), 'lsg' (line-space gathering of the photons' rays: sharper, "
+              "slower), 'none'", choices=("grid", "lsg", "none")),
+        Param("outer_resolution", 64, "outer grid: voxels along the medium's longest side", lo=4, hi=1024),
+        Param("exit_radius", 0.005, "gather radius for beyond = 'lsg', relative to the scene extent",
+              lo=0.0, lo_open=True),
+        Param("voxelise_dielectrics", True, "voxelise dielectric objects as constant-index volumes"),
+    )
+    TERMS = frozenset({"direct", "volumes"})
+    AUTO = {"volumes": AutoRole(priority=10)}
+    # When auto picks this method it must render the whole image alone: it computes the
+    # direct term itself (raymarch outside its grid, photons inside) and voxelises glass,
+    # so a separate direct, caustic or surface-caustic pass would count light twice (the
+    # planner honours ALONE; see docs/voxel.md).
+    ALONE = True
+
+    # bytes per voxel of the grid while a frame renders: n, grad, sigma_s, kappa, octree
+    # level and limit, deposits (2 float4), a blur temporary, the volumes' weights
+    BYTES_PER_VOXEL = 4 + 16 + 16 + 16 + 1 + 4 + 32 + 16 + 8
+
+    @classmethod
+    def estimate(cls, scene, params):
+        """Working set: the grid (its resolution cubed, an upper bound), the outer grid,
+        the photon states of one light (48 bytes each) and the view rays (2 x 64 bytes per
+        camera sample, an upper bound)."""
+        from ...budget import Estimate, camera_samples
+        if not scene.volumes and not any(o.material.type == "dielectric" for o in scene.objects):
+            return []
+        grid = float(params["resolution"]) ** 3
+        outer = float(params["outer_resolution"]) ** 3 if params["beyond"] == "grid" else 0.0
+        photons = float(params["photons"]) * max(1, len(scene.lights))
+        return [Estimate("voxel", "render.voxel.resolution",
+                         grid * cls.BYTES_PER_VOXEL + outer * 48 + float(params["photons"]) * 48
+                         + camera_samples(scene) * 128, photons * 30, "photon steps (order of magnitude)")]
+
+    @classmethod
+    def check_params(cls, params: dict) -> None:
+        if params["eps2"] < params["eps"]:
+            raise SceneError("render.voxel.eps2", f"must be >= eps (got {params['eps2']!r})")
+        if params["step_max"] < params["step_min"]:
+            raise SceneError("render.voxel.step_max", f"must be >= step_min (got {params['step_max']!r})")
+
+    def render(self, ps, paths, stats, show_progress: bool = True) -> dict:
+        """``{"surface": correction, "medium": radiance}``: the surface term seen through
+        the grid minus the engine's straight one (``paths.surface``), and the medium."""
+        scene = as_volume_scene(ps.scene, self.params["voxelise_dielectrics"])
+        cam = ps.scene.camera
+        zero = np.zeros((cam.height, cam.width, 3), np.float32)
+        if not scene.volumes:
+            stats.set(voxel_note="no volumes (and no dielectric objects to voxelise): nothing to do")
+            from ..raymarch import RayMarch
+            return {"surface": zero, "medium": RayMarch({"steps": self.params["direct_steps"]}).render(
+                ps, paths, stats, show_progress)}
+        own = scene is not ps.scene
+        vps = prepare_scene(scene, ps.engine, stats) if own else ps
+        pipe = self._pipeline(vps)
+        try:
+            out = pipe.update(vps, stats, show_progress)
+        except BaseException:
+            self.release_cache(ps.engine)
+            raise
+        finally:
+            if own:
+                vps.release()
+        stats.set(**{k: v for k, v in pipe.counters.items()}, voxel_stages_run=list(pipe.ran))
+        return {"surface": out["surface"] - paths.surface, "medium": out["medium"]}
+
+    # ---- stage reuse across renders (a RenderSession re-renders with new instances) ----
+    _CACHE: dict = {}       # id(engine) -> (stage keys, Pipeline): the last scene's stages
+
+    def _pipeline(self, ps) -> Pipeline:
+        """The pipeline of the previous render on this engine with the stages whose inputs
+        changed dropped (a fresh one the first time): a warm re-render after a light move
+        runs lighting and view only, as a :class:`~.relight.Relighter` does."""
+        keys = stage_keys(ps, self.params)
+        old = Voxel._CACHE.get(id(ps.engine))
+        if old is None:
+            pipe = Pipeline(self.params)
+        else:
+            pipe = old[1]
+            pipe.params = self.params
+            for stage, k_old, k_new in zip(("geometry", "material", "lighting"), old[0], keys):
+                if k_old != k_new:
+                    pipe.invalidate(stage, ps.engine)
+                    break
+        Voxel._CACHE[id(ps.engine)] = (keys, pipe)
+        return pipe
+
+    @classmethod
+    def release_cache(cls, engine=None) -> None:
+        """Free the kept stages (of ``engine``, or all)."""
+        for key in list(cls._CACHE):
+            if engine is None or key == id(engine):
+                _, pipe = cls._CACHE.pop(key)
+                if engine is not None:
+                    pipe.release(engine)
+
+
+def _digest(*parts) -> str:
+    h = hashlib.sha256()
+    for p in parts:
+        h.update(np.ascontiguousarray(p).tobytes() if isinstance(p, np.ndarray) else repr(p).encode())
+    return h.hexdigest()
+
+
+def stage_keys(ps, params: dict) -> tuple[str, str, str]:
+    """Fingerprints of what the geometry, material and lighting stages read."""
+    vols = ps.scene.volumes
+    geo = [ps.frame.scale, ps.frame.centre, params["resolution"], params["margin"]]
+    mat = [ps.medium, params["eps"], params["eps2"], params["step_max"]]
+    for v in vols:
+        geo += [v.resolution, None if v.mesh is None else v.mesh.vertices,
+                None if v.mesh is None else v.mesh.faces, v.grid, repr(v.grid_bounds)]
+        mat += [v.ior, v.sigma_s, v.sigma_a, getattr(v, "sigma_s_grid", None),
+                getattr(v, "sigma_a_grid", None)]
+    g, m = _digest(*geo), _digest(*mat)
+    light = _digest(g, m, ps.lights, ps.bvh.triangles, ps.scene.render.seed,
+                    *(params[k] for k in ("photons", "adaptive", "step_min", "min_flux", "steps_per_launch",
+                                          "done_fraction", "smoothing", "beyond", "outer_resolution")))
+    return g, _digest(g, m), light

@@ -1,0 +1,201 @@
+"""The voxel pipeline's stages with their inputs, so a relighting session re-runs only what
+changed (Sun et al. 2008, fig. 2):
+
+==============  ===========================================  ============================
+stage           computes                                     re-runs when
+==============  ===========================================  ============================
+``geometry``    grid box, coverage of every volume, blurred  a volume's shape moves or
+                weights (``voxelise.py``)                    changes; grid parameters
+``material``    n, sigma_s, kappa, grad n, octree            a volume's ior / sigma, the
+                (``voxelise.mix``, ``octree.py``)            medium; eps parameters
+``lighting``    photons, marching, deposition, smoothing     a light; anything above
+``view``        view paths through the grid; direct light    the camera; anything above
+                outside it (``view.py`` + ``raymarch``)
+==============  ===========================================  ============================
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ...view_paths import accumulate_segments
+from .grid import GridBox, make_box, scene_box
+from .photons import Fields, MarchSettings, Radiance, light_pass, upload_fields
+from .view import view_pass
+from .voxelise import blur, gaussian_taps, medium_at_centres, mix, volume_fields, volume_weight
+
+STAGES = ("geometry", "material", "lighting", "view")
+
+
+@dataclass
+class Pipeline:
+    """Stage results of one scene on one device, kept between frames."""
+
+    params: dict
+    box: GridBox | None = None
+    weights: list = field(default_factory=list)
+    fields: Fields | None = None
+    radiance: Radiance | None = None
+    ran: list = field(default_factory=list)          # stages run by the last update()
+    timings: dict = field(default_factory=dict)      # seconds of the last update()'s stages
+    counters: dict = field(default_factory=dict)
+
+    def invalidate(self, stage: str, eng=None) -> None:
+        """Drop ``stage`` and every stage after it."""
+        k = STAGES.index(stage)
+        if k <= 2 and self.radiance is not None:
+            if eng is not None:
+                self.radiance.free(eng)
+            self.radiance = None
+        if k <= 1 and self.fields is not None:
+            if eng is not None:
+                self.fields.free(eng)
+            self.fields = None
+        if k == 0:
+            self.box = None
+            self.weights = []
+
+    def release(self, eng) -> None:
+        self.invalidate("geometry", eng)
+
+    def _timed(self, name: str, stats, fn):
+        t = time.perf_counter()
+        if stats is not None:
+            with stats.stage(f"voxel_{name}"):
+                out = fn()
+        else:
+            out = fn()
+        self.timings[name] = time.perf_counter() - t
+        self.ran.append(name)
+        return out
+
+    # ---- stages ----
+    def _geometry(self, ps) -> None:
+        p = self.params
+        self.box = scene_box(ps.scene, ps.frame, p["resolution"], p["margin"])
+        taps = gaussian_taps()
+        self.weights = [blur(ps.engine, volume_weight(ps.engine, self.box, v, ps.frame), taps)
+                        for v in ps.scene.volumes]
+
+    def _material(self, ps) -> None:
+        p = self.params
+        ss_m, sa_m = medium_at_centres(self.box, ps.medium)
+        flds = [volume_fields(self.box, v, ps.frame) for v in ps.scene.volumes]
+        n, ss, kappa = mix(self.weights, flds, ss_m, sa_m)
+        self.fields = upload_fields(ps.engine, self.box, n, ss, kappa, p["eps"], p["eps2"], p["step_max"])
+
+    def _lighting(self, ps) -> None:
+        p = self.params
+        ms = MarchSettings(adaptive=p["adaptive"], ds_min=p["step_min"], min_rel=p["min_flux"],
+                           steps_per_launch=p["steps_per_launch"], done_fraction=p["done_fraction"])
+        outer = outer_box(ps, self.box, p["outer_resolution"]) if p["beyond"] == "grid" else None
+        self.radiance = light_pass(ps.engine, self.fields, ps, p["photons"], ms,
+                                   test_surfaces=len(ps.bvh.order) > 0, smoothing=p["smoothing"],
+                                   outer=outer)
+
+    def update(self, ps, stats=None, show_progress: bool = True) -> dict:
+        """Run the stages whose results are missing, then the view; returns
+        ``{"surface": (H,W,3), "medium": (H,W,3)}`` (full surface term, seen through the grid)."""
+        self.ran, self.timings = [], {}
+        if self.box is None:
+            self._timed("geometry", stats, lambda: self._geometry(ps))
+        if self.fields is None:
+            self._timed("material", stats, lambda: self._material(ps))
+        if self.radiance is None:
+            self._timed("lighting", stats, lambda: self._lighting(ps))
+        res = self._timed("view", stats, lambda: self._view(ps, stats, show_progress))
+        self.counters = {**self.radiance.counters, **res["counters"],
+                         "voxel_grid": self.box.describe(ps.frame)}
+        return res
+
+    def _view(self, ps, stats, show_progress) -> dict:
+        vr = view_pass(ps, self.fields, self.radiance, self.params["view_rounds"], show_progress,
+                       test_surfaces=len(ps.bvh.order) > 0)
+        cam = ps.scene.camera
+        direct = np.zeros((cam.height, cam.width, 3), np.float32)
+        beyond = np.zeros_like(direct)
+        if len(vr.segments) and ps.num_lights and ps.has_medium:
+            direct = direct_outside(ps, self.fields.box, vr.segments, self.params["direct_steps"])
+            ex = self.radiance.exits
+            if self.params["beyond"] == "grid":
+                beyond = outer_view(ps, self.radiance, vr.segments)
+            elif self.params["beyond"] == "lsg" and ex is not None and len(ex):
+                r = self.params["exit_radius"] * ps.scene.scene_extent() / ps.frame.scale
+                beyond = gather_exits(ps, vr.segments, ex, r, show_progress)
+        return {"surface": vr.surface, "medium": vr.inside + direct + beyond, "inside": vr.inside,
+                "direct_outside": direct, "beyond": beyond, "counters": vr.counters}
+
+
+def direct_outside(ps, box, segs: np.ndarray, steps: int, per_launch: int = 65536) -> np.ndarray:
+    """raymarch's direct single scattering over ``segs`` with the grid box occluding
+    (``cl_kernels/voxel_direct.cl``): the light that crosses the grid is the photons'."""
+    eng = ps.engine
+    cam = ps.scene.camera
+    med2 = np.zeros(2, ps.medium.dtype)
+    med2[0] = ps.medium
+    med2[1]["bmin"][:3], med2[1]["bmax"][:3] = box.lo, box.hi
+    med_buf, seg_buf = eng.to_device(med2), eng.to_device(segs)
+    n = len(segs)
+    chunk = min(per_launch, n)
+    out = eng.empty(16 * chunk)
+    values = np.zeros((n, 4), np.float32)
+    seed = np.uint32((ps.scene.render.seed * 7919 + 17) & 0xFFFFFFFF)   # as raymarch
+    kern = eng.kernel("voxel_direct", "raymarch")
+    try:
+        for start in range(0, n, chunk):
+            m = min(chunk, n - start)
+            args = {**ps.scene_args("raymarch", "raymarch"), "medium": med_buf, "segs": seg_buf,
+                    "seg_offset": start, "num_segs": m, "steps": steps, "seed": seed, "out": out}
+            eng.launch(kern, m, *eng.bind("raymarch", "raymarch", args))
+            values[start:start + m] = eng.read(out, (chunk, 4), np.float32)[:m]
+    finally:
+        eng.free(med_buf, seg_buf, out)
+    return accumulate_segments(values, segs["pixel"], cam.width, cam.height)
+
+
+def gather_exits(ps, segs: np.ndarray, exits: np.ndarray, radius: float,
+                 show_progress: bool = True) -> np.ndarray:
+    """Single scattering outside the grid of the light that left it (the photons' straight
+    continuations), by lsg's line-space gathering with ``radius`` (normalised units)."""
+    from ..lsg import Gatherer
+    cam = ps.scene.camera
+    gat = Gatherer(ps.engine, segs, ps.medium, radius, show_progress=show_progress)
+    try:
+        gat.add(exits)
+        values = gat.values()
+    finally:
+        gat.release()
+    return accumulate_segments(values, segs["pixel"], cam.width, cam.height)
+
+
+def outer_box(ps, box: GridBox, resolution: int) -> GridBox:
+    """The coarse grid for the light beyond the voxel grid: the medium's bounds when it
+    has them, else the box of the scene's geometry and the voxel grid."""
+    if ps.medium["bounded"]:
+        lo, hi = ps.medium["bmin"][:3].astype(np.float64), ps.medium["bmax"][:3].astype(np.float64)
+    else:
+        root = ps.bvh.nodes[0]
+        lo, hi = box.lo.copy(), box.hi.copy()
+        if np.all(root["bmin"] <= root["bmax"]):
+            lo, hi = np.minimum(lo, root["bmin"]), np.maximum(hi, root["bmax"])
+    return make_box(lo, hi, resolution)
+
+
+def outer_view(ps, radiance, segs: np.ndarray, per_launch: int = 1 << 16) -> np.ndarray:
+    """Single scattering along ``segs`` of the light held by the outer grid."""
+    eng = ps.engine
+    cam = ps.scene.camera
+    ob = radiance.outer
+    n = len(segs)
+    seg_buf = eng.to_device(segs)
+    out = eng.empty(16 * n)
+    try:
+        eng.call("voxel", "outer_view", n, segs=seg_buf, count=n, medium=ps.dev.medium,
+                 olo=ob.lo4(), od=ob.dims4(), oh=ob.h, rad=radiance.outer_rad,
+                 dirs=radiance.outer_dirs, out=out)
+        values = eng.read(out, (n, 4), np.float32)
+    finally:
+        eng.free(seg_buf, out)
+    return accumulate_segments(values, segs["pixel"], cam.width, cam.height)
