@@ -12,16 +12,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ... import structs
 from ...scene.frame import Frame
 from ...scene.model import Scene, Volume
 
 F4 = (np.float32, 4)
 
 # mirror of VoxRay in cl_kernels/voxel.h
-VOX_RAY = np.dtype([
+VOX_RAY = structs.register_struct("voxel.h", "VoxRay", np.dtype([
     ("o", *F4), ("d", *F4), ("thr", *F4),
     ("pixel", np.int32), ("sample", np.int32), ("branch", np.int32), ("flags", np.int32),
-], align=True)
+], align=True))
 VOX_SKIP_FIRST = 1
 
 
