@@ -277,10 +277,12 @@ def _cmd_relight(args: argparse.Namespace) -> int:
                 session.set(sets)
                 res = session.render(show_progress=False)
                 save(i, res.image, res.stats)
-                record["frames"].append({"frame": i, "seconds": res.stats["seconds_total"],
-                                         "stages": res.stats["stages"],
-                                         "stages_run": res.stats["stages_run"],
-                                         "reused": res.stats["reused"]})
+                record["frames"].append({
+                    "frame": i, "seconds": res.stats["seconds_total"],
+                    "stages": res.stats["stages"], "stages_run": res.stats["stages_run"],
+                    "reused": res.stats["reused"],
+                    **{k: res.stats[k] for k in ("voxel_stages_run", "voxel_stage_seconds")
+                       if k in res.stats}})
                 bar.update(1)
     record.update(scene=spec, orbit=args.orbit, count=len(frames),
                   files=[n.name for n in names])

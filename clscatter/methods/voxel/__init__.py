@@ -149,7 +149,8 @@ class Voxel(Method):
         finally:
             if own:
                 vps.release()
-        stats.set(**{k: v for k, v in pipe.counters.items()}, voxel_stages_run=list(pipe.ran))
+        stats.set(**{k: v for k, v in pipe.counters.items()}, voxel_stages_run=list(pipe.ran),
+                  voxel_stage_seconds=dict(pipe.timings))
         return {"surface": out["surface"] - paths.surface, "medium": out["medium"]}
 
     # ---- stage reuse across renders (a RenderSession re-renders with new instances) ----
