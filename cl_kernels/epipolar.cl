@@ -13,13 +13,17 @@
  *   epi_rectify_image, epi_unrectify   resampling image <-> rectified grid (Sec. 2.2)
  *
  * The integrand (Eq. 3) of view ray beta at light ray gamma is factored as
- *   I(alpha, gamma, beta) = F(alpha, gamma) * sum_n Gamma_n(gamma) B_n(beta) * exp(kappa t_a)
- * where F carries what depends on the light ray alone (the medium's transmittance from
- * where the light ray enters the box, the spot cone: the paper's "textured light"),
- * Gamma_n, B_n come from the truncated SVD of the slice-independent rest
- * (clscatter/methods/epipolar/svd.py; B_n includes the pure-beta factors phase/sin(beta) and
- * |ds/dgamma|), and exp(kappa t_a) restores the view transmittance from the segment
- * start t_a (so results are radiance arriving at the start of the medium segment).
+ *   I(alpha, gamma, beta) = F(alpha, gamma) * sum_n Gamma_n(gamma) B_n(beta)
+ *                           * exp(kappa (t_a - t_ref(beta)))
+ * where Gamma_n, B_n come from the truncated SVD of the slice-independent, *referenced*
+ * transmittance product K (clscatter/methods/epipolar/svd.py: K is the view and light
+ * transmittance measured from the references t_ref(beta), l_ref(gamma), at most 1 where
+ * pixels read it; B_n includes the pure-beta factors phase/sin(beta) and |ds/dgamma|),
+ * F carries what depends on the light ray alone (its entry into the medium relative to
+ * l_ref(gamma), the spot cone: the paper's "textured light"), and the last factor
+ * restores the view transmittance from the segment start t_a relative to t_ref (so
+ * results are radiance arriving at the start of the medium segment). Both remainders are
+ * >= 1 and bounded by the references' spread over slices.
  */
 #include "common.h"
 #include "bvh.h"
@@ -62,27 +66,51 @@ float epi_gamma(__global const EpiFrame *fr, float t, float beta) {
 
 /* ---- maps ---- */
 
+/* The face of a spot light's shadow map that light direction l falls in (the largest
+ * l.c: cube-map selection; a single face when the cone fits one map), or -1. */
+int epi_face_of(__global const EpiFrame *fr, __global const EpiFace *faces, float4 l) {
+    int best = -1;
+    float bc = 1e-6f;
+    for (int f = 0; f < fr->sm_faces; ++f) {
+        float lc = dot3(l, faces[f].c);
+        if (lc > bc) { bc = lc; best = f; }
+    }
+    return best;
+}
+
 __kernel void epi_shadow_map(__global const BVHNode *nodes, __global const float4 *tris,
-                             __global const EpiFrame *fr, __global float *out) {
+                             __global const EpiFrame *fr, __global const EpiFace *faces,
+                             int ntex, __global float *out) {
     int gid = get_global_id(0);
-    int res = fr->sm_res;
-    if (gid >= res * res) return;
-    float4 rect = fr->sm_rect;
-    float x1 = rect.x + ((gid % res) + 0.5f) * (rect.z - rect.x) / res;
-    float x2 = rect.y + ((gid / res) + 0.5f) * (rect.w - rect.y) / res;
     Hit hit;
     if (fr->type == LIGHT_DIRECTIONAL) {
+        int res = fr->sm_res;
+        if (gid >= res * res) return;
+        float4 rect = fr->sm_rect;
+        float x1 = rect.x + ((gid % res) + 0.5f) * (rect.z - rect.x) / res;
+        float x2 = rect.y + ((gid / res) + 0.5f) * (rect.w - rect.y) / res;
         /* the map stores the blocker's axial coordinate z = (x - eye).u */
         float4 o = fr->eye + x1 * fr->sm_s1 + x2 * fr->sm_s2 + fr->z_start * fr->u;
         o.w = 0.0f;
         out[gid] = bvh_closest(nodes, tris, o, -fr->u, 0.0f, T_INF, &hit) ? fr->z_start - hit.t
                                                                           : T_INF;
-    } else {
-        /* the map stores the blocker's distance from the light */
-        float4 dir = normalize3(fr->cone + x1 * fr->sm_s1 + x2 * fr->sm_s2);
-        dir.w = 0.0f;
-        out[gid] = bvh_closest(nodes, tris, fr->light, dir, 0.0f, T_INF, &hit) ? hit.t : T_INF;
+        return;
     }
+    if (gid >= ntex) return;
+    /* spot: the face holding texel gid (faces are stored one after the other) */
+    int f = 0;
+    while (f + 1 < fr->sm_faces && gid >= (int)faces[f + 1].e2.w) ++f;
+    __global const EpiFace *fc = &faces[f];
+    int nx = (int)fc->c.w, ny = (int)fc->e1.w, loc = gid - (int)fc->e2.w;
+    float4 rect = fc->rect;
+    float x1 = rect.x + ((loc % nx) + 0.5f) * (rect.z - rect.x) / nx;
+    float x2 = rect.y + ((loc / nx) + 0.5f) * (rect.w - rect.y) / ny;
+    float4 c = fc->c, e1 = fc->e1, e2 = fc->e2;
+    c.w = 0.0f; e1.w = 0.0f; e2.w = 0.0f;
+    /* the map stores the blocker's distance from the light */
+    float4 dir = normalize3(c + x1 * e1 + x2 * e2);
+    dir.w = 0.0f;
+    out[gid] = bvh_closest(nodes, tris, fr->light, dir, 0.0f, T_INF, &hit) ? hit.t : T_INF;
 }
 
 /* camera ray through a continuous position in the image (x right, y down, in pixels of
@@ -117,26 +145,36 @@ __kernel void epi_depth_map(__global const BVHNode *nodes, __global const float4
 
 /* Shadow-map value seen by the light ray gamma of slice w (nearest texel, as in shadow
  * mapping): the blocker's axial coordinate z (directional) or its distance r from the
- * light (spot); T_INF when nothing blocks the light ray. */
-float epi_blocker(__global const EpiFrame *fr, __global const float *smap, float4 w, float gamma) {
+ * light (spot, in the face its direction falls in); T_INF when nothing blocks it. */
+float epi_blocker(__global const EpiFrame *fr, __global const EpiFace *faces,
+                  __global const float *smap, float4 w, float gamma) {
     float x1, x2;
+    float4 rect;
+    int nx, ny, base = 0;
     if (fr->type == LIGHT_DIRECTIONAL) {
         /* the light ray through eye + gamma w projects to one point of the map */
         x1 = gamma * dot3(w, fr->sm_s1);
         x2 = gamma * dot3(w, fr->sm_s2);
+        rect = fr->sm_rect;
+        nx = ny = fr->sm_res;
     } else {
+        /* every direction of the cone (up to 90 degrees) lies in one of the faces */
         float4 l = epi_spot_dir(fr, w, gamma);
-        float la = dot3(l, fr->cone);
-        if (la <= 1e-6f) return T_INF;
-        x1 = dot3(l, fr->sm_s1) / la;
-        x2 = dot3(l, fr->sm_s2) / la;
+        int f = epi_face_of(fr, faces, l);
+        if (f < 0) return T_INF;
+        __global const EpiFace *fc = &faces[f];
+        float lc = dot3(l, fc->c);
+        x1 = dot3(l, fc->e1) / lc;
+        x2 = dot3(l, fc->e2) / lc;
+        rect = fc->rect;
+        nx = (int)fc->c.w;
+        ny = (int)fc->e1.w;
+        base = (int)fc->e2.w;
     }
-    float4 rect = fr->sm_rect;
-    int res = fr->sm_res;
-    float fx = (x1 - rect.x) / (rect.z - rect.x) * res;
-    float fy = (x2 - rect.y) / (rect.w - rect.y) * res;
-    if (!(fx >= 0.0f && fx < res && fy >= 0.0f && fy < res)) return T_INF;
-    return smap[(int)fy * res + (int)fx];
+    float fx = (x1 - rect.x) / (rect.z - rect.x) * nx;
+    float fy = (x2 - rect.y) / (rect.w - rect.y) * ny;
+    if (!(fx >= 0.0f && fx < nx && fy >= 0.0f && fy < ny)) return T_INF;
+    return smap[base + (int)fy * nx + (int)fx];
 }
 
 /* The blocker's slice position (z, rho) and its beta = atan2(rho, z) (paper, Sec. 3: the
@@ -166,8 +204,8 @@ float epi_mode_tol(__global const EpiFrame *fr, float gamma, float v) {
  * by depth (one pixel angle of beta apart at most from a mode's first member), so only
  * one atan2 per mode is needed; a mode's beta is that of its mean gamma and depth. */
 __kernel void epi_rectify_shadow(__global const EpiFrame *fr, __global const EpiSlice *slices,
-                                 int slice0, int nbatch, __global const float *smap,
-                                 __global float2 *term) {
+                                 int slice0, int nbatch, __global const EpiFace *faces,
+                                 __global const float *smap, __global float2 *term) {
     int gid = get_global_id(0);
     int d = fr->d;
     if (gid >= nbatch * d) return;
@@ -179,7 +217,7 @@ __kernel void epi_rectify_shadow(__global const EpiFrame *fr, __global const Epi
     for (int s = 0; s < ns; ++s) {
         float off = fr->prefilter ? (s + 0.5f) / EPI_MODES : 0.5f;
         g[s] = sl->gamma_lo + (i + off) * dg;
-        v[s] = epi_blocker(fr, smap, sl->w, g[s]);
+        v[s] = epi_blocker(fr, faces, smap, sl->w, g[s]);
         key[s] = v[s] >= 0.5f * T_INF ? INFINITY : epi_mode_key(fr, v[s]);
     }
     for (int s = 1; s < ns; ++s)            /* insertion sort by key, at most 4 values */
@@ -241,31 +279,46 @@ __kernel void epi_rectify_depth(__global const EpiFrame *fr, __global const EpiS
 
 /* ---- integration ---- */
 
-/* F(alpha, gamma) per channel: what depends on the light ray alone. Directional: the
- * light's transmittance from the box face where the light ray enters down to the plane
- * z = 0 through the eye, exp(-kappa z_exit) (the rest, exp(kappa z), is in the SVD part).
- * Spot: exp(+kappa r_enter) (the SVD part has exp(-kappa r)) times the fraction of the
- * light ray's cell [gamma +- dg/2] inside the cone. */
+/* F(alpha, gamma) per channel: what depends on the light ray alone, relative to the
+ * light-side reference lref = l_ref(gamma) that K contains (svd.py). Directional: the
+ * light ray enters the box at the axial coordinate z_exit (t1 along +u; defined, and
+ * continuous, even for a near miss), K has exp(-kappa (z_ref - z)), so F =
+ * exp(kappa (z_ref - z_exit)). Spot: it enters at r_enter from the light, K has
+ * exp(-kappa (r - r_ref)), so F = exp(kappa (r_enter - r_ref)), times the fraction of the
+ * light ray's cell [gamma +- dg/2] inside the cone. The exponent is clamped to the spread
+ * measured over the light rays that meet the medium (fr->lspan): a ray that misses the
+ * box has an arbitrary entry, and an unbounded value would swamp the float32 prefix sums
+ * of its slice (it is never integrated: no view segment of the slice reaches it). */
 void epi_light_factor(__global const EpiFrame *fr, __global const EpiSlice *sl, float gamma,
-                      float dg, float *F) {
-    float x = 0.0f, sign = -1.0f, cov = 1.0f;
+                      float dg, float lref, float *F) {
+    float x = 0.0f, cov = 1.0f;
     float t0, t1;
     if (fr->type == LIGHT_DIRECTIONAL) {
         float4 o = fr->eye + gamma * sl->w;
         ray_box(o, safe_inv_dir(fr->u), fr->bmin, fr->bmax, -T_INF, T_INF, &t0, &t1);
-        x = t1;                                      /* z_exit, defined even for a miss */
+        x = lref - t1;                               /* z_ref - z_exit */
     } else {
         float a = fmax(gamma - 0.5f * dg, sl->cone_lo), b = fmin(gamma + 0.5f * dg, sl->cone_hi);
         cov = dg > 0.0f ? clamp((b - a) / dg, 0.0f, 1.0f) : 0.0f;
-        sign = 1.0f;
         if (fr->bounded) {
             float4 l = epi_spot_dir(fr, sl->w, gamma);
             ray_box(fr->light, safe_inv_dir(l), fr->bmin, fr->bmax, 0.0f, T_INF, &t0, &t1);
-            x = t0;                                  /* r_enter >= 0 */
+            x = t0 - lref;                           /* r_enter - r_ref */
         }
     }
+    x = clamp(x, -fr->lspan, fr->lspan);
     for (int c = 0; c < EPI_NCH; ++c)
-        F[c] = cov * exp(clamp(sign * epi_kappa(fr, c) * x, -EPI_EXP_MAX, EPI_EXP_MAX));
+        F[c] = cov * exp(clamp(epi_kappa(fr, c) * x, -EPI_EXP_MAX, EPI_EXP_MAX));
+}
+
+/* linear interpolation in a table of n floats sampled uniformly on [lo, hi] */
+float epi_table1(__global const float *tab, int n, float lo, float hi, float x) {
+    float s = (n > 1 && hi > lo) ? (x - lo) / (hi - lo) * (float)(n - 1) : 0.0f;
+    s = clamp(s, 0.0f, (float)(n - 1));
+    int i = min((int)s, n - 2 < 0 ? 0 : n - 2);
+    int j = n > 1 ? i + 1 : i;
+    float f = n > 1 ? s - (float)i : 0.0f;
+    return (1.0f - f) * tab[i] + f * tab[j];
 }
 
 /* lower bound: first event of [0, n) whose beta is >= b */
@@ -281,16 +334,20 @@ int epi_lower_bound(__global const float4 *ev, int n, float b) {
 /* One work-item per slice (paper, Fig. 6). Events of slice k are
  * events[ev_off[k] .. ev_off[k+1]), sorted by beta, each
  * (beta, gamma0, gamma1, t_a); out gets, per event and channel,
- *   exp(kappa t_a) * sum_n B_n(beta) * (Q_n(gamma1) - Q_n(gamma0))
+ *   exp(kappa (t_a - t_ref(beta))) * sum_n B_n(beta) * (Q_n(gamma1) - Q_n(gamma0))
  * with Q_n the prefix sums of F * Gamma_n * dgamma over the light rays still lit.
+ * The SVD tables come per group of slices (slice->group): gtab [group][n_g][EPI_NV] over
+ * groups[group].xy (gamma), btab [group][n_b][EPI_NV] over groups[group].zw (beta), and
+ * the references gref [group][n_g] = l_ref, bref [group][n_b] = t_ref on the same grids.
  * Scratch: tree/leaf [nbatch][d][EPI_NV], cnt [events of the batch + nbatch],
  * sorted [nbatch][d * EPI_MODES]. work[k] = (tree updates, tree queries) for --stats. */
 __kernel void epi_integrate(__global const EpiFrame *fr, __global const EpiSlice *slices,
                             int slice0, int nbatch, __global const float2 *term,
                             __global const int *ev_off, __global const float4 *events,
-                            __global const float *gtab, int n_g, float g_lo, float g_hi,
-                            __global const float *btab, int n_b, float b_lo, float b_hi,
-                            __global float *tree, __global float *leaf, __global int *cnt_all,
+                            __global const float *gtab_all, int n_g,
+                            __global const float *btab_all, int n_b,
+                            __global const float *gref_all, __global const float *bref_all,
+                            __global const float4 *groups, __global float *tree, __global float *leaf, __global int *cnt_all,
                             __global int2 *sorted_all, __global float4 *out,
                             __global int2 *work) {
     int kl = get_global_id(0);
@@ -301,13 +358,21 @@ __kernel void epi_integrate(__global const EpiFrame *fr, __global const EpiSlice
     __global float *T = tree + (size_t)kl * d * EPI_NV;
     __global float *L = leaf + (size_t)kl * d * EPI_NV;
     float dg = (sl->gamma_hi - sl->gamma_lo) / d;
+    /* this slice's SVD group: its tables, references and ranges */
+    int grp = sl->group;
+    __global const float *gtab = gtab_all + (size_t)grp * n_g * EPI_NV;
+    __global const float *btab = btab_all + (size_t)grp * n_b * EPI_NV;
+    __global const float *gref = gref_all + (size_t)grp * n_g;
+    __global const float *bref = bref_all + (size_t)grp * n_b;
+    float4 rg = groups[grp];
+    float g_lo = rg.x, g_hi = rg.y, b_lo = rg.z, b_hi = rg.w;
 
     /* ---- the tree: b[i] = F(alpha, gamma_i) Gamma(gamma_i) dgamma (Sec. 6, textured light) ---- */
     for (int i = 0; i < d; ++i) {
         float g = sl->gamma_lo + (i + 0.5f) * dg;
         float G[EPI_NV], F[EPI_NCH];
         epi_table(gtab, n_g, g_lo, g_hi, g, G);
-        epi_light_factor(fr, sl, g, dg, F);
+        epi_light_factor(fr, sl, g, dg, epi_table1(gref, n_g, g_lo, g_hi, g), F);
         for (int c = 0; c < EPI_NCH; ++c)
             for (int n = 0; n < EPI_NT; ++n) {
                 float v = G[c * EPI_NT + n] * F[c] * dg;
@@ -350,12 +415,13 @@ __kernel void epi_integrate(__global const EpiFrame *fr, __global const EpiSlice
             queries += 2;
         }
         epi_table(btab, n_b, b_lo, b_hi, e.x, B);
+        float dt = e.w - epi_table1(bref, n_b, b_lo, b_hi, e.x);    /* t_a - t_ref(beta) */
         float r[3] = {0.0f, 0.0f, 0.0f};
         for (int c = 0; c < EPI_NCH; ++c) {
             float s = 0.0f;
             for (int n = 0; n < EPI_NT; ++n) s += B[c * EPI_NT + n] * (a1[c * EPI_NT + n] - a0[c * EPI_NT + n]);
             /* radiance is >= 0; float cancellation of the signed SVD terms is not */
-            r[c] = fmax(s, 0.0f) * exp(fmin(epi_kappa(fr, c) * e.w, EPI_EXP_MAX));
+            r[c] = fmax(s, 0.0f) * exp(clamp(epi_kappa(fr, c) * dt, -EPI_EXP_MAX, EPI_EXP_MAX));
         }
         out[e0 + q] = (float4)(r[0], r[1], r[2], 0.0f);
     }

@@ -37,7 +37,7 @@ typedef struct {
     float D;         /* spot: |light - eye| */
     float z_start;   /* directional: axial coordinate where shadow-map rays start */
     float beta_tol;  /* prefilter: sub-samples closer than this in beta form one mode */
-    float pad_f;
+    float lspan;     /* bound of |light-side reference - light entry| (svd.Refs.span) */
     int type;        /* LIGHT_DIRECTIONAL or LIGHT_SPOT */
     int bounded;
     int sm_res;      /* shadow map is sm_res x sm_res */
@@ -45,8 +45,15 @@ typedef struct {
     int prefilter;   /* 1: four sub-samples per light ray, clustered into modes */
     int rays;        /* grid lookup: view rays per slice */
     int nch;
-    int pad_i;
+    int sm_faces;    /* spot: perspective maps in the faces buffer (1, or 5 for a wide cone) */
 } EpiFrame;
+
+/* One perspective shadow-map face of a spot light (clscatter/methods/epipolar/maps.py):
+ * texel (ix, iy) looks along normalize(c + x1 e1 + x2 e2), x1, x2 over rect at texel
+ * centres; c.w = nx, e1.w = ny, e2.w = offset of its first texel in the map buffer. */
+typedef struct {
+    float4 c, e1, e2, rect;
+} EpiFace;
 
 typedef struct {
     float4 w;                    /* unit, normal to u, inside the half-plane */
@@ -54,7 +61,7 @@ typedef struct {
     float gamma_lo, gamma_hi;    /* light rays: gamma_i = lo + (i + 0.5) (hi - lo) / d */
     float cone_lo, cone_hi;      /* spot: gamma interval inside the cone */
     float phi;                   /* angle of w around u */
-    int pad;
+    int group;                   /* its SVD group (tables of svd.py, one per arc of slices) */
 } EpiSlice;
 
 /* ---- Fenwick (half) tree of EPI_NV-vectors (Fenwick 1994; paper, Sec. 5) ----

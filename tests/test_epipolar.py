@@ -214,6 +214,8 @@ def test_slices_in_3d_match_image_lines(kind):
 # the SVD (Sec. 6)
 
 def _sweep_configs():
+    """Every light direction / spot position x camera position x view direction of the
+    sweep (no exclusions: spot lights behind the camera included)."""
     box = (np.array([-0.5, 0.0, -0.5]), np.array([0.5, 0.4, 0.5]))
     for kind, el, az, eye, look in itertools.product(
             ("dir", "spot"), (10, 35, 70), (0, 90, 180), ((0, 0.2, 0.9), (0.3, 0.15, 0.2)),
@@ -228,34 +230,64 @@ def _sweep_configs():
         else:
             light = _light("spot", direction=d, position=-0.8 * d + np.array([0.0, 0.1, 0.0]), cutoff=35)
         axis = geo.make_axis(light, eye)
-        if kind == "spot" and float(axis.u @ cam.fwd) <= 0.0:
-            continue        # light behind the camera: reported separately (see the test)
         sl = geo.make_slices(axis, cam, box, 1.0, ring=3.0)
         t = sl.table
         ok = t["gamma_hi"] > t["gamma_lo"]
         if ok.any():
-            yield kind, axis, (t["gamma_lo"][ok].min(), t["gamma_hi"][ok].max()), \
+            yield kind, axis, sl, box, (t["gamma_lo"][ok].min(), t["gamma_hi"][ok].max()), \
                 (t["beta_lo"].min(), t["beta_hi"].max())
 
 
-def test_svd_fourth_singular_value_small():
+def test_svd_fourth_singular_value_claim():
     """The paper: the 4th singular value never exceeds 1/40 of the first. Checked on the
-    matrix this implementation decomposes (the core, see svd.py) over a sweep of light
-    directions / spot positions, camera positions and orientations, extinctions
-    (kappa x extent 0.5 .. 6) and phase asymmetries g = 0 .. 0.8, with the ring (3 px)
-    excluded: worst ratio measured 0.020 (directional) and 0.024 (spot, light in front).
-    Not checked (and not true): a spot light *behind* the camera, where the region
-    beta + gamma -> pi bounds the integrand along an anti-diagonal; there the ratio
-    reaches 0.08 (see the report in the method's docs)."""
+    matrix the method decomposes first (the plain formulation, svd.py) over every
+    configuration of the sweep (light directions and spot positions, spot lights behind
+    the camera included, camera positions and orientations, ring 3 px), extinctions
+    (kappa x extent 0.5 .. 6) and phase asymmetries g = 0 .. 0.8. Measured: the claim
+    holds for directional lights (worst 0.020) and fails for spot lights seen with the
+    light behind the camera (beta + gamma -> pi bounds the integrand along an
+    anti-diagonal; worst 0.080). Where it fails (59 of 1071 matrices, 20 of them seen by
+    no view ray of their camera), the method must not use 4 terms
+    (svd.accepts: it raises the terms, references, or falls back to raymarch); the
+    held-out error estimate of 4 terms there (view rays of the slices, Gauss nodes that
+    are not the SVD's samples) is reported: it exceeds the tolerance in most but not all
+    of those matrices (measured 0.004 .. 0.11), which is why the claim is checked too."""
+    from clscatter.methods.epipolar.pipeline import Settings, _views
+    tol = Settings().svd_tolerance
+    rng = np.random.default_rng(3)
     worst = {"dir": 0.0, "spot": 0.0}
-    n = 0
-    for (kind, axis, gr, br), kap, g in itertools.product(_sweep_configs(), (0.5, 2.0, 6.0), (0.0, 0.3, 0.8)):
+    fails, n, blind = [], 0, 0
+    for (kind, axis, sl, box, gr, br), kap, g in itertools.product(
+            _sweep_configs(), (0.5, 2.0, 6.0), (0.0, 0.3, 0.8)):
         T = svd.decompose(axis, np.array([kap]), g, gr, br, 4, 64, 64, 64)
         S = T.singular[0]
-        worst[kind] = max(worst[kind], S[3] / S[0])
+        ratio = S[3] / S[0]
+        worst[kind] = max(worst[kind], ratio)
         n += 1
-    assert n > 300
-    assert worst["dir"] <= 1 / 40 and worst["spot"] <= 1 / 40, worst
+        if ratio > 1 / 40:
+            tab = sl.table
+            k = rng.integers(0, len(tab), 300)
+            b = rng.uniform(tab["beta_lo"][k], tab["beta_hi"][k])
+            w, b, _, ga, gb, k = _views(axis, box, None, sl, k, b)
+            if len(b) == 0:          # the camera looks away from the medium: nothing to render
+                blind += 1
+                continue
+            cone = (tab["cone_lo"][k].astype(float), tab["cone_hi"][k].astype(float)) if axis.spot else None
+            refs = svd.references(axis, box, tab["w"][:, :3].astype(float),
+                                  (tab["cone_lo"].astype(float), tab["cone_hi"].astype(float))
+                                  if axis.spot else None, gr, br, b, b * 0, zero=True)
+            T = svd.decompose(axis, np.array([kap]), g, gr, br, 4, 64, 512, 512, refs)
+            err = svd.heldout_error(axis, box, [kap], g, T, refs, w, b, ga, gb, cone)
+            fails.append((kind, round(ratio, 3), err["rms"], err["samples"], len(b),
+                          svd.accepts(T.singular, 4, err, tol)))
+    assert n > 1000
+    print(f"s4/s1 > 1/40 in {len(fails) + blind} of {n} matrices ({blind} seen by no view "
+          f"ray); worst {worst}; held-out error of 4 terms there: "
+          f"{min(f[2] for f in fails):.3g} .. {max(f[2] for f in fails):.3g}")
+    assert worst["dir"] <= 1 / 40, worst                   # the claim, directional
+    assert fails and all(f[0] == "spot" for f in fails)  # ... and where it fails
+    assert not any(f[5] for f in fails)                   # ... 4 terms are refused there
+    assert sum(f[2] > tol for f in fails) >= 0.5 * len(fails)
 
 
 def test_svd_tables_reconstruct_core():
@@ -297,50 +329,125 @@ def _quad_tris(y, half=0.3, cx=0.0):
     return np.array([[a[0], a[1], a[2]], [a[0], a[2], a[3]]])
 
 
-@pytest.mark.parametrize("kind", ["dir", "spot"])
-def test_shadow_map_kernel_matches_bvh_trace(engine, kind):
+def _face_dirs(faces):
+    """Unit directions of every texel centre of spot faces (maps.spot_faces), in order."""
+    out = []
+    for f in faces:
+        nx, ny = int(f["c"][3]), int(f["e1"][3])
+        r = f["rect"].astype(np.float64)
+        ix, iy = np.meshgrid(np.arange(nx), np.arange(ny))
+        x1 = r[0] + (ix.ravel() + 0.5) * (r[2] - r[0]) / nx
+        x2 = r[1] + (iy.ravel() + 0.5) * (r[3] - r[1]) / ny
+        d = f["c"][:3] + x1[:, None] * f["e1"][:3] + x2[:, None] * f["e2"][:3]
+        out.append(d / np.linalg.norm(d, axis=1, keepdims=True))
+    return np.concatenate(out)
+
+
+def _np_face_lookup(faces, l):
+    """NumPy copy of epi_face_of and the face projection of epi_blocker: texel index of
+    directions l (N, 3), -1 where none holds them."""
+    lc = np.stack([l @ f["c"][:3].astype(np.float64) for f in faces], 1)
+    best = np.argmax(np.where(lc > 1e-6, lc, -np.inf), axis=1)
+    ok = lc[np.arange(len(l)), best] > 1e-6
+    idx = np.full(len(l), -1)
+    for k, f in enumerate(faces):
+        m = ok & (best == k)
+        c = lc[m, k]
+        x1 = (l[m] @ f["e1"][:3].astype(np.float64)) / c
+        x2 = (l[m] @ f["e2"][:3].astype(np.float64)) / c
+        r = f["rect"].astype(np.float64)
+        nx, ny = int(f["c"][3]), int(f["e1"][3])
+        fx = (x1 - r[0]) / (r[2] - r[0]) * nx
+        fy = (x2 - r[1]) / (r[3] - r[1]) * ny
+        inside = (fx >= 0) & (fx < nx) & (fy >= 0) & (fy < ny)
+        idx[np.flatnonzero(m)[inside]] = (int(f["e2"][3]) + fy.astype(int) * nx + fx.astype(int))[inside]
+    return idx
+
+
+@pytest.mark.parametrize("kind,cutoff", [("dir", 0), ("spot", 65), ("spot", 85)])
+def test_shadow_map_kernel_matches_bvh_trace(engine, kind, cutoff):
+    """Every texel against the BVH tracer: the orthographic map, a single perspective map
+    (65 degrees) and the five cube faces of a wide cone (85 degrees)."""
+    from clscatter.methods.epipolar.maps import face_texels, spot_faces
     tris = np.concatenate([_quad_tris(0.3, 0.2, 0.1), _quad_tris(0.0, 0.6)])
     bvh, nodes, tb = _upload_scene(engine, tris)
-    *_, axis, _, frame = _setup(kind)
+    *_, axis, _, frame = _setup(kind, cutoff=cutoff or 30.0)
     res = 48
     frame["sm_res"] = res
     # the map setup of maps.setup_shadow_map needs a PreparedScene; reproduce its fields
+    faces = np.zeros(1, geo.EPI_FACE)
     if kind == "dir":
         rel = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (0.0, 0.4) for z in (-0.5, 0.5)]) - axis.eye
         c1, c2 = rel @ axis.b1, rel @ axis.b2
         frame["sm_s1"], frame["sm_s2"] = structs.vec4(axis.b1), structs.vec4(axis.b2)
         frame["sm_rect"] = [c1.min(), c2.min(), c1.max(), c2.max()]
         frame["z_start"] = 2.0
+        n = res * res
     else:
-        a = axis.cone_axis
-        s1 = np.cross(a, [1.0, 0, 0]); s1 /= np.linalg.norm(s1)
-        s2 = np.cross(a, s1)
-        e = math.tan(math.radians(65))         # wide enough to see past the floor
-        frame["sm_s1"], frame["sm_s2"] = structs.vec4(s1), structs.vec4(s2)
-        frame["sm_rect"] = [-e, -e, e, e]
+        faces = spot_faces(axis, res)
+        assert len(faces) == (1 if cutoff <= 60 else 5)
+        frame["sm_faces"] = len(faces)
+        n = face_texels(faces)
     fb = engine.to_device(frame.reshape(1))
-    out = engine.empty(4 * res * res)
-    engine.launch(engine.kernel("epipolar", "epi_shadow_map", DEF1), res * res, nodes, tb, fb, out)
-    got = engine.read(out, res * res, np.float32)
-    r = frame["sm_rect"].astype(np.float64)
-    ix, iy = np.meshgrid(np.arange(res), np.arange(res))
-    x1 = r[0] + (ix.ravel() + 0.5) * (r[2] - r[0]) / res
-    x2 = r[1] + (iy.ravel() + 0.5) * (r[3] - r[1]) / res
+    fcb = engine.to_device(faces)
+    out = engine.empty(4 * n)
+    engine.launch(engine.kernel("epipolar", "epi_shadow_map", DEF1), n, nodes, tb, fb, fcb,
+                  np.int32(n), out)
+    got = engine.read(out, n, np.float32)
     if kind == "dir":
+        r = frame["sm_rect"].astype(np.float64)
+        ix, iy = np.meshgrid(np.arange(res), np.arange(res))
+        x1 = r[0] + (ix.ravel() + 0.5) * (r[2] - r[0]) / res
+        x2 = r[1] + (iy.ravel() + 0.5) * (r[3] - r[1]) / res
         o = axis.eye + x1[:, None] * axis.b1 + x2[:, None] * axis.b2 + 2.0 * axis.u
         t, _ = trace(engine, bvh, o, np.broadcast_to(-axis.u, o.shape))
         ref = np.where(np.isfinite(t), 2.0 - t, 1e30)
     else:
-        dirs = axis.cone_axis + x1[:, None] * frame["sm_s1"][:3] + x2[:, None] * frame["sm_s2"][:3]
-        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        dirs = _face_dirs(faces)
         t, _ = trace(engine, bvh, np.broadcast_to(axis.light, dirs.shape), dirs)
         ref = np.where(np.isfinite(t), t, 1e30)
+        # each texel's own direction is looked up in that very texel
+        assert np.array_equal(_np_face_lookup(faces, dirs), np.arange(n))
     hit = ref < 1e29
     assert 0.1 < hit.mean() < 1.0
     assert np.array_equal(got >= 1e29, ~hit)
     assert np.allclose(got[hit], ref[hit], atol=1e-5)
-    engine.free(nodes, tb, fb, out)
+    engine.free(nodes, tb, fb, fcb, out)
     bvh.release()
+
+
+@pytest.mark.parametrize("cutoff", [10.0, 30.0, 60.0, 61.0, 80.0, 89.0, 90.0])
+def test_spot_faces_cover_the_cone(cutoff):
+    """No unshadowed light rays: every direction of the cone, up to a hemisphere, falls in
+    a texel of some face; the texel pitch (angle between neighbouring texel centres, in the
+    face that holds the direction) stays within 1.1 x of a 45-degree map's 2 / res at any
+    cutoff (the single map grows with the cone; five faces beyond 60 degrees)."""
+    from clscatter.methods.epipolar.maps import spot_faces
+    light = _light("spot", direction=(0.3, -1.0, 0.2), position=(0.0, 1.0, 0.0), cutoff=cutoff)
+    axis = geo.make_axis(light, np.array([0.5, 0.5, 1.5]))
+    res = 256
+    faces = spot_faces(axis, res)
+    rng = np.random.default_rng(4)
+    # directions uniform in the cone, plus its rim
+    cosc = math.cos(math.radians(cutoff))
+    ct = np.concatenate([rng.uniform(cosc, 1.0, 20000), np.full(2000, cosc)])
+    ph = rng.uniform(0, 2 * math.pi, len(ct))
+    a = axis.cone_axis
+    s1 = np.cross(a, [1.0, 0.0, 0.0]); s1 /= np.linalg.norm(s1)
+    s2 = np.cross(a, s1)
+    st = np.sqrt(1 - ct ** 2)
+    l = ct[:, None] * a + (st * np.cos(ph))[:, None] * s1 + (st * np.sin(ph))[:, None] * s2
+    idx = _np_face_lookup(faces, l)
+    assert (idx >= 0).all(), f"{(idx < 0).sum()} unshadowed directions"
+    # pitch at the direction: angle to the next texel centre along x
+    dirs = _face_dirs(faces)
+    offs = np.array([int(f["e2"][3]) for f in faces])
+    nxs = np.array([int(f["c"][3]) for f in faces])
+    k = np.searchsorted(offs, idx, side="right") - 1
+    last = (idx - offs[k]) % nxs[k] == nxs[k] - 1         # the texel beside it in its row
+    nxt = np.where(last, idx - 1, idx + 1)
+    pitch = np.arccos(np.clip((dirs[idx] * dirs[nxt]).sum(1), -1, 1))
+    assert pitch.max() <= 1.1 * 2.0 / res, pitch.max() * res
 
 
 def test_depth_map_kernel_matches_bvh_trace(engine):
@@ -366,23 +473,19 @@ def test_depth_map_kernel_matches_bvh_trace(engine):
 # ---------------------------------------------------------------------------------------
 # rectification of the shadow map
 
-def _np_blocker(frame, axis, w, gamma, smap):
-    """NumPy copy of epi_blocker: (value, hit) for light rays (gamma, slice w)."""
-    res = int(frame["sm_res"])
-    r = frame["sm_rect"].astype(np.float64)
+def _np_blocker(frame, axis, w, gamma, smap, faces=None):
+    """NumPy copy of epi_blocker: the map value for light rays (gamma, slice w)."""
     if axis.spot:
         l = -np.cos(gamma)[..., None] * axis.u + np.sin(gamma)[..., None] * w
-        la = l @ axis.cone_axis
-        x1 = (l @ frame["sm_s1"][:3].astype(np.float64)) / la
-        x2 = (l @ frame["sm_s2"][:3].astype(np.float64)) / la
-        valid = la > 1e-6
-    else:
-        x1 = gamma * (w @ axis.b1)
-        x2 = gamma * (w @ axis.b2)
-        valid = np.ones_like(gamma, bool)
+        idx = _np_face_lookup(faces, l.reshape(-1, 3)).reshape(gamma.shape)
+        return np.where(idx >= 0, smap.ravel()[np.maximum(idx, 0)].astype(np.float64), 1e30)
+    res = int(frame["sm_res"])
+    r = frame["sm_rect"].astype(np.float64)
+    x1 = gamma * (w @ axis.b1)
+    x2 = gamma * (w @ axis.b2)
     fx = (x1 - r[0]) / (r[2] - r[0]) * res
     fy = (x2 - r[1]) / (r[3] - r[1]) * res
-    inside = valid & (fx >= 0) & (fx < res) & (fy >= 0) & (fy < res)
+    inside = (fx >= 0) & (fx < res) & (fy >= 0) & (fy < res)
     ix = np.clip(fx.astype(int), 0, res - 1)
     iy = np.clip(fy.astype(int), 0, res - 1)
     v = smap[iy, ix].astype(np.float64)
@@ -408,17 +511,17 @@ def test_rectify_shadow_kernel(engine, kind, prefilter):
         g_hi = float(slices.table["gamma_hi"].max())
         frame["sm_s1"], frame["sm_s2"] = structs.vec4(axis.b1), structs.vec4(axis.b2)
         frame["sm_rect"] = [-g_hi, -g_hi, g_hi, g_hi]
-    else:
-        a = axis.cone_axis
-        s1 = np.cross(a, [1.0, 0, 0]); s1 /= np.linalg.norm(s1)
-        frame["sm_s1"], frame["sm_s2"] = structs.vec4(s1), structs.vec4(np.cross(a, s1))
-        e = math.tan(math.radians(31))
-        frame["sm_rect"] = [-e, -e, e, e]
+    faces = np.zeros(1, geo.EPI_FACE)
+    if kind != "dir":
+        from clscatter.methods.epipolar.maps import spot_faces
+        faces = spot_faces(axis, res)
+        frame["sm_faces"] = len(faces)
+        assert int(faces[0]["c"][3]) == res and len(faces) == 1
     S, d = len(slices), 40
     bufs = [engine.to_device(frame.reshape(1)), engine.to_device(slices.table),
-            engine.to_device(smap), engine.empty(8 * S * d * 4)]
+            engine.to_device(smap), engine.empty(8 * S * d * 4), engine.to_device(faces)]
     engine.launch(engine.kernel("epipolar", "epi_rectify_shadow", DEF1), S * d, bufs[0], bufs[1],
-                  np.int32(0), np.int32(S), bufs[2], bufs[3])
+                  np.int32(0), np.int32(S), bufs[4], bufs[2], bufs[3])
     got = engine.read(bufs[3], (S, d, 4, 2), np.float32)
     engine.free(*bufs)
     tab = slices.table
@@ -427,7 +530,7 @@ def test_rectify_shadow_kernel(engine, kind, prefilter):
     offs = (np.arange(ns) + 0.5) / ns if prefilter else np.array([0.5])
     g = tab["gamma_lo"][:, None, None] + (np.arange(d)[None, :, None] + offs[None, None, :]) * dg[:, None, None]
     w = tab["w"][:, :3].astype(np.float64)[:, None, None, :]
-    v = _np_blocker(frame, axis, np.broadcast_to(w, g.shape + (3,)), g, smap)
+    v = _np_blocker(frame, axis, np.broadcast_to(w, g.shape + (3,)), g, smap, faces)
     hit = v < 1e29
     if axis.spot:
         beta = np.arctan2(v * np.sin(g), axis.D - v * np.cos(g))
@@ -461,9 +564,11 @@ def test_rectify_shadow_kernel(engine, kind, prefilter):
 # ---------------------------------------------------------------------------------------
 # the sweep
 
-def _np_light_factor(frame, axis, sl, g, dg):
-    """NumPy copy of epi_light_factor for one channel (kappa.x)."""
+def _np_light_factor(frame, axis, sl, g, dg, lref):
+    """NumPy copy of epi_light_factor for one channel (kappa.x): the light ray's entry
+    relative to the reference ``lref`` (svd.py), clamped to +-lspan."""
     kap = float(frame["kappa"][0])
+    span = float(frame["lspan"])
     bmin, bmax = frame["bmin"][:3].astype(np.float64), frame["bmax"][:3].astype(np.float64)
     w = sl["w"][:3].astype(np.float64)
     if axis.spot:
@@ -475,13 +580,13 @@ def _np_light_factor(frame, axis, sl, g, dg):
             ta = (bmin - axis.light) / l
             tb = (bmax - axis.light) / l
         t0 = np.maximum(np.nanmax(np.minimum(ta, tb), axis=1), 0.0)
-        return cov * np.exp(kap * t0)
+        return cov * np.exp(kap * np.clip(t0 - lref, -span, span))
     o = axis.eye + g[:, None] * w
     with np.errstate(divide="ignore", invalid="ignore"):
         ta = (bmin - o) / axis.u
         tb = (bmax - o) / axis.u
     z_exit = np.nanmin(np.maximum(ta, tb), axis=1)
-    return np.exp(-kap * z_exit)
+    return np.exp(kap * np.clip(lref - z_exit, -span, span))
 
 
 def _prefix(b: np.ndarray, m: float) -> np.ndarray:
@@ -496,7 +601,9 @@ def _prefix(b: np.ndarray, m: float) -> np.ndarray:
 def test_integrate_kernel_matches_bruteforce(engine, kind):
     """epi_integrate against the O(events x d) Riemann sum of Eq. (3): each light ray's
     value F Gamma dgamma scaled by its termination modes with beta <= the event's beta,
-    summed over [gamma0, gamma1] with fractional end cells, times B(beta) exp(kappa t_a)."""
+    summed over [gamma0, gamma1] with fractional end cells, times B(beta)
+    exp(kappa (t_a - t_ref(beta))); F relative to the light-side reference l_ref(gamma),
+    tables per SVD group of the slice."""
     *_, axis, slices, frame = _setup(kind, d=53)
     S, d, nt = 5, 53, 4
     valid = np.flatnonzero(slices.table["gamma_hi"] > slices.table["gamma_lo"] + 1e-3)
@@ -523,22 +630,32 @@ def test_integrate_kernel_matches_bruteforce(engine, kind):
         e[:, 2] = a + rng.uniform(0.0, hi - lo, n_ev[k])
         e[:, 3] = rng.uniform(0.0, 0.5, n_ev[k])
     e[-1, 2] = e[-1, 1]                       # an empty interval
-    # signed terms as from an SVD, the first dominant (the kernel clamps results at 0)
-    gtab = rng.uniform(-0.3, 0.3, (20, nt)).astype(np.float32)
-    btab = rng.uniform(-0.3, 0.3, (30, nt)).astype(np.float32)
-    gtab[:, 0] += 1.0
-    btab[:, 0] += 1.0
-    g_lo, g_hi, b_lo, b_hi = 0.0, float(tab["gamma_hi"].max()), 0.0, 3.0
+    # two SVD groups (slices alternate between them), each with signed terms as from an
+    # SVD (the first dominant; the kernel clamps results at 0), its own ranges and its
+    # references l_ref (light side, gtab's grid) and t_ref (view side, btab's grid)
+    tab["group"] = np.arange(S) % 2
+    frame["lspan"] = 0.3
+    n_g, n_b, ng = 20, 30, 2
+    gtab = rng.uniform(-0.3, 0.3, (ng, n_g, nt)).astype(np.float32)
+    btab = rng.uniform(-0.3, 0.3, (ng, n_b, nt)).astype(np.float32)
+    gtab[..., 0] += 1.0
+    btab[..., 0] += 1.0
+    ranges = np.array([[0.0, float(tab["gamma_hi"].max()), 0.0, 3.0],
+                       [0.05, 1.1 * float(tab["gamma_hi"].max()), 0.2, 2.8]], np.float32)
+    gref = rng.uniform(-0.2, 0.6, (ng, n_g)).astype(np.float32)
+    bref = rng.uniform(0.0, 0.4, (ng, n_b)).astype(np.float32)
     bufs = {"fr": engine.to_device(frame.reshape(1)), "sl": engine.to_device(tab),
             "term": engine.to_device(term), "off": engine.to_device(off), "ev": engine.to_device(ev),
             "gt": engine.to_device(gtab), "bt": engine.to_device(btab),
+            "gr": engine.to_device(gref), "br": engine.to_device(bref),
+            "rg": engine.to_device(ranges),
             "tree": engine.empty(4 * S * d * nt), "leaf": engine.empty(4 * S * d * nt),
             "cnt": engine.empty(4 * (off[-1] + S)), "srt": engine.empty(8 * S * d * 4),
             "out": engine.empty(16 * off[-1]), "work": engine.empty(8 * S)}
     k = engine.kernel("epipolar", "epi_integrate", DEF1)
     k(engine.queue, (S,), (1,), bufs["fr"], bufs["sl"], np.int32(0), np.int32(S), bufs["term"],
-      bufs["off"], bufs["ev"], bufs["gt"], np.int32(20), np.float32(g_lo), np.float32(g_hi),
-      bufs["bt"], np.int32(30), np.float32(b_lo), np.float32(b_hi), bufs["tree"], bufs["leaf"],
+      bufs["off"], bufs["ev"], bufs["gt"], np.int32(n_g), bufs["bt"], np.int32(n_b),
+      bufs["gr"], bufs["br"], bufs["rg"], bufs["tree"], bufs["leaf"],
       bufs["cnt"], bufs["srt"], bufs["out"], bufs["work"])
     got = engine.read(bufs["out"], (off[-1], 4), np.float32)[:, 0]
     work = engine.read(bufs["work"], (S, 2), np.int32)
@@ -547,10 +664,14 @@ def test_integrate_kernel_matches_bruteforce(engine, kind):
     ref = np.zeros(off[-1])
     for k_ in range(S):
         sl = tab[k_]
+        q_ = int(sl["group"])
+        g_lo, g_hi, b_lo, b_hi = (float(x) for x in ranges[q_])
         dg = (float(sl["gamma_hi"]) - float(sl["gamma_lo"])) / d
         gi = float(sl["gamma_lo"]) + (np.arange(d) + 0.5) * dg
-        G = np.stack([np.interp(gi, np.linspace(g_lo, g_hi, 20), gtab[:, n]) for n in range(nt)], 1)
-        b0 = G * (_np_light_factor(frame, axis, sl, gi, dg) * dg)[:, None]
+        gx = np.linspace(g_lo, g_hi, n_g)
+        G = np.stack([np.interp(gi, gx, gtab[q_, :, n]) for n in range(nt)], 1)
+        lref = np.interp(gi, gx, gref[q_])
+        b0 = G * (_np_light_factor(frame, axis, sl, gi, dg, lref) * dg)[:, None]
         for q in range(off[k_], off[k_ + 1]):
             beta, g0, g1, ta = (float(x) for x in ev[q])
             frac = np.ones(d)
@@ -560,9 +681,11 @@ def test_integrate_kernel_matches_bruteforce(engine, kind):
                 frac = np.where(applies, np.where(f >= 1, 0.0, frac * (1 - f)), frac)
             b = b0 * frac[:, None]
             lo = float(sl["gamma_lo"])
-            B = np.array([np.interp(beta, np.linspace(b_lo, b_hi, 30), btab[:, n]) for n in range(nt)])
+            bx = np.linspace(b_lo, b_hi, n_b)
+            B = np.array([np.interp(beta, bx, btab[q_, :, n]) for n in range(nt)])
+            tref = float(np.interp(beta, bx, bref[q_]))
             dq = _prefix(b, (g1 - lo) / dg) - _prefix(b, (g0 - lo) / dg)
-            ref[q] = max((B * dq).sum(), 0.0) * math.exp(kap * ta) if g1 > g0 else 0.0
+            ref[q] = max((B * dq).sum(), 0.0) * math.exp(kap * (ta - tref)) if g1 > g0 else 0.0
     scale = np.abs(ref).max()
     assert scale > 0 and (ref > 0).mean() > 0.5
     assert np.allclose(got, ref, atol=2e-5 * scale, rtol=1e-4)

@@ -53,7 +53,7 @@ def test_directional_slab_matches_closed_form(engine, direction, target):
     5e-4 of the mean."""
     ps, segs = _segments(engine, _slab_scene(direction, target))
     try:
-        out = render_light(ps, 0, segs, Settings(epipole_ring=0.0, light_rays=256), Stats(), False)
+        out = render_light(ps, 0, segs, Settings(epipole_ring=0.0, ring_degrees=0.0, light_rays=256), Stats(), False)
         eye = ps.camera["origin"][:3].astype(np.float64)
         v = segs["b"][:, :3].astype(np.float64) - eye
         m = ps.medium
@@ -96,7 +96,7 @@ def test_spot_unbounded_matches_quadrature(engine):
     }
     ps, segs = _segments(engine, scene)
     try:
-        out = render_light(ps, 0, segs, Settings(epipole_ring=0.0, light_rays=256), Stats(), False)
+        out = render_light(ps, 0, segs, Settings(epipole_ring=0.0, ring_degrees=0.0, light_rays=256), Stats(), False)
         eye = ps.camera["origin"][:3].astype(np.float64)
         v = segs["b"][:, :3].astype(np.float64) - eye
         t_b = np.linalg.norm(v, axis=1)
@@ -166,32 +166,46 @@ def test_grid_lookup_matches_raymarch(engine):
     assert got.stats["epipolar_lights"][0]["lookup"] == "grid"
 
 
-def test_point_lights_and_mirrors_fall_back_to_raymarch(engine):
-    """What the method cannot do is ray marched and said in --stats: with only a point
-    light the image is exactly raymarch's (same steps, same seeds); a mirror's view
-    segments (depth > 0) likewise."""
+def test_point_lights_and_mirrors_mixed_with_the_sweep(engine):
+    """What the method cannot sweep is ray marched and said in --stats (a point light;
+    view segments seen in a mirror, depth > 0), while the directional light's primary
+    segments are integrated by the sweep: the whole image against raymarch (256 steps),
+    so the integrated part is tested in the mixture: relMSE <= 1e-5 (measured 1.3e-6),
+    mean within 0.5 % (measured 0.01 %); the integrated part alone (epipolar minus its raymarched share, which is
+    the same code as the reference) carries more than half of the light."""
     d = {
         "camera": {"origin": [0.0, 1.0, 5.0], "target": [0.0, 0.8, 0.0], "fov": 55.0,
-                   "resolution": [32, 24], "spp": 1},
+                   "resolution": [48, 36], "spp": 1},
         "medium": {"sigma_s": 0.2, "sigma_a": 0.02,
                    "bounds": {"min": [-3.0, 0.0, -3.0], "max": [3.0, 3.0, 3.0]}},
-        "lights": [{"type": "point", "position": [0.3, 2.0, 0.0], "intensity": 5.0}],
+        "lights": [{"type": "point", "position": [0.3, 2.0, 0.0], "intensity": 2.0},
+                   {"type": "directional", "direction": [0.3, -1.0, 0.2], "irradiance": 2.0}],
         "objects": [{"shape": "quad", "origin": [-1.5, 0.0, -1.5], "edge_u": [3.0, 0.0, 0.0],
-                     "edge_v": [0.0, 2.5, 0.0], "material": {"type": "mirror", "reflectance": 0.9}}],
+                     "edge_v": [0.0, 2.5, 0.0], "material": {"type": "mirror", "reflectance": 0.9}},
+                    {"shape": "box", "min": [-0.4, 0.0, 0.5], "max": [0.4, 1.6, 0.9],
+                     "material": {"type": "black"}}],
     }
     scene = scene_from_dict(d)
-    scene.render.params["raymarch"] = {"steps": 16}
-    scene.render.params["epipolar"] = {**Epipolar.PARAMS, "raymarch_steps": 16}
+    scene.render.params["raymarch"] = {"steps": 256}
+    scene.render.params["epipolar"] = {"raymarch_steps": 256}
     ref = render(scene, "raymarch", engine, show_progress=False)
     got = render(scene, "epipolar", engine, show_progress=False)
-    assert np.allclose(got.medium, ref.medium, rtol=1e-6, atol=1e-9)
+    err = relmse(got.medium, ref.medium)
+    print(f"mixed: relMSE {err:.3g}, mean ratio {got.medium.mean() / ref.medium.mean():.4f}")
+    assert err <= 1e-5, err
+    assert abs(got.medium.mean() / ref.medium.mean() - 1.0) < 0.005
     notes = " ".join(got.stats["epipolar_fallback"])
-    assert "depth > 0" in notes and "point lights" in notes
-    # a directional light added: handled by the sweep, the point light still marched
-    d["lights"].append({"type": "directional", "direction": [0.3, -1.0, 0.2], "irradiance": 1.0})
-    got2 = render(scene_from_dict(d), "epipolar", engine, show_progress=False)
-    assert got2.stats["epipolar_lights"][0]["light"] == 1
-    assert got2.medium.mean() > got.medium.mean()
+    assert "depth > 0" in notes and "point lights [0]" in notes
+    lights = got.stats["epipolar_lights"]
+    assert [x["light"] for x in lights] == [1] and "fallback" not in lights[0]
+    assert lights[0]["tree_queries"] > 0
+    # the directional light alone: its share of the medium image is mostly integrated
+    d1 = {**d, "lights": d["lights"][1:]}
+    only = render(scene_from_dict(d1), "epipolar", engine, show_progress=False)
+    d1["objects"] = d["objects"][1:]            # no mirror: nothing ray marched but the ring
+    swept = render(scene_from_dict(d1), "epipolar", engine, show_progress=False)
+    assert swept.stats["epipolar_lights"][0]["ring_samples"] == 0
+    assert swept.medium.mean() > 0.5 * only.medium.mean() > 0.0
 
 
 def test_bad_parameters_are_scene_errors():

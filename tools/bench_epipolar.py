@@ -2,7 +2,9 @@
 """Benchmark: the epipolar method (Baran et al. 2010) against brute-force ``raymarch``.
 
 For each scene of rising shadow complexity (``epi_window``, ``epi_grille``,
-``epi_forest``; clscatter/scene/builtin_epipolar.py) at 1280 x 960, 1 spp:
+``epi_forest``; clscatter/scene/builtin_epipolar.py), plus issue 8's thick fog seen from
+outside with the sun behind the camera (``epi_fog``: optical depth 4.4, where the method
+raises its SVD terms/light rays on its own error estimate), at 1280 x 960, 1 spp:
 
 * a converged reference: ``raymarch`` with ``--ref-steps`` steps per view segment
   (cached in bench_out/, keyed by scene, size and steps);
@@ -26,7 +28,7 @@ Raymarch's error depends only on its step count (deterministic seeds), its time 
 linear in it; equal-error times therefore come from the error curve (steps) and a
 linear time model fitted to min-of-repeats runs, not from single noisy timings.
 
-Only the medium pass is timed (``render_medium``); scene preparation and view-path
+Only the medium pass is timed (``render``); scene preparation and view-path
 tracing are shared by both methods and done once. Epipolar times are reported twice:
 ``seconds`` (everything, the ray-traced shadow map included) and ``seconds_scatter``
 (without tracing the maps, which is how the paper timed itself). Each timing is the
@@ -62,7 +64,7 @@ from clscatter.view_paths import trace_view_paths
 from clscatter.scene.builtin_epipolar import load_epipolar_scene
 from clscatter.stats import Stats, write_json
 
-SCENES = ("epi_window", "epi_grille", "epi_forest")
+SCENES = ("epi_window", "epi_grille", "epi_forest", "epi_fog")
 DEFAULT_LEVEL = 4          # index of the method's default settings in epi_levels()
 OUT = REPO / "bench_out"
 DOCS = REPO / "docs" / "bench"
@@ -76,12 +78,12 @@ def prepared(name: str, w: int, h: int, engine):
 
 
 def timed(method, ps, paths, repeats: int):
-    """(image, seconds, stats) of method.render_medium: the fastest of ``repeats``."""
+    """(image, seconds, stats) of method.render: the fastest of ``repeats``."""
     best = None
     for _ in range(max(1, repeats)):
         st = Stats()
         t = time.perf_counter()
-        img = method.render_medium(ps, paths, st, show_progress=False)
+        img = method.render(ps, paths, st, show_progress=False)
         dt = time.perf_counter() - t
         if best is None or dt < best[1]:
             best = (img, dt, st)
@@ -95,7 +97,7 @@ def reference(name: str, ps, paths, w: int, h: int, steps: int) -> np.ndarray:
         return np.load(f)
     print(f"  reference: raymarch {steps} steps ...", flush=True)
     t = time.perf_counter()
-    img = RayMarch({"steps": steps}).render_medium(ps, paths, Stats(), show_progress=True)
+    img = RayMarch({"steps": steps}).render(ps, paths, Stats(), show_progress=True)
     print(f"  reference done in {time.perf_counter() - t:.1f} s", flush=True)
     np.save(f, img)
     return img
@@ -186,8 +188,8 @@ def bench_scene(name, w, h, engine, args) -> dict:
         res = {"scene": name, "width": w, "height": h,
                "view_segments": len(paths.segments), "ref_steps": args.ref_steps}
         # warm-up: kernel builds out of the timings
-        Epipolar({"light_rays": 64, "shadow_map": 64, "slices": 64}).render_medium(ps, paths, Stats(), False)
-        RayMarch({"steps": 1}).render_medium(ps, paths, Stats(), False)
+        Epipolar({"light_rays": 64, "shadow_map": 64, "slices": 64}).render(ps, paths, Stats(), False)
+        RayMarch({"steps": 1}).render(ps, paths, Stats(), False)
         rm = raymarch_curve(ps, paths, ref, args.rm_steps, args.repeats)
         res["raymarch"] = rm
         model = raymarch_model(rm, args.ref_steps)
@@ -207,6 +209,12 @@ def bench_scene(name, w, h, engine, args) -> dict:
                    "slices_used": st.values.get("slices"), "tree_updates": st.values.get("tree_updates"),
                    "tree_queries": st.values.get("tree_queries"),
                    "svd_singular_values": st.values.get("svd_singular_values"),
+                   # what the accuracy control chose (issue 8) and what it cost
+                   "lights": [{k: li.get(k) for k in ("svd_terms", "svd_groups",
+                                                      "svd_formulation", "light_ray_factor",
+                                                      "slice_spacing_px", "fallback")}
+                              | {"svd_error": (li.get("svd_error") or {}).get("rms")}
+                              for li in st.values.get("epipolar_lights", [])],
                    "stages": stages, "raymarch_steps_equal_error": eq["steps"],
                    "raymarch_seconds_equal_error": t_eq, "equal_error": eq["how"],
                    "speedup": t_eq / dt, "speedup_scatter": t_eq / max(dt - maps, 1e-9)}
@@ -214,7 +222,8 @@ def bench_scene(name, w, h, engine, args) -> dict:
             print(f"  epipolar d={lvl['light_rays']:5d} map={lvl['shadow_map']:4d} "
                   f"slices={rec['slices_used']}: {dt:6.2f} s ({dt - maps:5.2f} s w/o maps) "
                   f"relMSE {err:.3g}  = raymarch {eq['steps']:.0f} steps: speed-up "
-                  f"{rec['speedup']:.1f}x ({eq['how']})", flush=True)
+                  f"{rec['speedup']:.1f}x ({eq['how']}); {rec['lights']}; svd stage "
+                  f"{stages.get('epipolar_svd', 0.0):.2f} s", flush=True)
         res["epipolar"] = ep
         return res
     finally:
@@ -226,14 +235,15 @@ def bench_ring(w, h, engine, args) -> dict:
     ring around it is ray marched (no reference needed, timings only)."""
     ps, paths = prepared("epi_sun", w, h, engine)
     try:
-        Epipolar({"light_rays": 64, "shadow_map": 64, "slices": 64}).render_medium(ps, paths, Stats(), False)
+        Epipolar({"light_rays": 64, "shadow_map": 64, "slices": 64}).render(ps, paths, Stats(), False)
         _, dt, st = timed(Epipolar({}), ps, paths, args.repeats)
         li = st.values["epipolar_lights"][0]
         prim = int((paths.segments["depth"] == 0).sum())
         rec = {"scene": "epi_sun", "width": w, "height": h, "seconds": dt,
                "stages": {k: v for k, v in st.stages.items() if k.startswith("epipolar")},
                "ring_samples": li["ring_samples"], "ring_fraction": li["ring_samples"] / max(prim, 1),
-               "ring_px": Epipolar.PARAMS["epipole_ring"], "epipole_px": li["epipole_px"]}
+               "ring_degrees": li.get("ring_degrees"), "ring_band_samples": li.get("ring_band_samples"),
+               "epipole_px": li["epipole_px"]}
         print(f"  epi_sun: {dt:.2f} s, ring {rec['ring_fraction'] * 100:.2f} % of samples, stages "
               + ", ".join(f"{k[9:]} {v:.2f}" for k, v in rec["stages"].items()), flush=True)
         return rec
@@ -248,7 +258,7 @@ def bench_complexity(engine, args) -> dict:
         h = w * 3 // 4
         ps, paths = prepared(name, w, h, engine)
         try:
-            Epipolar({"light_rays": 64, "shadow_map": 64, "slices": 64}).render_medium(ps, paths, Stats(), False)
+            Epipolar({"light_rays": 64, "shadow_map": 64, "slices": 64}).render(ps, paths, Stats(), False)
             steps = max(2, w // 10)
             _, t_rm, _ = timed(RayMarch({"steps": steps}), ps, paths, args.repeats if w < 1280 else 2)
             _, t_ep, st = timed(Epipolar({"light_rays": 2 * w, "shadow_map": 2 * w}), ps, paths,

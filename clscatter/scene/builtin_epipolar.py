@@ -12,6 +12,9 @@ medium; the lead registers :data:`EPIPOLAR_SCENES` in ``BUILTIN``. All render at
 ``epi_spot``       the grate lit by a spot light above it instead of the sun
 ``epi_sun``        the forest seen against the sun: the epipole on screen, rays
                    converging on it
+``epi_fog``        issue 8: a thick fog box (optical depth 4.4) seen from outside with
+                   the sun behind the camera, four black pillars
+``epi_wide_spot``  the grate under a 90-degree spot light (a hemisphere of light)
 =================  =====================================================================
 """
 from __future__ import annotations
@@ -153,7 +156,83 @@ def epi_sun() -> dict:
     return scene
 
 
+def _unit3(v) -> list[float]:
+    n = math.sqrt(sum(x * x for x in v))
+    return [x / n for x in v]
+
+
+_FOG_BOX = ([-2.0, 0.0, -2.0], [2.0, 3.0, 2.0])
+_FOG_PILLARS = [(-1.0, -0.5), (0.4, 0.6), (1.1, -1.2), (-0.3, -1.5)]
+
+
+def epi_sweep(depth: float = 4.4, light: str = "behind", camera: str = "outside",
+              kind: str = "directional", resolution=(320, 240), cutoff: float = 40.0) -> dict:
+    """A 4 x 3 x 4 box of fog (albedo 0.9, isotropic) with four black pillars, in the
+    regimes of issue 8: ``depth`` the optical depth across the box (kappa x 4),
+    ``camera`` ``"outside"`` (5 units in front of the box, looking in) or ``"inside"``,
+    ``light`` relative to the view direction ``f``: ``"behind"`` (light travelling
+    roughly along ``f``: the anti-solar point on screen, off centre), ``"axis"`` (exactly
+    along ``f``: the anti-solar point at the image centre), ``"beside"`` (across the view)
+    or ``"front"`` (towards the camera: the light/epipole on screen); ``kind``
+    ``"directional"`` or ``"spot"`` (placed on the same side, aimed at the box centre,
+    cone half-angle ``cutoff``)."""
+    kappa = depth / 4.0
+    if camera == "outside":
+        eye, target = [0.3, 1.4, 7.0], [0.0, 1.2, 0.0]
+    else:
+        eye, target = [0.9, 1.6, 1.6], [-0.6, 1.1, -1.0]
+    f = _unit3([target[k] - eye[k] for k in range(3)])
+    side = _unit3([-f[2], 0.0, f[0]])
+    d = {"behind": _unit3([f[0] + 0.25 * side[0], f[1] - 0.35, f[2] + 0.25 * side[2]]),
+         "axis": f,
+         "beside": _unit3([side[0] + 0.1 * f[0], -0.5, side[2] + 0.1 * f[2]]),
+         "front": _unit3([-f[0] + 0.3 * side[0], -0.35, -f[2] + 0.3 * side[2]])}[light]
+    centre = [0.0, 1.5, 0.0]
+    if kind == "directional":
+        lights = [{"type": "directional", "direction": d, "irradiance": 1.0}]
+    else:
+        if light == "axis":
+            pos = [eye[k] - 1.5 * f[k] for k in range(3)]
+            aim = [pos[k] + f[k] for k in range(3)]
+        else:
+            pos = [centre[k] - 6.0 * d[k] for k in range(3)]
+            aim = centre
+        lights = [{"type": "spot", "position": pos, "target": aim, "intensity": 20.0,
+                   "cutoff_angle": cutoff}]
+    return {
+        "camera": {"origin": eye, "target": target, "up": [0.0, 1.0, 0.0], "fov": 55.0,
+                   "fov_axis": "x", "resolution": list(resolution), "spp": 1},
+        "medium": {"sigma_s": 0.9 * kappa, "sigma_a": 0.1 * kappa, "g": 0.0,
+                   "bounds": {"min": _FOG_BOX[0], "max": _FOG_BOX[1]}},
+        "lights": lights,
+        "materials": {"black": {"type": "black"}},
+        "objects": [_box([x - 0.15, 0.0, z - 0.15], [x + 0.15, 2.5, z + 0.15], "black")
+                    for x, z in _FOG_PILLARS],
+        "render": dict(_RENDER),
+    }
+
+
+def epi_fog() -> dict:
+    """Issue 8's thick fog seen from outside (sigma_s = 1, sigma_a = 0.1, optical depth 4.4
+    across the box), the sun behind the camera, four black pillars."""
+    scene = epi_sweep(4.4, "behind", "outside", "directional")
+    scene["camera"]["spp"] = 4
+    return scene
+
+
+def epi_wide_spot(cutoff: float = 90.0, resolution=(320, 240)) -> dict:
+    """The grate of ``epi_grille`` under a spot light of half-angle ``cutoff`` (up to 90
+    degrees: a hemisphere) just above it: shafts fanning out to the medium's walls."""
+    scene = epi_grille()
+    scene["lights"] = [{"type": "spot", "position": [0.2, 4.4, -0.3], "target": [0.2, 0.0, -0.3],
+                        "intensity": 30.0, "cutoff_angle": float(cutoff)}]
+    scene["camera"]["resolution"] = list(resolution)
+    return scene
+
+
 EPIPOLAR_SCENES: dict[str, Callable[[], dict]] = {
+    "epi_fog": epi_fog,
+    "epi_wide_spot": epi_wide_spot,
     "epi_window": epi_window,
     "epi_grille": epi_grille,
     "epi_forest": epi_forest,

@@ -45,20 +45,23 @@ EPI_FRAME = np.dtype([
     ("eye", *F4), ("u", *F4), ("b1", *F4), ("b2", *F4), ("light", *F4), ("kappa", *F4),
     ("bmin", *F4), ("bmax", *F4), ("cone", *F4), ("sm_s1", *F4), ("sm_s2", *F4),
     ("sm_rect", *F4),
-    ("D", np.float32), ("z_start", np.float32), ("beta_tol", np.float32), ("pad_f", np.float32),
+    ("D", np.float32), ("z_start", np.float32), ("beta_tol", np.float32), ("lspan", np.float32),
     ("type", np.int32), ("bounded", np.int32), ("sm_res", np.int32), ("d", np.int32),
-    ("prefilter", np.int32), ("rays", np.int32), ("nch", np.int32), ("pad_i", np.int32),
+    ("prefilter", np.int32), ("rays", np.int32), ("nch", np.int32), ("sm_faces", np.int32),
 ], align=True)
+
+EPI_FACE = np.dtype([("c", *F4), ("e1", *F4), ("e2", *F4), ("rect", *F4)], align=True)
 
 EPI_SLICE = np.dtype([
     ("w", *F4),
     ("beta_lo", np.float32), ("beta_hi", np.float32),
     ("gamma_lo", np.float32), ("gamma_hi", np.float32),
     ("cone_lo", np.float32), ("cone_hi", np.float32),
-    ("phi", np.float32), ("pad", np.int32),
+    ("phi", np.float32), ("group", np.int32),
 ], align=True)
 
-STRUCTS = {"EpiFrame": EPI_FRAME, "EpiSlice": EPI_SLICE}
+STRUCTS = {"EpiFrame": structs.register_struct("epipolar.h", "EpiFrame", EPI_FRAME),
+           "EpiSlice": structs.register_struct("epipolar.h", "EpiSlice", EPI_SLICE)}
 
 
 def _unit(v) -> np.ndarray:

@@ -17,6 +17,19 @@ Two ways to read the integrated result back (``lookup``):
     A camera depth map is ray traced at pixel centres and rectified into ``rays`` view
     rays per slice (uniform in beta); the sweep integrates those; each sample then takes
     the bilinear blend of the four grid rays around its (alpha, beta) (``epi_unrectify``).
+
+Accuracy control (issue 8). Before the sweep, per light and frame, the error of the
+result is estimated on held-out camera samples (svd.py: the SVD with the tree's float32
+sums, the sum over light rays, reading samples in neighbouring slices), and the cheapest
+setting within ``svd_tolerance`` (RMS relative error, sources in quadrature) is used:
+slice spacing halved up to twice, terms 4 / 8 / 16, the plain or referenced
+formulation with 1 or 16 groups of slices, 1 / 2 / 4 x the light rays. If none is,
+:class:`SVDFallback` hands the light to ``raymarch``; ``--stats`` lists the estimate,
+the choice and every setting tried (``epipolar_lights``). The ring around the epipole
+(or anti-epipole) is an angle (``ring_degrees``, 2 by default as in the paper), ray
+marched, and blended with the sweep over a band beyond it (``ring_band``).
+Spot lights: one perspective shadow map up to 60 degrees, five cube faces up to 90
+(maps.py).
 """
 from __future__ import annotations
 
@@ -30,7 +43,8 @@ from ...prepared import PreparedScene
 from ...stats import Stats, progress
 from . import geometry as geo
 from .maps import setup_shadow_map, trace_depth_map, trace_shadow_map
-from .svd import decompose
+from .svd import (accepts, decompose, float32_error, heldout_error, references, riemann_error,
+                  slice_error, summarize, view_entry)
 
 LOOKUPS = ("segment", "grid")
 
@@ -48,16 +62,47 @@ class Settings:
     svd_samples: int = 64
     prefilter: bool = True
     prefilter_tolerance: float = 1.0
-    epipole_ring: float = 8.0
+    epipole_ring: float = 0.0         # pixels; used only when ring_degrees <= 0
     lookup: str = "segment"
     batch_slices: int = 256
+    svd_tolerance: float = 0.01
+    svd_max_terms: int = 16
+    ring_degrees: float = 2.0         # epipole ring radius (angle); <= 0: epipole_ring pixels
+    ring_band: float = 1.0            # blended band: ring radius x (1 .. 1 + band)
+
+
+class SVDFallback(ValueError):
+    """The SVD's estimated error stays above the tolerance at the most terms allowed: the
+    light is ray marched instead (``info``: the estimate, for --stats)."""
+
+    def __init__(self, message: str, info: dict):
+        super().__init__(message)
+        self.info = info
 
 
 @dataclass
 class LightOutput:
-    values: np.ndarray                 # (n, 3) float64, 0 inside the ring
-    ring: np.ndarray                   # (n,) bool
+    values: np.ndarray                 # (n, 3) float64, the swept part (x 1 - ring_weight)
+    ring: np.ndarray                   # (n,) bool: samples the caller ray-marches
     info: dict = field(default_factory=dict)
+    ring_weight: np.ndarray | None = None   # (n,) weight of the ray-marched part
+
+
+def ring_weights(beta: np.ndarray, front: bool, radius: float, band: float) -> np.ndarray:
+    """Weight of the ray-marched value of each sample around the epipole: 1 within the
+    ring (angle from the epipole direction below ``radius``; the anti-epipole when the
+    light is behind the camera), falling smoothly (smoothstep) to 0 across the band
+    ``radius .. radius (1 + band)``, 0 beyond. In the band the sweep's value gets the
+    complementary weight, so the two meet without a seam: where they differ (the sweep's
+    SVD and slice spacing degrade towards the epipole, the ray marcher's steps do not),
+    the difference is spread over the band instead of a step along a circle."""
+    ang = np.asarray(beta, np.float64) if front else math.pi - np.asarray(beta, np.float64)
+    if radius <= 0.0:
+        return np.zeros(len(ang))
+    outer = radius * (1.0 + max(band, 0.0))
+    x = np.clip((outer - ang) / max(outer - radius, 1e-12), 0.0, 1.0)
+    w = x * x * (3.0 - 2.0 * x)
+    return np.where(ang < radius, 1.0, np.where(ang < outer, w, 0.0))
 
 
 def segment_dirs(segs: np.ndarray, eye: np.ndarray) -> np.ndarray:
@@ -120,7 +165,7 @@ def render_light(ps: PreparedScene, li: int, segs: np.ndarray, st: Settings, sta
     kappa = np.asarray(ps.medium["kappa"][:3], np.float64)
     nch = 1 if np.all(kappa == kappa[0]) else 3
     defines = {"EPI_NT": int(st.svd_terms), "EPI_NCH": nch}
-    kern = lambda name: eng.kernel("epipolar", name, defines)
+    kern = lambda name: eng.kernel("epipolar", name, defines)     # rebound to the terms used
     values = np.zeros((n, 3), np.float64)
     d = int(st.light_rays)
     bufs = []
@@ -137,35 +182,58 @@ def render_light(ps: PreparedScene, li: int, segs: np.ndarray, st: Settings, sta
 
     try:
         # ---- slices, and every sample's coordinates (rectification of the view rays) ----
-        with stats.stage("epipolar_rectify"):
-            slices = geo.make_slices(axis, cam, box, _spacing(st, axis, cam), st.epipole_ring)
-            S = len(slices)
-            frame = geo.frame_struct(axis, ps.medium, d)
-            frame["prefilter"] = int(bool(st.prefilter))
-            frame["beta_tol"] = st.prefilter_tolerance * cam.pixel_angle()
-            frame["nch"] = nch
-            setup_shadow_map(frame, axis, ps, int(st.shadow_map))
-            R = 0
-            if st.lookup == "grid":
-                R = int(st.rays_per_slice) if st.rays_per_slice > 0 else \
-                    max(2, int(math.ceil(float(slices.length.max()))))
-                frame["rays"] = R
-            frame_buf = up(frame.reshape(1))
-            slice_buf = up(slices.table)
-            phi_buf = up(slices.phi.astype(np.float32))
-            geo_buf, idx_buf = scratch(16 * max(n, 1)), scratch(16 * max(n, 1))
-            ring_px = np.array([slices.P[0], slices.P[1], st.epipole_ring, 0.0], np.float32)
-            eng.launch(kern("epi_samples"), n, frame_buf, phi_buf, np.int32(S),
-                       np.int32(slices.full), ps.buf["camera"], ring_px, up(segs), np.int32(n),
-                       geo_buf, idx_buf)
-            sgeo = eng.read(geo_buf, (n, 4), np.float32)
-            sidx = eng.read(idx_buf, (n, 4), np.int32)
-            ring = sidx[:, 3] != 0
-            live = np.flatnonzero(~ring)
+        # The slice spacing is halved (twice at most) while reading the samples in their
+        # neighbouring slices is estimated to be off by more than a quarter of the
+        # tolerance (thick media lit through grazing box faces).
+        spacing = _spacing(st, axis, cam)
+        ring_rad = math.radians(st.ring_degrees) if st.ring_degrees > 0 else \
+            st.epipole_ring * cam.pixel_angle()
+        ring_px = ring_rad / cam.pixel_angle()          # for the slices' beta ranges
+        for attempt in range(3):
+            with stats.stage("epipolar_rectify"):
+                slices = geo.make_slices(axis, cam, box, spacing, ring_px)
+                S = len(slices)
+                frame = geo.frame_struct(axis, ps.medium, d)
+                frame["prefilter"] = int(bool(st.prefilter))
+                frame["beta_tol"] = st.prefilter_tolerance * cam.pixel_angle()
+                frame["nch"] = nch
+                faces = setup_shadow_map(frame, axis, ps, int(st.shadow_map))
+                R = 0
+                if st.lookup == "grid":
+                    R = int(st.rays_per_slice) if st.rays_per_slice > 0 else \
+                        max(2, int(math.ceil(float(slices.length.max()))))
+                    frame["rays"] = R
+                frame_buf = up(frame.reshape(1))
+                slice_buf = up(slices.table)
+                phi_buf = up(slices.phi.astype(np.float32))
+                geo_buf, idx_buf = scratch(16 * max(n, 1)), scratch(16 * max(n, 1))
+                # the ring is decided on the host, in angle (the kernel's pixel disc is off)
+                no_ring = np.array([slices.P[0], slices.P[1], -1.0, 0.0], np.float32)
+                eng.launch(kern("epi_samples"), n, frame_buf, phi_buf, np.int32(S),
+                           np.int32(slices.full), ps.dev.camera, no_ring, up(segs), np.int32(n),
+                           geo_buf, idx_buf)
+                sgeo = eng.read(geo_buf, (n, 4), np.float32)
+                sidx = eng.read(idx_buf, (n, 4), np.int32)
+                w_ring = ring_weights(sgeo[:, 0], slices.front, ring_rad, st.ring_band)
+                ring = w_ring > 0.0
+                live = np.flatnonzero(w_ring < 1.0)
+            if st.lookup != "segment" or len(live) == 0:
+                slice_err = summarize(np.zeros(0))
+                break
+            with stats.stage("epipolar_svd"):
+                slice_err = _slice_check(axis, box, kappa[:nch], float(ps.medium["g"]), slices,
+                                         segs, cam.origin, sgeo, sidx, live)
+            if slice_err["rms"] <= 0.25 * st.svd_tolerance or attempt == 2:
+                break
+            spacing *= 0.5
         info: dict = {"epipole_px": [float(slices.P[0]), float(slices.P[1])],
-                      "epipole_in_front": bool(slices.front), "ring_samples": int(ring.sum())}
+                      "epipole_in_front": bool(slices.front), "ring_samples": int(ring.sum()),
+                      "ring_degrees": math.degrees(ring_rad),
+                      "ring_band_samples": int(((w_ring > 0) & (w_ring < 1)).sum()),
+                      "slice_spacing_px": float(spacing),
+                      "slice_error": {k: v for k, v in slice_err.items() if k != "errors"}}
         if len(live) == 0:
-            return LightOutput(values, ring, info)
+            return LightOutput(values, ring, info, w_ring)
 
         # ---- maps ----
         with stats.stage("epipolar_maps"):
@@ -174,7 +242,8 @@ def render_light(ps: PreparedScene, li: int, segs: np.ndarray, st: Settings, sta
                 dh = max(1, int(round(dw * cam.height / cam.width)))
                 depth = trace_depth_map(ps, dw, dh, defines)
                 bufs.append(depth)
-            smap = trace_shadow_map(ps, frame_buf, int(st.shadow_map), defines)
+            faces_buf = up(faces)
+            smap = trace_shadow_map(ps, frame_buf, int(st.shadow_map), defines, faces, faces_buf)
             bufs.append(smap)
             eng.queue.finish()
 
@@ -194,13 +263,34 @@ def render_light(ps: PreparedScene, li: int, segs: np.ndarray, st: Settings, sta
             off_buf = up(off)
             g_range = (float(slices.table["gamma_lo"].min()), float(slices.table["gamma_hi"].max()))
         with stats.stage("epipolar_svd"):
-            tables = decompose(axis, kappa[:nch], float(ps.medium["g"]), g_range, b_range,
-                               int(st.svd_terms), int(st.svd_samples))
-            gtab_buf, btab_buf = up(tables.gtab), up(tables.btab)
+            sv, tried = _svd(axis, box, ps, kappa[:nch], slices, sgeo, sidx, live, st, R,
+                             extra=slice_err["rms"])
+            err = {k: v for k, v in sv.error.items() if k != "errors"}
+            info.update(svd_error=err, svd_tried=tried, svd_terms=sv.terms,
+                        light_ray_factor=sv.ray_mult,
+                        svd_groups=int(len(sv.ranges)), svd_singular_values=sv.singular,
+                        svd_formulation="referenced" if sv.referenced else "plain")
+            if not sv.accepted:
+                raise SVDFallback(
+                    f"estimated error {err['rms']:.3g} (SVD {err['svd']:.3g}, light rays "
+                    f"{err['light_rays']:.3g}, slices {slice_err['rms']:.3g} in quadrature, RMS over "
+                    f"{err['samples']} held-out samples) > "
+                    f"tolerance {st.svd_tolerance:g} at the best of {len(tried)} settings "
+                    f"({sv.terms} terms, {len(sv.ranges)} groups, {sv.ray_mult}x light rays)", info)
+            defines = {"EPI_NT": int(sv.terms), "EPI_NCH": nch}
+            d = int(st.light_rays) * sv.ray_mult
+            frame["d"] = d
+            frame["lspan"] = sv.span
+            frame_buf = up(frame.reshape(1))
+            slices.table["group"] = sv.group
+            slice_buf = up(slices.table)
+            gtab_buf, btab_buf = up(sv.gtab), up(sv.btab)
+            gref_buf, bref_buf, grp_buf = up(sv.gref), up(sv.bref), up(sv.ranges)
 
         # ---- per batch of slices: rectify the shadow map, integrate ----
-        nv = int(st.svd_terms) * nch
-        batch = min(int(st.batch_slices), S)
+        nv = int(sv.terms) * nch
+        # at most ~32 MB of tree per batch (more light rays in thick media)
+        batch = max(1, min(int(st.batch_slices), S, (1 << 23) // max(d * nv, 1)))
         max_ev = int(max(off[min(s + batch, S)] - off[s] for s in range(0, S, batch)))
         term = scratch(8 * batch * d * 4)
         tree = scratch(4 * batch * d * nv)
@@ -215,19 +305,18 @@ def render_light(ps: PreparedScene, li: int, segs: np.ndarray, st: Settings, sta
                 nb = min(batch, S - s0)
                 with stats.stage("epipolar_rectify"):
                     eng.launch(k_rs, nb * d, frame_buf, slice_buf, np.int32(s0), np.int32(nb),
-                               smap, term)
+                               faces_buf, smap, term)
                     if st.lookup == "grid":
                         eng.launch(k_rd, nb * R, frame_buf, slice_buf, np.int32(s0), np.int32(nb),
-                                   ps.buf["medium"], ps.buf["camera"], depth, np.int32(dw),
+                                   ps.dev.medium, ps.dev.camera, depth, np.int32(dw),
                                    np.int32(dh), ev_buf)
                     eng.queue.finish()
                 with stats.stage("epipolar_integrate"):
                     _launch_slices(eng, k_int, nb, frame_buf, slice_buf, np.int32(s0),
                                    np.int32(nb), term, off_buf, ev_buf, gtab_buf,
-                                   np.int32(len(tables.gtab)), np.float32(tables.g_lo),
-                                   np.float32(tables.g_hi), btab_buf, np.int32(len(tables.btab)),
-                                   np.float32(tables.b_lo), np.float32(tables.b_hi), tree, leaf,
-                                   cnt, srt, out, work)
+                                   np.int32(sv.gtab.shape[1]), btab_buf,
+                                   np.int32(sv.btab.shape[1]), gref_buf, bref_buf, grp_buf,
+                                   tree, leaf, cnt, srt, out, work)
                     eng.queue.finish()
                 bar.update(nb)
 
@@ -247,20 +336,256 @@ def render_light(ps: PreparedScene, li: int, segs: np.ndarray, st: Settings, sta
                 acc = eng.read(ubuf, (len(live), 4), np.float32)[:, :nch].astype(np.float64)
             colour = (np.asarray(ps.medium["sigma_s"][:3], np.float64)
                       * np.asarray(ps.lights[li]["power"][:3], np.float64))
-            values[live] = acc * colour
+            values[live] = acc * colour * (1.0 - w_ring[live])[:, None]
         counts = eng.read(work, (S, 2), np.int32)
         eng.note_host(int(values.nbytes) * 4)
     finally:
         eng.free(*bufs)
     info.update(slices=S, light_rays=d, shadow_map=int(st.shadow_map), lookup=st.lookup,
+                shadow_map_faces=[[int(f["c"][3]), int(f["e1"][3])] for f in faces]
+                if axis.spot else [[int(st.shadow_map)] * 2],
                 events=int(n_ev), tree_updates=int(counts[:, 0].sum()),
-                tree_queries=int(counts[:, 1].sum()), svd_singular_values=tables.singular,
-                gamma_range=list(g_range), beta_range=list(b_range), channels=nch)
+                tree_queries=int(counts[:, 1].sum()),
+                gamma_range=list(g_range), beta_range=list(b_range), channels=nch,
+                svd_span=float(sv.span))
     if st.lookup == "grid":
         info.update(rays_per_slice=R, depth_map=[dw, dh])
     else:
         info.update(rays_per_slice=float(n_ev) / max(S, 1))
-    return LightOutput(values, ring, info)
+    return LightOutput(values, ring, info, w_ring)
+
+
+def _views(axis: geo.Axis, box, ps: PreparedScene, slices: geo.Slices, idx: np.ndarray,
+           beta: np.ndarray):
+    """View rays (slice ``idx``, ``beta``) as (w, beta, t_a, gamma_a, gamma_b): the medium
+    interval from the box (unbounded: [0, t_far]); rays that miss it are dropped."""
+    w = slices.table["w"][idx, :3].astype(np.float64)
+    v = np.cos(beta)[:, None] * axis.u + np.sin(beta)[:, None] * w
+    if box is None:
+        ta = np.zeros(len(beta))
+        tb = np.full(len(beta), float(ps.medium["t_far"]))
+    else:
+        ta, tb = view_entry(axis, box, v)
+    ok = tb > ta
+    return (w[ok], beta[ok], ta[ok], axis.gamma(ta[ok], beta[ok]), axis.gamma(tb[ok], beta[ok]),
+            idx[ok])
+
+
+@dataclass
+class SVDSet:
+    """The truncated SVDs of one light, one per group of slices (contiguous arcs in phi):
+    device arrays ``gtab (G, n_g, NV)``, ``btab (G, n_b, NV)``, ``gref (G, n_g)``,
+    ``bref (G, n_b)``, ``ranges (G, 4)`` = (g_lo, g_hi, b_lo, b_hi); ``span`` the largest
+    light-side spread; ``group`` (S,) each slice's group; ``error`` the held-out error."""
+
+    gtab: np.ndarray
+    btab: np.ndarray
+    gref: np.ndarray
+    bref: np.ndarray
+    ranges: np.ndarray
+    span: float
+    group: np.ndarray
+    terms: int
+    singular: list
+    error: dict
+    referenced: bool = True
+    singular_all: list = field(default_factory=list)   # per group: per channel
+    accepted: bool = False
+    discretisation: dict = field(default_factory=dict)  # light-ray multiplier: error
+    ray_mult: int = 1
+
+
+RAY_MULTS = (1, 2, 4)     # light rays tried: light_rays x these (thick media need more)
+HELD_OUT = 400            # camera samples of the error estimate (SVD, float32)
+HELD_RIEMANN = 80         # ... of its light-ray part (a sum over light rays each)
+HELD_F32 = 40             # ... of its float32 part (the tree's sums emulated)
+
+
+def _slice_check(axis, box, kappas, g, slices, segs, eye, sgeo, sidx, live, n_max: int = 200):
+    """Held-out estimate of the error of reading samples in their neighbouring slices
+    (svd.slice_error) on at most ``n_max`` live samples."""
+    rng = np.random.default_rng(54321)
+    pick = live[rng.choice(len(live), min(len(live), n_max), replace=False)]
+    v = segs["b"][pick, :3].astype(np.float64) - eye
+    perp = v - (v @ axis.u)[:, None] * axis.u
+    w = perp / np.maximum(np.linalg.norm(perp, axis=1), 1e-30)[:, None]
+    tab = slices.table
+    k0, k1 = sidx[pick, 0], sidx[pick, 1]
+    f = sidx[pick, 2].view(np.float32).astype(np.float64)
+    w0, w1 = tab["w"][k0, :3].astype(np.float64), tab["w"][k1, :3].astype(np.float64)
+    cones = None
+    if axis.spot:
+        # the sample's own cone interval in all three: the cone's silhouette between
+        # slices is the known half-pixel limit (geometry); this estimates what the
+        # medium's transmittance does across them
+        own = geo._cone_interval(axis, w)
+        cones = [own, own, own]
+    e = slice_error(axis, box, kappas, g, w, w0, w1, f, sgeo[pick, 0].astype(np.float64),
+                    sgeo[pick, 1].astype(np.float64), sgeo[pick, 2].astype(np.float64), cones)
+    ok = sgeo[pick, 2] > sgeo[pick, 1]
+    return summarize(e[ok])
+
+
+def _truncate(t, nch: int, terms: int):
+    """The first ``terms`` terms of each channel of SVD tables made with more."""
+    T = t.terms
+    cols = np.concatenate([np.arange(c * T, c * T + terms) for c in range(nch)])
+    return dataclasses.replace(t, gtab=np.ascontiguousarray(t.gtab[:, cols]),
+                               btab=np.ascontiguousarray(t.btab[:, cols]), terms=terms)
+
+
+def _svd_groups(axis, box, ps, kappas, slices, views, held, st: Settings, G: int,
+                terms_list, n_tab: int, zero: bool = False):
+    """References and SVD with the slices cut into ``G`` arcs (decomposed once with the
+    most terms; truncations are nested). Returns an SVDSet per entry of ``terms_list``."""
+    tab = slices.table
+    S = len(tab)
+    group = (np.arange(S) * G) // S
+    cone_all = (tab["cone_lo"].astype(np.float64), tab["cone_hi"].astype(np.float64)) \
+        if axis.spot else None
+    w_all = tab["w"][:, :3].astype(np.float64)
+    g = float(ps.medium["g"])
+    vk0, vk1, vb, vta = views
+    hk, hw, hb, hga, hgb = held
+    nch = len(kappas)
+    tmax = max(terms_list)
+    parts, sing_all = [], []
+    errs = {T: [] for T in terms_list}
+    disc = {m: [] for m in RAY_MULTS}
+    singular = None
+    for j in range(G):
+        sel = group == j
+        gr = (float(tab["gamma_lo"][sel].min()), float(tab["gamma_hi"][sel].max()))
+        vs = (group[vk0] == j) | (group[vk1] == j)
+        if vs.any():
+            br = (float(vb[vs].min()), float(vb[vs].max()))
+        else:
+            br = (float(tab["beta_lo"][sel].min()), float(tab["beta_hi"][sel].max()))
+        cone = (cone_all[0][sel], cone_all[1][sel]) if cone_all is not None else None
+        refs = references(axis, box, w_all[sel], cone, gr, br, vb[vs], vta[vs], zero=zero)
+        full = decompose(axis, kappas, g, gr, br, tmax, int(st.svd_samples), n_tab, n_tab, refs)
+        if singular is None or j == G // 2:
+            singular = full.singular
+        sing_all.append(full.singular)
+        hs = group[hk] == j
+        hc = (cone_all[0][hk[hs]], cone_all[1][hk[hs]]) if cone_all is not None else None
+        tabs, cache = {}, {}
+        rs32 = np.flatnonzero(hs)[:max(1, (HELD_F32 * int(hs.sum())) // max(len(hk), 1))]
+        for T in terms_list:
+            t = _truncate(full, nch, T)
+            e = heldout_error(axis, box, kappas, g, t, refs, hw[hs], hb[hs], hga[hs], hgb[hs], hc,
+                              cache=cache)
+            # the tree's float32 error, emulated on a few of them, added to each
+            f32 = 0.0
+            if len(rs32) and e["rms"] <= st.svd_tolerance:   # else it fails anyway
+                rc32 = (cone_all[0][hk[rs32]], cone_all[1][hk[rs32]]) if cone_all is not None else None
+                f32e = float32_error(axis, box, kappas, t, refs, hw[rs32], hb[rs32], hga[rs32],
+                                     hgb[rs32], tab["gamma_lo"][hk[rs32]].astype(np.float64),
+                                     tab["gamma_hi"][hk[rs32]].astype(np.float64),
+                                     int(st.light_rays), rc32)
+                f32 = float(np.sqrt(np.mean(f32e ** 2)))
+            e = summarize(np.sqrt(e["errors"] ** 2 + f32 ** 2))
+            errs[T].append(e["errors"])
+            tabs[T] = t
+            if e["rms"] <= 0.25 * st.svd_tolerance:    # clearly good: more terms only cost
+                for T2 in terms_list[terms_list.index(T) + 1:]:
+                    errs[T2].append(e["errors"])
+                    tabs[T2] = _truncate(full, nch, T2)
+                break
+        parts.append((tabs, refs))
+        # light-ray discretisation, per light-ray multiplier, on at most 100 samples
+        rs = np.flatnonzero(hs)[:max(1, (HELD_RIEMANN * int(hs.sum())) // max(len(hk), 1))]
+        if len(rs):
+            rc = (cone_all[0][hk[rs]], cone_all[1][hk[rs]]) if cone_all is not None else None
+            e = None
+            for mult in RAY_MULTS:
+                # more light rays only matter where fewer are not clearly good enough
+                if e is None or np.sqrt(np.mean(e ** 2)) > 0.25 * st.svd_tolerance:
+                    e = riemann_error(
+                        axis, box, kappas, g, refs, hw[rs], hb[rs], hga[rs], hgb[rs],
+                        tab["gamma_lo"][hk[rs]].astype(np.float64),
+                        tab["gamma_hi"][hk[rs]].astype(np.float64), int(st.light_rays) * mult, rc)
+                disc[mult].append(e)
+    out = {}
+    for T in terms_list:
+        ts = [p[0][T] for p in parts]
+        out[T] = SVDSet(np.stack([t.gtab for t in ts]), np.stack([t.btab for t in ts]),
+                        np.stack([t.gref for t in ts]), np.stack([t.bref for t in ts]),
+                        np.array([[t.g_lo, t.g_hi, t.b_lo, t.b_hi] for t in ts], np.float32),
+                        max(p[1].span for p in parts), group.astype(np.int32), T, singular,
+                        summarize(np.concatenate(errs[T])), singular_all=sing_all)
+        out[T].discretisation = {m: summarize(np.concatenate(disc[m]) if disc[m] else np.zeros(0))
+                                 for m in RAY_MULTS}
+    return out
+
+
+def _svd(axis, box, ps, kappas, slices, sgeo, sidx, live, st: Settings, R, extra: float = 0.0):
+    """The SVD set of one light with the fewest terms (device time) whose held-out error's
+    RMS is within ``svd_tolerance``: terms ``svd_terms`` doubling up to ``svd_max_terms``,
+    tried in the plain formulation, then referenced with the slices in 1 group, then 16
+    groups (host time only: the references then follow the view and light entries of
+    fewer slices). Returns the chosen set (or, if none passes, the most accurate) and
+    the [groups, terms, light-ray factor, formulation, SVD error, light-ray error,
+    accepted] evaluated."""
+    tab = slices.table
+    S = len(tab)
+    rng = np.random.default_rng(12345)
+    if st.lookup == "segment":
+        views = (sidx[live, 0], sidx[live, 1], sgeo[live, 0].astype(np.float64),
+                 sgeo[live, 3].astype(np.float64))
+        pick = live[rng.choice(len(live), min(len(live), HELD_OUT), replace=False)]
+        hk = sidx[pick, 0]
+        held = (hk, tab["w"][hk, :3].astype(np.float64), sgeo[pick, 0].astype(np.float64),
+                sgeo[pick, 1].astype(np.float64), sgeo[pick, 2].astype(np.float64))
+    else:
+        # the grid's view rays: R per slice, uniform in beta over the slice's range
+        m = min(R, 64)
+        j = (np.arange(m) + 0.5) / m
+        kk = np.repeat(np.arange(S), m)
+        bb = (tab["beta_lo"][kk] + np.tile(j, S) * (tab["beta_hi"][kk] - tab["beta_lo"][kk]))
+        _, vb, vta, _, _, vk = _views(axis, box, ps, slices, kk, bb.astype(np.float64))
+        views = (vk, vk, vb, vta)
+        kh = rng.integers(0, S, HELD_OUT)
+        bh = rng.uniform(tab["beta_lo"][kh], tab["beta_hi"][kh])
+        hw, hb, _, hga, hgb, hk = _views(axis, box, ps, slices, kh, bh)
+        held = (hk, hw, hb, hga, hgb)
+    terms_list = [int(st.svd_terms)]
+    while terms_list[-1] < st.svd_max_terms:
+        terms_list.append(min(2 * terms_list[-1], int(st.svd_max_terms)))
+    tried, best, best_cost = [], None, None
+    for G, zero in ((1, True), (1, False), (16, False)):
+        if G > 1 and (G > S // 2 or (best is not None and best.accepted)):
+            break       # at least two slices per group; 16 groups (~1 s of host time) only
+                        # when nothing is within the tolerance yet
+        n_tab = 2048 if G == 1 else 512
+        sets = _svd_groups(axis, box, ps, kappas, slices, views, held, st, G, terms_list, n_tab,
+                           zero)
+        for T in terms_list:
+            sv = sets[T]
+            sv.referenced = not zero
+            for mult in RAY_MULTS:
+                # the SVD's (with the tree's float32), the light rays' and the slices'
+                # errors: independent sources, combined in quadrature
+                total = dict(sv.error, rms=math.sqrt(sv.error["rms"] ** 2 + extra ** 2
+                                                     + sv.discretisation[mult]["rms"] ** 2))
+                ok = all(accepts(s_, T, total, st.svd_tolerance) for s_ in sv.singular_all)
+                tried.append([G, T, mult, "plain" if zero else "referenced",
+                              round(sv.error["rms"], 5), round(sv.discretisation[mult]["rms"], 5),
+                              ok])
+                cost = (0 if ok else 1, T * mult if ok else total["rms"])
+                if best_cost is None or cost < best_cost:
+                    best = dataclasses.replace(sv, ray_mult=mult, accepted=ok,
+                                               error={**total, "svd": sv.error["rms"],
+                                                      "light_rays": sv.discretisation[mult]["rms"]})
+                    best_cost = cost
+        # good enough: the starting terms, or at most twice the device work (trying the
+        # referenced formulation and groups costs host time on every frame)
+        if best.accepted and best.terms * best.ray_mult <= 2 * terms_list[0]:
+            break
+        # groups only refine the references: hopeless if one group is far off at most terms
+        if not zero and G == 1 and sets[terms_list[-1]].error["rms"] > 30 * st.svd_tolerance:
+            break
+    return best, tried
 
 
 def _launch_slices(eng, kernel, n, *args) -> None:

@@ -1,37 +1,90 @@
-"""The visibility-free part of the integrand and its truncated SVD (Baran et al. 2010, Sec. 6).
+"""The visibility-free part of the integrand, its truncated SVD and the SVD's error (Baran
+et al. 2010, Sec. 6).
 
 In slice coordinates (see ``geometry``) the single-scattering integrand of Eq. (3), per
-unit gamma, splits into factors that depend on the light ray alone (``F(alpha, gamma)``,
-computed per slice on the device: light transmittance from where the light ray enters
-the medium box, spot cone), on the view ray alone (``pure_beta``) and a slice-independent
-*core* ``K(gamma, beta)`` that couples them:
+unit gamma, along the view ray ``beta`` of slice ``alpha`` at the light ray ``gamma`` is
 
-directional (``gamma = t sin(beta)``, ``|dt/dgamma| = 1 / sin(beta)``,
-``z = gamma cot(beta)``, phase cosine ``cos(beta)``)::
+    sigma_s E * phase * |dt/dgamma| * exp(-kappa (t - t_a)) * exp(-kappa l)
 
-    sigma_s E p(cos b) / sin b * exp(kappa t_a) * exp(-kappa z_exit(alpha, g))
-                                                * exp(-kappa g tan(b / 2))
+with ``t`` the distance from the eye, ``t_a`` where the view segment starts (the medium
+entry, or the eye), and ``l`` the light's path length inside the medium: ``z_exit - z``
+for a directional light (``z`` the axial coordinate, ``z_exit(alpha, gamma)`` where the
+light ray enters the box), ``r - r_enter(alpha, gamma)`` for a spot light (``r`` the
+distance from the light). Directional: ``t = gamma / sin b``, ``z = gamma cot b``,
+``|dt/dgamma| = 1 / sin b``, phase cosine ``cos b``; spot (light at distance ``D``):
+``t = D sin g / sin(b + g)``, ``r = D sin b / sin(b + g)``, ``|dt/dgamma| = r^2 / (D sin b)``
+cancels the light's ``1/r^2``, phase cosine ``cos(b + g)``.
 
-    since  -kappa (t - t_a) - kappa (z_exit - z) = kappa t_a - kappa z_exit
-                                                  - kappa g (1/sin b - cot b)
+Only a slice-independent function of ``(gamma, beta)`` can be decomposed once per frame;
+``t_a`` depends on the view ray's slice and ``z_exit``/``r_enter`` on the light ray's.
 
-spot (light at distance ``D``; ``t = D sin g / sin(b + g)``, ``r = D sin b / sin(b + g)``,
-``|dt/dgamma| = r^2 / (D sin b)`` cancels the ``1/r^2`` of the light, phase cosine
-``cos(b + g)``)::
+Two formulations (:class:`Refs`; the method picks per light on the error estimate below)
 
-    sigma_s I / (D sin b) * exp(kappa t_a) * exp(kappa r_enter(alpha, g)) * cone(alpha, g)
-                          * p(cos(b + g)) exp(-kappa D (sin b + sin g) / sin(b + g))
+*plain* (:meth:`Refs.zero`, the previous version's): ``K = exp(-kappa (t - z))`` (spot:
+    ``phase * exp(-kappa (t + r))``), smooth and <= 1 everywhere (``t >= |z|``), with
+    ``F = exp(-kappa z_exit)`` (spot: ``exp(kappa r_enter)``) in the leaves and
+    ``exp(kappa t_a)`` on each result. Its singular values fall fast, but where the view
+    ray enters the medium far from the eye the values a pixel reads are a tiny fraction of
+    the matrix's maximum: the issue's thick fog seen from outside (``kappa t_a`` ~ 6,
+    sun behind the camera) reads ``K ~ e^-8`` while the rank-4 truncation error is
+    ``~s5/s1 ~ 1e-3`` of the maximum, so a 4-term sweep was 17 x too bright (relMSE 126
+    at 48 x 36) although ``s4/s1 ~ 0.001``. It needs 16 terms there (held-out error
+    5e-5), and then the float32 prefix sums of the tree, which hold values ``e^8`` above
+    what the pixel reads, lose ~1e-3 .. 1e-2 to cancellation.
+*referenced*: two slice-independent references taken from the frame, ``t_ref(beta)``, a
+    lower envelope of the view segments' start ``t_a`` over the slices at that beta (from
+    the camera samples themselves), and ``l_ref(gamma)``, an envelope of the light's entry
+    (directional: the upper envelope of ``z_exit``; spot: the lower envelope of
+    ``r_enter``); the decomposed function is
 
-The paper decomposes the whole visibility-free integrand; taking the exactly separable
-factors out first and decomposing only the core is the same approximation with a
-better-conditioned matrix (the ``1/sin b`` of the epipole no longer dominates it).
-:func:`paper_matrix` builds the paper's full matrix for the singular-value check.
+        K(gamma, beta) = [phase] * exp(-s(kappa (t - t_ref(beta))) - s(kappa l_ref))
 
-The core is sampled on an ``samples x samples`` grid (64 x 64 in the paper) once per
-frame and light, and truncated to ``terms`` terms (4). The paper upsamples the singular
-vectors linearly; here they are extended by projection (Nyström): ``Gamma_n(g) =
-K(g, beta_s) V_n / s_n`` and ``B_n(b) = U_n^T K(gamma_s, b)``, exact at the samples and
-smooth between them, tabulated finely for the device.
+    with ``l_ref = z_ref(gamma) - z`` (directional) or ``r - r_ref(gamma)`` (spot), and
+    ``s(y) = y`` for ``y >= 0``, ``expm1(y)`` below (C1). Every point a camera sample
+    integrates has both arguments >= 0 (up to the slice spacing), so there ``K`` is the
+    transmittance product relative to the references: at most 1, and close to 1 where
+    the pixel's integrand is largest (its medium entry); the soft branch fills the unused
+    part of the rectangle (nearer than any segment starts, or beyond the light's entry)
+    with values <= e^2 instead of an exponentially large continuation, so neither the
+    SVD nor the tree's float32 sums spend their precision there. The exact remainders:
+    ``F = exp(kappa (z_ref - z_exit))`` (spot: ``cone * exp(kappa (r_enter - r_ref))``) in
+    the leaves, ``exp(kappa (t_a - t_ref(beta)))`` on each result, both >= 1 and as large
+    as the references' spread over slices, which groups of slices (one SVD per arc of
+    slices, ``pipeline._svd_groups``) reduce. The kink of ``s`` costs rank: for the thick
+    fog the held-out error is 2.5 (1 group) / 0.58 (16 groups) at 4 terms and 0.013 /
+    0.0035 at 16 (SVD with a float32 bound), where plain is 58 at 4 and, with the tree's
+    float32 sums emulated (:func:`float32_error`), ~0.007 at 16.
+
+Neither formulation is bounded by a fixed number of terms for every optical depth; what
+is bounded is the error the method accepts: the estimate (:func:`heldout_error`: the SVD
+on held-out samples, :func:`float32_error`: the tree's float32 sums emulated,
+:func:`riemann_error`: the light-ray sum,
+:func:`slice_error`: reading samples in neighbouring slices) must be within the
+tolerance, with more terms (4, 8, 16), the referenced formulation, 16 groups, 2 or 4 x
+the light rays and half or a quarter of the slice spacing tried in turn, else the light
+is ray marched (``pipeline.SVDFallback``). Measured over the sweep of
+tests/test_epipolar_regimes.py (optical depth 0.1 .. 10 across the medium, camera inside
+and outside, light behind / beside / in front / along the view axis, directional and
+spot): all 32 configurations with the camera inside are swept; with the camera outside,
+four of eight at optical depth 10 and the spot light on the view axis behind the camera
+(the paper's claim fails there) fall back (8 of 64 in all); every image within relMSE
+5.2e-5 of raymarch. The thick fog of the issue at 320 x 240: plain, 16 terms, the
+estimate 0.57 s of host time (``epipolar_svd``).
+
+The paper decomposes the whole integrand, including ``1/sin b`` (epipole); here the
+exactly separable factors (``pure_beta``) are kept out of ``K``, the same approximation
+with a better-conditioned matrix. :func:`paper_matrix` builds the paper's matrix.
+
+The SVD: ``K`` is sampled on a ``samples x samples`` grid (64 x 64 in the paper) once per
+frame and light and truncated to ``terms`` terms; the singular vectors are extended by
+projection (Nyström): ``Gamma_n(g) = K(g, beta_s) V_n / s_n`` and ``B_n(b) = U_n^T
+K(gamma_s, b)``, exact at the samples and smooth between them, tabulated for the device.
+
+The error estimate (:func:`heldout_error`): the SVD's relative error of whole pixel
+integrals, on a held-out set of camera samples (their own slice, beta and medium
+interval, Gauss-Legendre nodes in gamma that are not the SVD's samples), with the exact
+``F`` (light entry, cone): ``|int F (K_approx - K)| / int F K``. Cheap (a few hundred
+samples x 48 nodes, NumPy); the method raises the terms or falls back on it.
 """
 from __future__ import annotations
 
@@ -43,6 +96,7 @@ import numpy as np
 from .geometry import Axis
 
 FOUR_PI = 4.0 * math.pi
+REF_NODES = 256          # nodes of the reference envelopes t_ref(beta), l_ref(gamma)
 
 
 def hg(cos: np.ndarray, g: float) -> np.ndarray:
@@ -51,15 +105,164 @@ def hg(cos: np.ndarray, g: float) -> np.ndarray:
     return (1.0 - g * g) / (FOUR_PI * denom * np.sqrt(denom))
 
 
-def core(axis: Axis, kappa: float, g: float, gam: np.ndarray, bet: np.ndarray) -> np.ndarray:
-    """``K(gamma, beta)`` on the outer grid ``gam (G,) x bet (B,)`` for one channel."""
-    G, Bt = np.meshgrid(np.asarray(gam, np.float64), np.asarray(bet, np.float64), indexing="ij")
+def soft(y: np.ndarray) -> np.ndarray:
+    """``y`` for ``y >= 0``, ``expm1(y)`` below: C1, bounded below by -1."""
+    y = np.asarray(y, np.float64)
+    return np.where(y >= 0.0, y, np.expm1(np.minimum(y, 0.0)))
+
+
+# --------------------------------------------------------------------------------------
+# references
+# --------------------------------------------------------------------------------------
+@dataclass
+class Refs:
+    """Reference envelopes, piecewise linear on uniform nodes: ``tref`` over
+    ``[b_lo, b_hi]`` (view), ``lref`` over ``[g_lo, g_hi]`` (light; directional
+    ``z_ref``, spot ``r_ref``); ``span`` bounds ``|l_ref - light entry|`` over the light
+    rays that meet the medium (the kernel clamps F's exponent to it)."""
+
+    tref: np.ndarray
+    lref: np.ndarray
+    b_lo: float
+    b_hi: float
+    g_lo: float
+    g_hi: float
+    span: float
+    soft: bool = True         # False: the plain exponent (the unreferenced formulation)
+
+    def t_at(self, b) -> np.ndarray:
+        return np.interp(b, np.linspace(self.b_lo, self.b_hi, len(self.tref)), self.tref)
+
+    def l_at(self, g) -> np.ndarray:
+        return np.interp(g, np.linspace(self.g_lo, self.g_hi, len(self.lref)), self.lref)
+
+    @staticmethod
+    def zero(g_range, b_range, span: float = 0.0) -> Refs:
+        """No references: ``K = exp(-kappa (t - z))`` (spot: ``exp(-kappa (t + r))``),
+        smooth and <= 1 everywhere (``t >= |z|``), the formulation of the previous
+        version; the best where the camera is inside the medium and thin media."""
+        return Refs(np.zeros(2), np.zeros(2), *b_range, *g_range, span, False)
+
+
+def _ray_box(o, d, box):
+    """Slab test, vectorised over the leading axes: ``(t0, t1)`` (no clamping; a miss has
+    t0 > t1). Axes with ``d = 0`` constrain nothing when ``o`` is inside their slab (the
+    NaN/inf rule of ray_box in common.h)."""
+    bmin, bmax = box
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta = (bmin - o) / d
+        tb = (bmax - o) / d
+    lo, hi = np.fmin(ta, tb), np.fmax(ta, tb)
+    return np.nanmax(lo, axis=-1), np.nanmin(hi, axis=-1)
+
+
+def light_entry(axis: Axis, box, w: np.ndarray, gam: np.ndarray):
+    """The light ray ``gamma`` of slice ``w``: where it enters the medium (directional:
+    axial coordinate ``z_exit``, the kernel's ``t1`` along ``+u``; spot: distance
+    ``r_enter >= 0`` from the light; 0 for an unbounded medium) and whether it meets the
+    medium. ``w`` (S, 3), ``gam`` (S, G) -> two (S, G) arrays."""
+    w = np.asarray(w, np.float64)[:, None, :]
+    g = np.asarray(gam, np.float64)[..., None]
     if axis.spot:
-        s = np.minimum(G + Bt, math.pi - 1e-4)         # beyond pi - beta no view ray reaches
-        with np.errstate(over="ignore"):
-            expo = kappa * axis.D * (np.sin(Bt) + np.sin(G)) / np.sin(s)
-        return hg(np.cos(s), g) * np.exp(-np.minimum(expo, 700.0))
-    return np.exp(-kappa * G * np.tan(0.5 * Bt))
+        if box is None:
+            return np.zeros(g.shape[:2]), np.ones(g.shape[:2], bool)
+        d = -np.cos(g) * axis.u + np.sin(g) * w
+        t0, t1 = _ray_box(axis.light, d, box)
+        t0 = np.maximum(t0, 0.0)
+        return t0, (t0 <= t1) & np.isfinite(t0)
+    o = axis.eye + g * w
+    t0, t1 = _ray_box(o, np.broadcast_to(axis.u, o.shape), box)
+    return t1, (t0 <= t1) & np.isfinite(t1)
+
+
+def view_entry(axis: Axis, box, dirs: np.ndarray):
+    """``(t_a, t_b)`` of unit view directions (N, 3) inside the medium box (t_a >= 0;
+    a miss has t_a > t_b)."""
+    t0, t1 = _ray_box(axis.eye, np.asarray(dirs, np.float64), box)
+    return np.maximum(t0, 0.0), t1
+
+
+def _envelope(x, v, lo, hi, n, upper: bool) -> np.ndarray:
+    """Envelope of samples ``v`` at positions ``x`` on ``n`` uniform nodes over [lo, hi]:
+    each node takes the extreme of the samples nearest to it and to its neighbours, so the
+    linear interpolation between two nodes bounds every sample between them. Nodes with
+    no sample are interpolated."""
+    out = np.full(n, -np.inf if upper else np.inf)
+    if len(x) == 0:
+        return np.zeros(n)
+    j = np.clip(np.rint((np.asarray(x) - lo) / max(hi - lo, 1e-30) * (n - 1)), 0, n - 1).astype(int)
+    (np.maximum if upper else np.minimum).at(out, j, v)
+    dil = out.copy()
+    f = np.maximum if upper else np.minimum
+    dil[1:] = f(dil[1:], out[:-1])
+    dil[:-1] = f(dil[:-1], out[1:])
+    ok = np.isfinite(dil)
+    if not ok.any():
+        return np.zeros(n)
+    idx = np.arange(n)
+    return np.interp(idx, idx[ok], dil[ok])
+
+
+def references(axis: Axis, box, w: np.ndarray, cone: tuple[np.ndarray, np.ndarray] | None,
+               g_range, b_range, view_b: np.ndarray, view_ta: np.ndarray,
+               n: int = REF_NODES, max_slices: int = 192, zero: bool = False) -> Refs:
+    """The envelopes of the module docstring. ``w`` (S, 3): the slices; ``cone``: their
+    gamma intervals inside a spot cone; ``view_b, view_ta``: beta and segment start of
+    the view rays that will be integrated (camera samples, or grid rays). ``zero``: no
+    references (:meth:`Refs.zero`), with the span of the light entries for the kernel."""
+    g_lo, g_hi = (float(x) for x in g_range)
+    b_lo, b_hi = (float(x) for x in b_range)
+    tref = np.zeros(2) if zero else _envelope(view_b, view_ta, b_lo, b_hi, n, upper=False)
+    if box is None and axis.spot:
+        return Refs(tref, np.zeros(2), b_lo, b_hi, g_lo, g_hi, 0.0, not zero)
+    # a subset of the slices (neighbours differ by a pixel: the envelope moves little
+    # between them; what it misses is a slightly negative exponent, which the soft branch
+    # takes smoothly) and 2 sub-samples per node, so kinks between nodes are seen: the
+    # plain formulation needs only the span, so a coarser set does there
+    m = max_slices if not zero else max_slices // 2
+    sel = np.unique(np.linspace(0, len(w) - 1, min(len(w), m)).astype(int))
+    gs = np.linspace(g_lo, g_hi, (2 if not zero else 1) * n)
+    x, hit = light_entry(axis, box, w[sel], np.broadcast_to(gs, (len(sel), len(gs))))
+    if cone is not None:
+        hit &= (gs[None, :] >= cone[0][sel, None]) & (gs[None, :] <= cone[1][sel, None])
+    G = np.broadcast_to(gs, x.shape)
+    if zero:
+        span = float(np.abs(x[hit]).max()) if hit.any() else 0.0
+        return Refs(np.zeros(2), np.zeros(2), b_lo, b_hi, g_lo, g_hi, 1.25 * span + 1e-3, False)
+    lref = _envelope(G[hit], x[hit], g_lo, g_hi, n, upper=not axis.spot)
+    span = 0.0
+    if hit.any():
+        dev = np.abs(np.interp(G[hit], np.linspace(g_lo, g_hi, n), lref) - x[hit])
+        span = float(dev.max())
+    return Refs(tref, lref, b_lo, b_hi, g_lo, g_hi, 1.25 * span + 1e-3)
+
+
+# --------------------------------------------------------------------------------------
+# the decomposed function
+# --------------------------------------------------------------------------------------
+def core(axis: Axis, kappa: float, g: float, gam: np.ndarray, bet: np.ndarray,
+         refs: Refs | None = None) -> np.ndarray:
+    """``K(gamma, beta)`` on the outer grid ``gam (G,) x bet (B,)`` for one channel (see
+    the module docstring; ``refs=None``: the plain formulation, :meth:`Refs.zero`)."""
+    gam = np.asarray(gam, np.float64)
+    bet = np.asarray(bet, np.float64)
+    G, Bt = np.meshgrid(gam, bet, indexing="ij")
+    tr = np.zeros_like(bet) if refs is None else refs.t_at(bet)
+    lr = np.zeros_like(gam) if refs is None else refs.l_at(gam)
+    sf = soft if (refs is not None and refs.soft) else (lambda y: y)
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        if axis.spot:
+            s = np.minimum(G + Bt, math.pi - 1e-4)       # beyond pi - beta no view ray reaches
+            ss = np.sin(s)
+            t = axis.D * np.sin(G) / ss
+            r = axis.D * np.sin(Bt) / ss
+            e = sf(kappa * (t - tr[None, :])) + sf(kappa * (r - lr[:, None]))
+            return hg(np.cos(s), g) * np.exp(-np.minimum(e, 700.0))
+        sb = np.maximum(np.sin(Bt), 1e-12)
+        t = G / sb
+        z = G * np.cos(Bt) / sb
+        e = sf(kappa * (t - tr[None, :])) + sf(kappa * (lr[:, None] - z))
+        return np.exp(-np.minimum(np.nan_to_num(e, nan=700.0), 700.0))
 
 
 def pure_beta(axis: Axis, g: float, bet: np.ndarray) -> np.ndarray:
@@ -71,15 +274,16 @@ def pure_beta(axis: Axis, g: float, bet: np.ndarray) -> np.ndarray:
     return hg(np.cos(b), g) / sb
 
 
-def paper_matrix(axis: Axis, kappa: float, g: float, gam, bet) -> np.ndarray:
+def paper_matrix(axis: Axis, kappa: float, g: float, gam, bet, refs: Refs | None = None) -> np.ndarray:
     """The paper's matrix: the whole visibility-free integrand of one slice (no F)."""
-    return core(axis, kappa, g, gam, bet) * pure_beta(axis, g, bet)[None, :]
+    return core(axis, kappa, g, gam, bet, refs) * pure_beta(axis, g, bet)[None, :]
 
 
 @dataclass
 class Tables:
     """Device tables of one light: ``gtab`` (n_g, NV) over ``[g_lo, g_hi]`` and ``btab``
-    (n_b, NV) over ``[b_lo, b_hi]``, NV = terms * channels, index ``c * terms + n``."""
+    (n_b, NV) over ``[b_lo, b_hi]``, NV = terms * channels, index ``c * terms + n``;
+    ``gref`` (n_g,) and ``bref`` (n_b,) the references on the same grids."""
 
     gtab: np.ndarray
     btab: np.ndarray
@@ -87,13 +291,17 @@ class Tables:
     g_hi: float
     b_lo: float
     b_hi: float
-    singular: list            # per channel, the leading singular values of the core
+    singular: list            # per channel, the leading singular values of K
     terms: int
+    gref: np.ndarray | None = None
+    bref: np.ndarray | None = None
+    span: float = 0.0
 
 
 def decompose(axis: Axis, kappas: np.ndarray, g: float, g_range, b_range, terms: int = 4,
-              samples: int = 64, n_g: int = 2048, n_b: int = 2048) -> Tables:
-    """Truncated SVD of the core for each channel's extinction in ``kappas``."""
+              samples: int = 64, n_g: int = 2048, n_b: int = 2048,
+              refs: Refs | None = None) -> Tables:
+    """Truncated SVD of ``K`` for each channel's extinction in ``kappas``."""
     g_lo, g_hi = (float(x) for x in g_range)
     b_lo, b_hi = (float(x) for x in b_range)
     if not g_hi > g_lo:
@@ -110,16 +318,337 @@ def decompose(axis: Axis, kappas: np.ndarray, g: float, g_range, b_range, terms:
     btab = np.zeros((n_b, nch * terms))
     singular = []
     for c, kap in enumerate(kappas):
-        K = core(axis, float(kap), g, gs, bs)
-        U, S, Vt = np.linalg.svd(K, full_matrices=False)
+        K = core(axis, float(kap), g, gs, bs, refs)
+        # LAPACK gesvd: ~2 ms for 64 x 64 here, where numpy's gesdd takes ~30 ms
+        import scipy.linalg   # here, not at import: scipy costs ~0.7 s to import
+        U, S, Vt = scipy.linalg.svd(K, full_matrices=False, lapack_driver="gesvd")
         singular.append([float(x) for x in S[:max(terms + 2, 6)]])
         n_use = min(terms, len(S))
-        Kg = core(axis, float(kap), g, gf, bs)          # (n_g, samples)
-        Kb = core(axis, float(kap), g, gs, bf)          # (samples, n_b)
+        Kg = core(axis, float(kap), g, gf, bs, refs)          # (n_g, samples)
+        Kb = core(axis, float(kap), g, gs, bf, refs)          # (samples, n_b)
         for n in range(n_use):
             if S[n] <= 1e-12 * S[0]:
                 break
             gtab[:, c * terms + n] = Kg @ Vt[n] / S[n]
             btab[:, c * terms + n] = (U[:, n] @ Kb) * pb
+    r = refs if refs is not None else Refs.zero((g_lo, g_hi), (b_lo, b_hi))
     return Tables(gtab.astype(np.float32), btab.astype(np.float32), g_lo, g_hi, b_lo, b_hi,
-                  singular, terms)
+                  singular, terms, r.l_at(gf).astype(np.float32), r.t_at(bf).astype(np.float32),
+                  float(r.span))
+
+
+# --------------------------------------------------------------------------------------
+# the error estimate
+# --------------------------------------------------------------------------------------
+def _table_at(tab: np.ndarray, lo: float, hi: float, x: np.ndarray) -> np.ndarray:
+    """Linear interpolation of a device table (n, NV) at ``x`` (as epi_table)."""
+    n = len(tab)
+    s = np.clip((np.asarray(x, np.float64) - lo) / max(hi - lo, 1e-30) * (n - 1), 0.0, n - 1)
+    i = np.minimum(s.astype(int), max(n - 2, 0))
+    f = (s - i)[..., None]
+    j = np.minimum(i + 1, n - 1)
+    return (1.0 - f) * tab[i].astype(np.float64) + f * tab[j].astype(np.float64)
+
+
+F32_SUM = 2.0 ** -24       # float32 unit roundoff (the tree's prefix sums)
+
+
+def k_at(axis: Axis, kap: float, g: float, gq: np.ndarray, beta: np.ndarray,
+         refs: Refs) -> np.ndarray:
+    """``K`` elementwise at ``(gq (N, Q), beta (N,))`` (the diagonal of :func:`core`)."""
+    sf = soft if refs.soft else (lambda y: y)
+    tr = refs.t_at(beta)[:, None]
+    lr = refs.l_at(gq)
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        if axis.spot:
+            s = np.minimum(gq + beta[:, None], math.pi - 1e-4)
+            ss = np.sin(s)
+            t = axis.D * np.sin(gq) / ss
+            r = axis.D * np.sin(beta)[:, None] / ss
+            e = sf(kap * (t - tr)) + sf(kap * (r - lr))
+            return hg(np.cos(s), g) * np.exp(-np.minimum(e, 700.0))
+        sb = np.maximum(np.sin(beta), 1e-12)[:, None]
+        e = sf(kap * (gq / sb - tr)) + sf(kap * (lr - gq * np.cos(beta)[:, None] / sb))
+        return np.exp(-np.minimum(np.nan_to_num(e, nan=700.0), 700.0))
+
+
+def float32_error(axis: Axis, box, kappas, tables: Tables, refs: Refs, w, beta, g_a, g_b,
+                  g0, g1, d: int, cone=None) -> np.ndarray:
+    """The tree's float32 error per sample (worst channel), emulated: the leaves
+    ``F Gamma_n dg`` of the sample's slice rounded to float32, the two prefix sums at its
+    interval's ends summed pairwise in float32 (numpy's pairwise reduction: an error
+    growing like log d, as the Fenwick tree's), combined with float32 ``B_n``, against the
+    same in float64. Large where the tree holds values far above those the sample reads
+    (a thick medium seen from outside in the plain formulation)."""
+    nt = tables.terms
+    B = _table_at(tables.btab, tables.b_lo, tables.b_hi, beta)
+    worst = np.zeros(len(beta))
+    for j in range(len(beta)):
+        dg = max((g1[j] - g0[j]) / d, 1e-30)
+        ma = float(np.clip((g_a[j] - g0[j]) / dg, 0.0, d))
+        mb = float(np.clip((g_b[j] - g0[j]) / dg, 0.0, d))
+        k_b = min(int(math.floor(mb)) + 1, d)
+        gc = g0[j] + (np.arange(k_b) + 0.5) * dg
+        if box is None and axis.spot:
+            le = np.zeros(k_b)
+        else:
+            le, _ = light_entry(axis, box, w[j:j + 1], gc[None, :])
+            le = np.nan_to_num(le[0])
+        cov = np.ones(k_b)
+        if cone is not None:
+            cov = np.clip((np.minimum(gc + 0.5 * dg, cone[1][j])
+                           - np.maximum(gc - 0.5 * dg, cone[0][j])) / dg, 0.0, 1.0)
+        G = _table_at(tables.gtab, tables.g_lo, tables.g_hi, gc)
+        lr = refs.l_at(gc)
+        for c, kap in enumerate(kappas):
+            ex = kap * (le - lr) if axis.spot else kap * (lr - le)
+            F = cov * np.exp(np.clip(ex, -refs.span * kap, refs.span * kap))
+            leaf = (F[:, None] * G[:, c * nt:(c + 1) * nt] * dg)
+            leaf32 = leaf.astype(np.float32)
+
+            def q(m, L, dt):
+                k = int(math.floor(m))
+                out = L[:k].sum(0, dtype=dt) if k > 0 else np.zeros(nt, dt)
+                if k < len(L):
+                    out = out + dt(m - k) * L[k]
+                return out
+            b64 = B[j, c * nt:(c + 1) * nt]
+            r64 = float(b64 @ (q(mb, leaf, np.float64) - q(ma, leaf, np.float64)))
+            b32 = b64.astype(np.float32)
+            r32 = float(np.dot(b32, q(mb, leaf32, np.float32) - q(ma, leaf32, np.float32)))
+            if abs(r64) > 0:
+                worst[j] = max(worst[j], abs(r32 - r64) / abs(r64))
+    return worst
+
+
+def riemann_sums(axis: Axis, box, kap: float, g: float, refs: Refs, w, beta, g_a, g_b,
+                 g0, g1, d: int, cone=None, max_cells: int = 4096) -> np.ndarray:
+    """What the sweep computes for samples without occluders, with the exact ``K``: the
+    sum over the slice's ``d`` light rays (cells of width ``dg = (g1 - g0) / d``, values at
+    the centres, the spot cone as coverage of the cell) of the overlap of each cell with
+    ``[g_a, g_b]`` times ``F K`` (the fractional end cells of fw_query). In a thick medium
+    seen from outside the end cells are where it goes wrong: a cell centre before the
+    medium entry carries the analytic continuation of the view transmittance (plain
+    formulation: ``exp(+kappa (t_a - t))``); the interior is a midpoint rule whose error
+    grows as ``(kappa dt)^2``. Comparing ``d`` with ``2 d`` light rays estimates it.
+    Per sample (N,); samples spanning more than ``max_cells`` cells are NaN."""
+    dg = np.maximum((g1 - g0) / d, 1e-30)        # an empty slice (g1 = g0) has no cells
+    ma = np.clip((g_a - g0) / dg, 0.0, d)
+    mb = np.clip((g_b - g0) / dg, 0.0, d)
+    i0 = np.floor(ma).astype(int)
+    ncell = np.minimum(np.ceil(mb).astype(int), d) - i0
+    C = int(min(max(ncell.max(initial=1), 1), max_cells))
+    i = i0[:, None] + np.arange(C)[None, :]
+    ov = np.clip(np.minimum(i + 1, mb[:, None]) - np.maximum(i, ma[:, None]), 0.0, 1.0)
+    ov = np.where(i < d, ov, 0.0)
+    gc = g0[:, None] + (i + 0.5) * dg[:, None]
+    if box is None and axis.spot:
+        le, hit = np.zeros_like(gc), np.ones(gc.shape, bool)
+    else:
+        le, hit = light_entry(axis, box, w, gc)
+    cov = np.ones_like(gc)
+    if cone is not None:
+        a = np.maximum(gc - 0.5 * dg[:, None], cone[0][:, None])
+        b = np.minimum(gc + 0.5 * dg[:, None], cone[1][:, None])
+        cov = np.clip((b - a) / dg[:, None], 0.0, 1.0)
+    lr = refs.l_at(gc)
+    ex = kap * (le - lr) if axis.spot else kap * (lr - le)
+    # as the kernel: the entry is used for near misses too, clamped to the span
+    F = cov * np.exp(np.clip(ex, -refs.span * kap, refs.span * kap))
+    out = (ov * dg[:, None] * F * k_at(axis, kap, g, gc, beta, refs)).sum(1)
+    return np.where(ncell <= max_cells, out, np.nan)
+
+
+def slice_error(axis: Axis, box, kappas, g: float, w: np.ndarray, w0: np.ndarray,
+                w1: np.ndarray, f: np.ndarray, beta, g_a, g_b, cones=None,
+                nodes: int = 32) -> np.ndarray:
+    """Relative error per sample (worst channel) of reading a camera sample in its two
+    neighbouring slices ``w0, w1`` (blended with weight ``f`` of ``w1``) instead of its own
+    half-plane ``w``: the same (beta, gamma interval) meets other light rays there. Small
+    where the light's transmittance varies slowly across slices; in a thick medium lit
+    through a grazing box face it is not (the light's entry moves along the face by the
+    slice spacing over sin(grazing angle)). ``cones``: the three planes' gamma intervals
+    inside a spot cone. Exact integrals (Gauss-Legendre in gamma, no SVD)."""
+    x, wq = np.polynomial.legendre.leggauss(nodes)
+    gq = 0.5 * (g_a + g_b)[:, None] + 0.5 * (g_b - g_a)[:, None] * x[None, :]
+    wgt = 0.5 * (g_b - g_a)[:, None] * wq[None, :]
+    zero = Refs.zero((0.0, 1.0), (0.0, 1.0))
+    vals = []
+    for i, ww in enumerate((w, w0, w1)):
+        if box is None and axis.spot:
+            le = np.zeros_like(gq)
+        else:
+            # every node of the sample's own plane is inside the medium (its light ray
+            # meets the box); in the neighbours' planes a light ray that just misses the
+            # box keeps its entry's continuation, as in the kernel (epi_light_factor)
+            le, _ = light_entry(axis, box, ww, gq)
+        hit = np.isfinite(le)
+        le = np.nan_to_num(le, nan=0.0, posinf=0.0, neginf=0.0)
+        if cones is not None:
+            hit &= (gq >= cones[i][0][:, None]) & (gq <= cones[i][1][:, None])
+        vals.append((le, hit))
+    worst = np.zeros(len(beta))
+    for kap in kappas:
+        K = k_at(axis, kap, g, gq, beta, zero)
+        ints = []
+        for le, hit in vals:
+            ex = kap * le if axis.spot else -kap * le
+            ints.append((wgt * np.where(hit, np.exp(np.clip(ex, -700, 700)), 0.0) * K).sum(1))
+        blend = (1.0 - f) * ints[1] + f * ints[2]
+        # relative to the sample's value, floored at a tenth of the samples' RMS: samples
+        # whose interval just touches a spot cone's silhouette have next to no light of
+        # their own and would dominate an unfloored ratio without mattering in the image
+        floor = 0.1 * math.sqrt(float(np.mean(ints[0] ** 2))) if len(ints[0]) else 0.0
+        den = np.maximum(ints[0], floor)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rel = np.where(den > 0, np.abs(blend - ints[0]) / den, 0.0)
+        worst = np.maximum(worst, np.nan_to_num(rel, nan=0.0, posinf=0.0))
+    return worst
+
+
+def riemann_error(axis: Axis, box, kappas, g: float, refs: Refs, w, beta, g_a, g_b, g0, g1,
+                  d: int, cone=None) -> np.ndarray:
+    """Relative light-ray discretisation error per sample (worst channel), estimated as
+    ``(4/3) |R(d) - R(2d)| / R(2d)`` (midpoint rule: O(dg^2))."""
+    worst = np.zeros(len(beta))
+    for kap in kappas:
+        r1 = riemann_sums(axis, box, kap, g, refs, w, beta, g_a, g_b, g0, g1, d, cone)
+        r2 = riemann_sums(axis, box, kap, g, refs, w, beta, g_a, g_b, g0, g1, 2 * d, cone)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rel = np.where(r2 > 0, 4.0 / 3.0 * np.abs(r1 - r2) / r2, 0.0)
+        worst = np.maximum(worst, np.nan_to_num(rel, nan=0.0))
+    return worst
+
+
+def heldout_error(axis: Axis, box, kappas, g: float, tables: Tables, refs: Refs,
+                  w: np.ndarray, beta: np.ndarray, g_a: np.ndarray, g_b: np.ndarray,
+                  cone: tuple[np.ndarray, np.ndarray] | None = None, nodes: int = 48,
+                  g0: np.ndarray | None = None, d: int = 1024, cache: dict | None = None) -> dict:
+    """Relative error of whole view-ray integrals of held-out camera samples: for each
+    (slice ``w`` (N, 3), ``beta``, gamma interval ``[g_a, g_b]``) and channel,
+
+    * the truncated SVD's: ``|sum_q F (K_svd - K)| / sum_q F K`` over Gauss-Legendre nodes
+      in gamma (not the SVD's samples), ``F`` the exact light factor of the sample's slice
+      (light entry, spot cone), the tables interpolated as on the device;
+    * the float32 tree's (with ``g0``, the slices' first light ray): the sweep forms
+      ``sum_n B_n (Q_n(g_b) - Q_n(g_a))`` from prefix sums ``Q_n`` starting at ``g0``, whose
+      rounding (``2^-24 sqrt(log2 d + 2)`` of each operand: ~log2 d node additions as
+      a random walk) is amplified by
+      ``sum_n |B_n| (|Q_n(g_a)| + |Q_n(g_b)|) / |result|``: large where the tree holds
+      values far above those the pixel reads (a thick medium seen from outside in the
+      unreferenced formulation).
+
+    The two add. Returns the RMS and the 99th percentile over samples (worst channel),
+    the sample count and the per-sample errors. ``cache``: a dict shared by calls that
+    differ only in ``tables`` (nested truncations): the light entries are computed once."""
+    ok = (g_b > g_a) & np.isfinite(g_a) & np.isfinite(g_b)
+    w, beta, g_a, g_b = w[ok], beta[ok], g_a[ok], g_b[ok]
+    if cone is not None:
+        cone = (cone[0][ok], cone[1][ok])
+    if g0 is not None:
+        g0 = np.minimum(np.asarray(g0, np.float64)[ok], g_a)
+    if len(beta) == 0:
+        return summarize(np.zeros(0))
+    x, wq = np.polynomial.legendre.leggauss(nodes)
+
+    def rule(a, b):
+        return (0.5 * (a + b)[:, None] + 0.5 * (b - a)[:, None] * x[None, :],
+                0.5 * (b - a)[:, None] * wq[None, :])
+
+    def light(gq):
+        if box is None and axis.spot:
+            le, hit = np.zeros_like(gq), np.ones(gq.shape, bool)
+        else:
+            le, hit = light_entry(axis, box, w, gq)
+        if cone is not None:
+            hit &= (gq >= cone[0][:, None]) & (gq <= cone[1][:, None])
+        return le, hit
+
+    def factor(le, hit, lr, kap):
+        ex = kap * (le - lr) if axis.spot else kap * (lr - le)
+        return np.where(hit, np.exp(np.clip(ex, -refs.span * kap, refs.span * kap)), 0.0)
+
+    gq, wgt = rule(g_a, g_b)
+    if cache is not None and "le" in cache:
+        le, hit = cache["le"], cache["hit"]
+    else:
+        le, hit = light(gq)
+        if cache is not None:
+            cache.update(le=le, hit=hit)
+    lr = refs.l_at(gq)
+    nt = tables.terms
+    Gt = _table_at(tables.gtab, tables.g_lo, tables.g_hi, gq)          # (N, Q, NV)
+    Bt = _table_at(tables.btab, tables.b_lo, tables.b_hi, beta)        # (N, NV)
+    if g0 is not None:
+        g0q, w0 = rule(g0, g_a)
+        if cache is not None and "le0" in cache:
+            le0, hit0 = cache["le0"], cache["hit0"]
+        else:
+            le0, hit0 = light(g0q)
+            if cache is not None:
+                cache.update(le0=le0, hit0=hit0)
+        lr0 = refs.l_at(g0q)
+        G0 = _table_at(tables.gtab, tables.g_lo, tables.g_hi, g0q)
+    pb = pure_beta(axis, g, beta)
+    tr = refs.t_at(beta)
+    worst = np.zeros(len(beta))
+    sf = soft if refs.soft else (lambda y: y)
+    for c, kap in enumerate(kappas):
+        F = factor(le, hit, lr, kap)
+        # the exact K at each node (the core on the diagonal of an outer grid)
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+            if axis.spot:
+                s = np.minimum(gq + beta[:, None], math.pi - 1e-4)
+                ss = np.sin(s)
+                t = axis.D * np.sin(gq) / ss
+                r = axis.D * np.sin(beta)[:, None] / ss
+                e = sf(kap * (t - tr[:, None])) + sf(kap * (r - lr))
+                K = hg(np.cos(s), g) * np.exp(-np.minimum(e, 700.0))
+            else:
+                sb = np.maximum(np.sin(beta), 1e-12)[:, None]
+                t = gq / sb
+                z = gq * np.cos(beta)[:, None] / sb
+                e = sf(kap * (t - tr[:, None])) + sf(kap * (lr - z))
+                K = np.exp(-np.minimum(np.nan_to_num(e, nan=700.0), 700.0))
+        sl = slice(c * nt, (c + 1) * nt)
+        Ka = (Gt[..., sl] * Bt[:, None, sl]).sum(-1) / pb[:, None]
+        exact = (wgt * F * K).sum(1)
+        diff = np.abs((wgt * F * (Ka - K)).sum(1))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rel = np.where(exact > 0, diff / exact, 0.0)
+        if g0 is not None:
+            Bc = Bt[:, sl]
+            qab = (wgt[..., None] * F[..., None] * Gt[..., sl]).sum(1)          # (N, nt)
+            qa = (w0[..., None] * factor(le0, hit0, lr0, kap)[..., None] * G0[..., sl]).sum(1)
+            res = np.abs((Bc * qab).sum(1))
+            amp = (np.abs(Bc) * (np.abs(qa) + np.abs(qa + qab))).sum(1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                # rounding of ~log2(d) node additions, as a random walk
+                rel = rel + np.where(res > 0, amp / res, 0.0) * F32_SUM * math.sqrt(math.log2(max(d, 2)) + 2)
+        worst = np.maximum(worst, rel)
+    return summarize(worst)
+
+
+SINGULAR_LIMIT = 1.0 / 40.0   # the paper's bound on s_N / s_1 (Sec. 6)
+
+
+def accepts(singular: list, terms: int, error: dict, tolerance: float) -> bool:
+    """Whether ``terms`` terms are good enough: the held-out error's RMS within the
+    tolerance *and* the paper's claim for the last term kept, ``s_N <= s_1 / 40`` in every
+    channel (the second guards the estimate's sampling: where the claim fails, e.g. a spot
+    light behind the camera, the terms are raised even if 600 samples look fine)."""
+    ok = error["rms"] <= tolerance
+    for sv in singular:
+        if len(sv) >= terms and sv[0] > 0 and sv[terms - 1] > SINGULAR_LIMIT * sv[0]:
+            ok = False
+    return bool(ok)
+
+
+def summarize(rel: np.ndarray) -> dict:
+    """RMS, 99th percentile and count of per-sample relative errors (``errors``: the
+    array itself, dropped before --stats)."""
+    rel = np.asarray(rel, np.float64)
+    rel = rel[np.isfinite(rel)]
+    return {"rms": float(np.sqrt(np.mean(rel ** 2))) if len(rel) else 0.0,
+            "p99": float(np.percentile(rel, 99)) if len(rel) else 0.0,
+            "samples": int(len(rel)), "errors": rel}

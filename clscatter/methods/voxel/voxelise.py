@@ -26,7 +26,6 @@ smoothed the same way while the interior keeps its sampled values unblurred.
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import map_coordinates
 
 from ...accel.bvh import build_bvh
 from ...device import Engine
@@ -137,6 +136,7 @@ def sample_grid(box: GridBox, values: np.ndarray, bmin, bmax) -> np.ndarray:
     cx, cy, cz = box.centres()
     coords = [(c - bmin[a]) / (bmax[a] - bmin[a]) * shape[a] - 0.5 for a, c in enumerate((cx, cy, cz))]
     X, Y, Z = np.meshgrid(*coords, indexing="ij")
+    from scipy.ndimage import map_coordinates   # lazily: scipy is slow to import
     return map_coordinates(np.asarray(values, np.float64), [X, Y, Z], order=1, mode="nearest").astype(np.float32)
 
 
