@@ -111,6 +111,40 @@ typedef struct {
     int branch;        /* which branch of that ray's path tree (0 = straight from the light) */
 } LightSegment;
 
+/* ---- Ray pieces: lighting rays that END (light_paths.cl built with -DRAY_PIECES) ----
+ * The last straight piece of a lighting branch outside every object: it ends on a
+ * diffuse or black surface, or where it leaves the scene's bounding box. flux is the rgb
+ * flux arriving at b (specular weights and attenuation included). The surface-caustic
+ * methods (ray map, photon map) are built from them. */
+#define PIECE_DIFFUSE 0
+#define PIECE_BLACK 1
+#define PIECE_ESCAPED 2
+typedef struct {
+    float4 a;          /* start (the light, or the last specular hit) */
+    float4 b;          /* end */
+    float4 flux;       /* rgb flux arriving at b */
+    int light;         /* emitting light */
+    int depth;         /* specular bounces before this piece */
+    int ray;           /* lighting ray index within its light */
+    int branch;        /* branch of that ray's path tree */
+    int end;           /* PIECE_DIFFUSE, PIECE_BLACK or PIECE_ESCAPED */
+    int pad0, pad1, pad2;
+} RayPiece;
+
+/* ---- Diffuse hits of view paths (view_paths.cl, trace_diffuse_hits) ----
+ * Where a camera path meets a diffuse surface: radiance leaving towards the camera is
+ * weight * E for any irradiance E arriving there (weight = path throughput * albedo / pi,
+ * already divided by the pixel's sample count). */
+typedef struct {
+    float4 p;          /* hit point */
+    float4 n;          /* shading normal, turned towards the viewer */
+    float4 weight;     /* rgb */
+    int pixel;         /* y * width + x */
+    int sample;        /* camera sample index */
+    int depth;         /* specular bounces before the hit */
+    int branch;        /* branch of that sample's path tree */
+} DiffuseHit;
+
 /* ---- Small helpers ---- */
 float4 vec3(float x, float y, float z) { return (float4)(x, y, z, 0.0f); }
 float dot3(float4 a, float4 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }

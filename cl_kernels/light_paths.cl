@@ -8,6 +8,15 @@
  * Mirrors and dielectrics split the ray deterministically (specular.h); diffuse and black
  * surfaces end it (single scattering: no diffuse bounce lights the medium). Every
  * straight piece inside the medium is appended to the LightSegment buffer.
+ *
+ * Targeted emission (num_targets > 0; clscatter/emission.py derives the maths): a point
+ * or spot light's rays are drawn in cones around the specular objects' bounding spheres
+ * and weighted by the balance-heuristic mixture pdf; ray_flags[gid] = 1 when the ray's
+ * first hit is a mirror or dielectric (statistics). num_targets = 0: as before.
+ *
+ * Built with -DRAY_PIECES the same kernel appends RayPiece records instead (common.h):
+ * the piece on which each branch ends (a diffuse or black surface, or leaving the scene
+ * box) with the flux arriving there; the surface-caustic methods read these.
  */
 #include "common.h"
 #include "bvh.h"
@@ -15,6 +24,11 @@
 
 #ifndef PATH_STACK
 #define PATH_STACK 16
+#endif
+#ifdef RAY_PIECES
+#define LIGHT_RECORD RayPiece
+#else
+#define LIGHT_RECORD LightSegment
 #endif
 
 float radical_inverse2(uint i) {
@@ -42,15 +56,27 @@ __kernel void trace_light(__global const BVHNode *nodes, __global const float4 *
                           __global const Medium *medium, int max_depth, uint seed,
                           int ray_offset, int num_rays, int rays_total, float4 flux_per_ray,
                           float4 rect_origin, float4 rect_u, float4 rect_v,
-                          __global LightSegment *segs, int max_segs,
+                          __global const float4 *targets, __global const int *target_offsets,
+                          int num_targets, __global int *ray_flags,
+                          __global LIGHT_RECORD *segs, int max_segs,
                           volatile __global int *seg_count) {
     int gid = get_global_id(0);
     if (gid >= num_rays) return;
     int ray = ray_offset + gid;
     __global const Light *L = &lights[light_index];
     Rng rot = rng_seed(seed, (uint)light_index, 0x9e3779b9u);   /* same rotation for all rays */
-    float u = (ray + 0.5f) / rays_total + rng_next(&rot);
-    float v = radical_inverse2((uint)ray) + rng_next(&rot);
+    /* targeted emission (num_targets > 0, point/spot; clscatter/emission.py): rays
+     * [target_offsets[k], target_offsets[k+1]) are stratified in cone k = targets[k]
+     * (axis xyz, w = 1 - cos half-angle) */
+    int k = -1, ray_k = ray, n_local = rays_total;
+    if (num_targets > 0 && L->type != LIGHT_DIRECTIONAL) {
+        k = 0;
+        while (k + 1 < num_targets && ray >= target_offsets[k + 1]) ++k;
+        ray_k = ray - target_offsets[k];
+        n_local = target_offsets[k + 1] - target_offsets[k];
+    }
+    float u = (ray_k + 0.5f) / n_local + rng_next(&rot);
+    float v = radical_inverse2((uint)ray_k) + rng_next(&rot);
     u -= floor(u);
     v -= floor(v);
 
@@ -64,6 +90,15 @@ __kernel void trace_light(__global const BVHNode *nodes, __global const float4 *
         float r = sqrt(fmax(0.0f, 1.0f - z * z));
         float phi = 2.0f * PI_F * v;
         float4 axis = L->type == LIGHT_SPOT ? L->direction : (float4)(0.0f, 0.0f, 1.0f, 0.0f);
+        if (k >= 0) {
+            /* s = 1 - z from the cone's 1 - cos: sin = sqrt(s (2 - s)) stays accurate for
+             * narrow cones, where 1 - z*z would cancel to a few ulps */
+            float s = u * targets[k].w;
+            z = 1.0f - s;
+            r = sqrt(fmax(0.0f, s * (2.0f - s)));
+            axis = targets[k];
+            axis.w = 0.0f;
+        }
         float4 t, b;
         basis(axis, &t, &b);
         first.o = L->position;
@@ -71,19 +106,73 @@ __kernel void trace_light(__global const BVHNode *nodes, __global const float4 *
     }
     first.o.w = 0.0f;
     first.thr = flux_per_ray;
+    if (k >= 0) {
+        /* flux_per_ray holds the intensity I: a ray carries I / (N pdf) with the balance-
+         * heuristic mixture density sum_j n_j [w in cone j] / Omega_j (its own cone always
+         * counts: the boundary test may round either way, on a set of measure zero) */
+        if (L->type == LIGHT_SPOT && dot3(first.d, L->direction) < L->cos_cutoff) {
+            ray_flags[gid] = 0;
+            return;                               /* outside the spot: no light */
+        }
+        float dens = 0.0f;
+        for (int j = 0; j < num_targets; ++j) {
+            float4 c = targets[j];
+            float hit_j = j == k || dot3(first.d, c) >= 1.0f - c.w;   /* c.w: 1 - cos */
+            dens += hit_j * (float)(target_offsets[j + 1] - target_offsets[j]) / (2.0f * PI_F * c.w);
+        }
+        first.thr = flux_per_ray / dens;
+    }
     first.depth = 0;
     first.inside = -1;
     first.id = 0;
     first.pad = 0;
     stack[0] = first;
     int top = 1, next_id = 1;
-    float min_flux = 1e-4f * fmax(flux_per_ray.x, fmax(flux_per_ray.y, flux_per_ray.z));
+    float min_flux = 1e-4f * fmax(first.thr.x, fmax(first.thr.y, first.thr.z));
+    int flag = 0;                                 /* first hit specular (statistics) */
 
     while (top > 0) {
         Branch br = stack[--top];
         Hit hit;
         int found = bvh_closest(nodes, tris, br.o, br.d, 0.0f, T_INF, &hit);
         float t_hit = found ? hit.t : T_INF;
+#ifdef RAY_PIECES
+        if (br.inside < 0) {
+            /* does the branch end here? diffuse/black hit, or escape through the scene box */
+            int end = -1;
+            float t_end = t_hit;
+            if (found) {
+                int mt = materials[tri_mat[hit.tri]].type;
+                end = mt == MAT_DIFFUSE ? PIECE_DIFFUSE : mt == MAT_BLACK ? PIECE_BLACK : -1;
+            } else {
+                float4 lo = (float4)(nodes[0].bmin[0], nodes[0].bmin[1], nodes[0].bmin[2], 0.0f);
+                float4 hi = (float4)(nodes[0].bmax[0], nodes[0].bmax[1], nodes[0].bmax[2], 0.0f);
+                float t0, t1;
+                if (ray_box(br.o, safe_inv_dir(br.d), lo, hi, 0.0f, T_INF, &t0, &t1) && t1 > 0.0f) {
+                    end = PIECE_ESCAPED;
+                    t_end = t1;
+                }
+            }
+            if (end >= 0) {
+                int idx = atomic_inc(seg_count);
+                if (idx < max_segs) {
+                    RayPiece pc;
+                    pc.a = br.o;
+                    pc.b = br.o + t_end * br.d;
+                    pc.a.w = 0.0f;
+                    pc.b.w = 0.0f;
+                    pc.flux = br.thr * branch_attenuation(medium, materials, &br, t_end);
+                    pc.light = light_index;
+                    pc.depth = br.depth;
+                    pc.ray = ray;
+                    pc.branch = br.id;
+                    pc.end = end;
+                    pc.pad0 = pc.pad1 = pc.pad2 = 0;
+                    segs[idx] = pc;
+                }
+            }
+        }
+#else
         float4 a, b;
         if (medium_piece(medium, &br, t_hit, &a, &b)) {
             int idx = atomic_inc(seg_count);
@@ -99,6 +188,11 @@ __kernel void trace_light(__global const BVHNode *nodes, __global const float4 *
                 segs[idx] = sg;
             }
         }
+#endif
+        if (br.id == 0 && found) {
+            int mt0 = materials[tri_mat[hit.tri]].type;
+            flag = mt0 == MAT_MIRROR || mt0 == MAT_DIELECTRIC;
+        }
         if (!found || br.depth >= max_depth) continue;
         int mi = tri_mat[hit.tri];
         __global const Material *mat = &materials[mi];
@@ -112,4 +206,5 @@ __kernel void trace_light(__global const BVHNode *nodes, __global const float4 *
             stack[top++] = kids[c];
         }
     }
+    ray_flags[gid] = flag;
 }

@@ -12,7 +12,9 @@
  * reference the tree must reproduce exactly (tests/test_lsg.py).
  *
  * The kernel adds its estimate into out[view] (so chunks of lighting rays sum), writes
- * (exact tests, valid pairs) to counts[view - view_offset] (one launch's views) and,
+ * (exact tests, valid pairs, points in the visited leaves, 0) to counts[view -
+ * view_offset] (one launch's views; the third is what the hierarchy alone leaves,
+ * the paper's "line intersection tests" after culling) and,
  * when max_pairs > 0, appends every valid (view, light id) pair to pairs (tests compare
  * the sets).
  */
@@ -27,7 +29,7 @@ typedef struct {
 
 /* Exact test of one pair: count, record, and return its estimate (0 beyond r). */
 float4 test_pair(__global const LsgLine *L, int line_id, const ViewQuery *q, float r,
-                 float min_sin, float4 kappa, float g, int2 *cnt,
+                 float min_sin, float4 kappa, float g, int4 *cnt,
                  __global int2 *pairs, volatile __global int *pair_count, int max_pairs) {
     float4 la = L->a;
     float llen = la.w;
@@ -74,19 +76,20 @@ __kernel void lsg_gather(__global const LineNode *nodes, __global const int2 *le
                          __global const ViewSegment *views, int view_offset, int num_views,
                          float4 pl_centre, float pl_inv_scale, float radius, float min_sin,
                          __global const Medium *medium, int exhaustive,
-                         __global float4 *out, __global int2 *counts,
+                         __global float4 *out, __global int4 *counts,
                          __global int2 *pairs, volatile __global int *pair_count, int max_pairs) {
     int gid = get_global_id(0);
     if (gid >= num_views) return;
     int vi = view_offset + gid;
     ViewQuery q;
-    int2 cnt = (int2)(0, 0);
+    int4 cnt = (int4)(0, 0, 0, 0);
     float4 acc = (float4)(0.0f);
     if (load_query(views, vi, &q)) {
         float4 kappa = medium->kappa;
         float g = medium->g;
         if (exhaustive) {
             /* the reference: every pair, no culling */
+            cnt.z = num_lines;
             for (int i = 0; i < num_lines; ++i)
                 acc += test_pair(&lines[i], line_ids[i], &q, radius, min_sin, kappa, g, &cnt,
                                  pairs, pair_count, max_pairs);
@@ -104,6 +107,7 @@ __kernel void lsg_gather(__global const LineNode *nodes, __global const int2 *le
                         continue;
                     }
                     int2 rg = leaf_ranges[gnode - first_leaf];
+                    cnt.z += rg.y - rg.x;         /* points the hierarchy did not cull */
                     for (int i = rg.x; i < rg.y; ++i) {
                         float8 P = points[i];
                         float side = P.s0 * w[0] + P.s1 * w[1] + P.s2 * w[2]  /* +-d' sin theta */

@@ -135,6 +135,67 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
     escaped[gid] = escape;
 }
 
+/* The diffuse hits of the same camera paths as trace_view (same seeds, same branching),
+ * without shading: one DiffuseHit per branch that ends on a diffuse surface, for methods
+ * that add light arriving there by other routes (surface caustics: clscatter/methods/
+ * raymap, photonmap). weight = throughput * albedo / pi. */
+__kernel void trace_diffuse_hits(__global const BVHNode *nodes, __global const float4 *tris,
+                                 __global const float4 *normals, __global const int *tri_mat,
+                                 __global const Material *materials,
+                                 __global const Medium *medium, __global const Camera *cam,
+                                 int max_depth, uint seed, int sample_offset, int num_samples,
+                                 __global DiffuseHit *hits, int max_hits,
+                                 volatile __global int *hit_count) {
+    int gid = get_global_id(0);
+    if (gid >= num_samples) return;
+    int s = sample_offset + gid;
+    int pixel = s / cam->spp, k = s % cam->spp;
+    int px = pixel % cam->width, py = pixel / cam->width;
+    Rng rng = rng_seed(seed, (uint)pixel, (uint)k);
+    float inv_spp = 1.0f / cam->spp;
+    Branch stack[PATH_STACK];
+    stack[0].o = cam->origin;
+    stack[0].d = camera_dir(cam, px, py, k, &rng);
+    stack[0].thr = (float4)(inv_spp, inv_spp, inv_spp, 0.0f);
+    stack[0].depth = 0;
+    stack[0].inside = -1;
+    stack[0].id = 0;
+    stack[0].pad = 0;
+    int top = 1, next_id = 1;
+    while (top > 0) {
+        Branch br = stack[--top];
+        Hit hit;
+        if (!bvh_closest(nodes, tris, br.o, br.d, 0.0f, T_INF, &hit)) continue;
+        br.thr *= branch_attenuation(medium, materials, &br, hit.t);
+        SurfaceFrame f = surface_frame(tris, normals, &hit, br.o, br.d);
+        int mi = tri_mat[hit.tri];
+        __global const Material *mat = &materials[mi];
+        if (mat->type == MAT_DIFFUSE) {
+            int idx = atomic_inc(hit_count);
+            if (idx < max_hits) {
+                DiffuseHit h;
+                h.p = f.p;
+                h.n = f.nf;
+                h.weight = br.thr * mat->color * (1.0f / PI_F);
+                h.weight.w = 0.0f;
+                h.pixel = pixel;
+                h.sample = s;
+                h.depth = br.depth;
+                h.branch = br.id;
+                hits[idx] = h;
+            }
+            continue;
+        }
+        if (mat->type == MAT_BLACK || br.depth >= max_depth) continue;
+        Branch kids[2];
+        int n = specular_children(mat, mi, &br, &f, MIN_THROUGHPUT * inv_spp, kids);
+        for (int c = 0; c < n && top < PATH_STACK; ++c) {
+            kids[c].id = next_id++;
+            stack[top++] = kids[c];
+        }
+    }
+}
+
 /* Test hook: fresnel_dielectric over an array of cosines (tests/test_render.py). */
 __kernel void fresnel_test(__global const float *cos_i, float eta, __global float *out) {
     int i = get_global_id(0);

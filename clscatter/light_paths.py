@@ -14,6 +14,12 @@ the frame's rescaled intensities; radiance estimates come out unchanged):
 
 Rays are shared among lights in proportion to their power; every ray of a light carries
 the same flux, power / rays.
+
+``targeted=True`` (caustic passes, which keep only light that met a mirror or glass):
+every light emits only towards the bounding spheres of the specular objects, each ray
+weighted by its exact pdf (:mod:`clscatter.emission`); lights are then shared by the
+power they send that way. ``LightPaths.specular_rays`` counts, per light, the rays whose
+first hit is a mirror or dielectric.
 """
 from __future__ import annotations
 
@@ -27,6 +33,7 @@ from . import structs
 from .device import AppendBuffer
 from .prepared import PreparedScene
 from .stats import Stats, progress
+from .emission import specular_spheres, targets as emission_targets
 
 
 @dataclass
@@ -76,11 +83,16 @@ def emission(ps: PreparedScene, index: int) -> Emission:
     return Emission(I * area, rect)
 
 
-def ray_counts(ps: PreparedScene, num_rays: int) -> np.ndarray:
-    """Lighting rays per light, proportional to emitted power (largest remainder)."""
+def ray_counts(ps: PreparedScene, num_rays: int, targeted: bool = False) -> np.ndarray:
+    """Lighting rays per light, proportional to emitted power (largest remainder); with
+    ``targeted``, to the power sent towards the specular objects."""
     if ps.num_lights == 0:
         return np.zeros(0, np.int64)
-    p = np.array([emission(ps, i).power.mean() for i in range(ps.num_lights)])
+    if targeted:
+        sph = specular_spheres(ps)
+        p = np.array([emission_targets(ps, i, sph).power.mean() for i in range(ps.num_lights)])
+    else:
+        p = np.array([emission(ps, i).power.mean() for i in range(ps.num_lights)])
     if p.sum() <= 0:
         return np.zeros(ps.num_lights, np.int64)
     share = p / p.sum() * num_rays
@@ -95,12 +107,14 @@ def ray_counts(ps: PreparedScene, num_rays: int) -> np.ndarray:
 class LightPaths:
     segments: np.ndarray        # structs.LIGHT_SEGMENT
     rays: np.ndarray            # rays traced per light
-    flux_per_ray: np.ndarray    # (lights, 3)
+    flux_per_ray: np.ndarray    # (lights, 3) (targeted: the mean, power / rays)
+    specular_rays: np.ndarray | None = None   # per light: rays whose first hit is specular
 
 
 def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = None,
                       show_progress: bool = True, rays_per_launch: int = 1 << 16,
-                      chunk: tuple[int, int] | None = None, pieces: bool = False) -> LightPaths:
+                      chunk: tuple[int, int] | None = None, pieces: bool = False,
+                      targeted: bool = False, seed_offset: int = 0) -> LightPaths:
     """Trace ``num_rays`` lighting rays (shared among lights by power).
 
     ``chunk = (k, n)`` traces only the k-th of n equal parts of every light's rays (the
@@ -109,10 +123,15 @@ def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = No
     :data:`~clscatter.structs.RAY_PIECE` on which every branch ends (diffuse or black
     surface, or leaving the scene box) with the flux arriving there, with or without a
     medium (the surface-caustic methods: ``raymap``, ``photonmap``).
+    ``targeted=True`` emits only towards the specular objects (:mod:`clscatter.emission`;
+    for passes that keep only light with a specular bounce). ``seed_offset`` selects an
+    independent set of rays (progressive passes).
     """
     stats = stats or Stats()
     eng = ps.engine
-    counts = ray_counts(ps, num_rays)
+    counts = ray_counts(ps, num_rays, targeted)
+    spheres = specular_spheres(ps) if targeted else []
+    spec = np.zeros(ps.num_lights, np.int64)
     parts: list[np.ndarray] = []
     fluxes = np.zeros((ps.num_lights, 3))
     launch = max(1, int(rays_per_launch))
@@ -120,16 +139,32 @@ def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = No
     defines = {"RAY_PIECES": 1} if pieces else None
     wanted = pieces or ps.has_medium
     segs = AppendBuffer(eng, record, launch * 2) if wanted else None
-    seed = np.uint32((ps.scene.render.seed * 2654435761 + 11) & 0xFFFFFFFF)
+    seed = np.uint32((ps.scene.render.seed * 2654435761 + 11 + 0x632BE5AB * int(seed_offset))
+                     & 0xFFFFFFFF)
+    no_targets = eng.to_device(np.zeros((1, 4), np.float32))
+    no_offsets = eng.to_device(np.zeros(2, np.int32))
+    flags = eng.empty(4 * launch)
     total = int(counts.sum())
     with stats.stage("light_paths"), progress(total, "light paths", show_progress) as bar:
         for li in range(ps.num_lights):
             n_li = int(counts[li])
             em = emission(ps, li)
             flux = em.power / max(n_li, 1)
+            tg_buf, off_buf, n_tg = no_targets, no_offsets, 0
+            if targeted:
+                tg = emission_targets(ps, li, spheres)
+                flux = tg.power / max(n_li, 1)
+                if tg.rect is not None:
+                    em = Emission(tg.power, tg.rect)
+                elif len(tg.cones) and n_li > 0 and wanted:
+                    offsets = np.concatenate([[0], np.cumsum(tg.counts(n_li))]).astype(np.int32)
+                    tg_buf, off_buf = eng.to_device(tg.cones), eng.to_device(offsets)
+                    n_tg = len(tg.cones)
             fluxes[li] = flux
             if n_li == 0 or not wanted:
                 continue
+            # cone mode: the kernel weights each ray itself from the intensity
+            flux_arg = ps.lights[li]["power"][:3].astype(np.float64) if n_tg else flux
             lo, hi = 0, n_li
             if chunk is not None:
                 k, n = chunk
@@ -141,19 +176,24 @@ def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = No
                     "light_paths", "trace_light", m, defines,
                     **ps.scene_args("light_paths", "trace_light"), light_index=li,
                     max_depth=ps.scene.render.max_depth, seed=seed, ray_offset=start,
-                    num_rays=m, rays_total=n_li, flux_per_ray=flux, rect_origin=em.rect[0],
-                    rect_u=em.rect[1], rect_v=em.rect[2]))
+                    num_rays=m, rays_total=n_li, flux_per_ray=flux_arg, rect_origin=em.rect[0],
+                    rect_u=em.rect[1], rect_v=em.rect[2], targets=tg_buf,
+                    target_offsets=off_buf, num_targets=n_tg, ray_flags=flags))
+                spec[li] += int(eng.read(flags, m, np.int32).sum())
                 start += m
                 bar.update(m)
+            if n_tg:
+                eng.free(tg_buf, off_buf)
     if segs is not None:
         segs.release()
+    eng.free(no_targets, no_offsets, flags)
     out = np.concatenate(parts) if parts else np.zeros(0, record)
     out = out[np.lexsort((out["branch"], out["ray"], out["light"]))]
     eng.note_host(out.nbytes)
     stats.add("light_rays", int(total if chunk is None else sum(
         int(c) * (chunk[0] + 1) // chunk[1] - int(c) * chunk[0] // chunk[1] for c in counts)))
     stats.add("light_ray_pieces" if pieces else "light_segments", int(len(out)))
-    return LightPaths(out, counts, fluxes)
+    return LightPaths(out, counts, fluxes, spec)
 
 
 def iter_light_chunks(ps: PreparedScene, num_rays: int, chunks: int, stats: Stats | None = None,

@@ -77,7 +77,8 @@ DIFFUSE_HIT = np.dtype([
 REGISTRY: dict[str, tuple[str, np.dtype]] = {}
 
 # structs that live and die inside a kernel (no host copy exists, so no twin is needed)
-DEVICE_ONLY = frozenset({"Hit", "BvhRay", "Rng", "Branch", "SurfaceFrame", "ViewQuery", "Tri"})
+DEVICE_ONLY = frozenset({"Hit", "BvhRay", "Rng", "Branch", "SurfaceFrame", "ViewQuery", "Tri",
+                         "Pending"})
 
 
 def register_struct(header: str, cname: str, dtype: np.dtype) -> np.dtype:

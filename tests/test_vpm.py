@@ -171,7 +171,12 @@ def _segments(n, rng, flux_scale=1.0):
     return s, L
 
 
-def test_deposition_is_an_unbiased_track_length_estimate():
+@pytest.mark.parametrize("independent", [False, True])
+def test_deposition_is_an_unbiased_track_length_estimate(independent):
+    """Both placements are unbiased track-length estimates (first and zeroth moments
+    within 4 standard errors over 40 seeds); stratified: total within 1% of the target
+    count and power spread < 1%; independent: a Poisson total (mean within 4 standard
+    errors of the target, variance = mean within 50%: 40 samples)."""
     rng = np.random.default_rng(3)
     segs, L = _segments(400, rng)
     kappa = np.array([0.8, 1.2, 2.0])
@@ -184,18 +189,23 @@ def test_deposition_is_an_unbiased_track_length_estimate():
     m1 = flux * (1 - e * (1 + kappa * L[:, None])) / kappa ** 2
     exact = np.concatenate([m0.sum(0), (m0[:, :, None] * a[:, None, :]
                                         + m1[:, :, None] * d[:, None, :]).sum(0).ravel()])
-    sums = []
+    sums, counts = [], []
     for seed in range(40):
-        ph, W = deposit_photons(segs, kappa, 20000, seed)
+        ph, W = deposit_photons(segs, kappa, 20000, seed, independent=independent)
         power = pt.decode_rgb9e5(ph["power"]) * W
+        counts.append(len(ph))
         x = np.stack([ph["x"], ph["y"], ph["z"]], 1).astype(np.float64)
         sums.append(np.concatenate([power.sum(0), (power[:, :, None] * x[:, None, :]).sum(0).ravel()]))
-        if seed == 0:
+        if seed == 0 and not independent:
             assert abs(len(ph) - 20000) < 0.01 * 20000     # stratified: close to the target
     sums = np.array(sums)
     mean, sem = sums.mean(0), sums.std(0) / math.sqrt(len(sums))
     assert np.all(np.abs(mean - exact) < 4 * sem + 1e-3 * np.abs(exact).max())
-    assert np.all(sums[:, :3].std(0) / exact[:3] < 0.01)   # stratified: a small spread
+    if independent:      # Poisson total: mean 20000, variance 20000
+        assert abs(np.mean(counts) - 20000) < 4 * math.sqrt(20000 / len(counts))
+        assert np.var(counts) / 20000 == pytest.approx(1.0, abs=0.5)
+    else:
+        assert np.all(sums[:, :3].std(0) / exact[:3] < 0.01)   # stratified: a small spread
 
 
 def test_deposition_grey_photons_have_equal_power_and_lie_on_their_segments():
@@ -328,7 +338,7 @@ def test_point_light_unbounded_medium_vs_airlight(engine):
     img, ref, st = _vpm_vs_segment_reference(
         engine, d, lambda o, w, L: A.airlight_point(o, w, light, I, ss, ss + sa, g, t_max=L,
                                                     method="gauss"),
-        photons=600_000, photons_per_ray=4, knn=24, dx=0.02, max_radius=0.5)
+        photons=600_000, photons_per_ray=4, knn=24, dx=0.02, max_radius=0.5, deposit="stratified")
     assert np.all(np.isfinite(img)) and ref.max() > 0.2        # the light is in view
     # the pixels next to the light hold the 1/h peak of the glow: their value depends on
     # the few photons closest to the light (and the kernel blurs the peak), so they are
@@ -355,7 +365,7 @@ def test_directional_light_bounded_box_vs_closed_form(engine):
          "lights": [{"type": "directional", "direction": ldir.tolist(), "irradiance": E}]}
     ref_fn = lambda o, w, L: A.directional_slab(o, w, ldir, E, ss, ss + sa, g, lo, hi, t_max=L)
     img, ref, _ = _vpm_vs_segment_reference(engine, d, ref_fn, photons=400_000, photons_per_ray=4,
-                                            knn=32, dx=0.01, max_radius=0.2)
+                                            knn=32, dx=0.01, max_radius=0.2, deposit="stratified")
     err = relmse(img, ref)
     assert err < 5e-5, err                                     # measured 1.3e-5
     # the kernel's volume is the part of its ball inside the medium box: no deficit along

@@ -15,7 +15,13 @@ the same view segments; only the medium pass ``render`` is timed):
 * the Pareto fronts (least time, least memory for a given error) of both methods and the
   VPM / LSG ratios of time and of memory at equal error, interpolated log-log along the
   fronts at error levels both fronts reach;
-* LSG's culling: pair_tests / pair_tests_bruteforce and valid_pairs / pair_tests;
+* LSG's culling: pair_tests / pair_tests_bruteforce and valid_pairs / pair_tests, and the
+  paper's way (``lsg_cull_fraction_paper``: 1 - points in visited leaves / (segments
+  kept after clipping x view segments); ``lsg_valid_fraction_paper``: valid / those);
+* VPM's time split into photon tracing, deposition + tree build (NumPy) and gather
+  (device) in the JSON, so algorithm can be compared with algorithm (LSG: tree build
+  + gather); VPM photons are independent (one per ray on average) unless a sweep sets
+  ``photons_per_ray``/``deposit``;
 * gather-time scaling with the number of lighting rays (photons for VPM) and with the
   image size (log-log slopes).
 
@@ -96,7 +102,8 @@ KEEP = ("light_rays", "light_segments", "view_segments", "pair_tests", "pair_tes
         "valid_pairs", "lsg_cull_fraction", "lsg_valid_fraction", "tree_build_seconds",
         "gather_seconds", "chunks", "lsg_chunk_bytes_max", "photons", "gather_steps",
         "photon_build_seconds", "photon_trace_seconds", "photon_map_bytes",
-        "knn_photons_tested", "knn_boxes_tested")
+        "knn_photons_tested", "knn_boxes_tested", "lsg_leaf_points_tested", "lsg_light_segments_kept",
+        "lsg_cull_fraction_paper", "lsg_valid_fraction_paper", "lsg_radius")
 
 
 # ---- one scene, prepared once ----------------------------------------------------------------
@@ -325,7 +332,11 @@ def main(argv=None) -> dict:
                           "pair_tests": r["pair_tests"], "pair_tests_bruteforce": r["pair_tests_bruteforce"],
                           "valid_pairs": r["valid_pairs"],
                           "tested_fraction": r["pair_tests"] / r["pair_tests_bruteforce"],
-                          "valid_fraction": r["valid_pairs"] / max(r["pair_tests"], 1)}
+                          "valid_fraction": r["valid_pairs"] / max(r["pair_tests"], 1),
+                          # the paper's way (sec. 4.3): what the hierarchy alone leaves of
+                          # (segments kept after clipping x view segments), valid of that
+                          "cull_fraction_paper": r.get("lsg_cull_fraction_paper"),
+                          "valid_fraction_paper": r.get("lsg_valid_fraction_paper")}
                          for r in lsg_runs]
 
     # ---- scaling ----
@@ -388,6 +399,9 @@ def summary(result: dict) -> None:
     for c in result["culling"]:
         print(f"culling lsg {c['light_rays']} r={c['radius']}: tested {c['tested_fraction']:.4%} of "
               f"all pairs, valid {c['valid_fraction']:.1%} of tested")
+        if c.get("cull_fraction_paper") is not None:
+            print(f"   paper's way: hierarchy culls {c['cull_fraction_paper']:.2%} of kept x view, "
+                  f"valid {c['valid_fraction_paper']:.1%} of the rest")
     sc = result["scaling"]
     print("gather-time slopes: vs rays/photons", {m: round(v, 2) for m, v in sc["lights_slope"].items()},
           "vs view segments", {m: round(v, 2) for m, v in sc["image_slope"].items()})

@@ -61,7 +61,8 @@ EPI_SLICE = np.dtype([
 ], align=True)
 
 STRUCTS = {"EpiFrame": structs.register_struct("epipolar.h", "EpiFrame", EPI_FRAME),
-           "EpiSlice": structs.register_struct("epipolar.h", "EpiSlice", EPI_SLICE)}
+           "EpiSlice": structs.register_struct("epipolar.h", "EpiSlice", EPI_SLICE),
+           "EpiFace": structs.register_struct("epipolar.h", "EpiFace", EPI_FACE)}
 
 
 def _unit(v) -> np.ndarray:

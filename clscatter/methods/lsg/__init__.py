@@ -11,6 +11,7 @@ from ... import structs
 from .linetree import (LINE_NODE, LineTree, PluckerFrame, build_linetree, canonical_signs,
                               plucker)
 from ...device import Engine
+from ...emission import targeted_fraction
 from ...light_paths import ray_counts, trace_light_paths
 from ...prepared import PreparedScene
 from ...view_paths import ViewPaths, accumulate_segments
@@ -23,7 +24,8 @@ F4 = structs.F4
 LSG_LINE = np.dtype([("a", *F4), ("u", *F4), ("flux", *F4)], align=True)
 
 # name in cl_kernels/lsg.h -> dtype; used by the layout test
-STRUCTS = {"LineNode": LINE_NODE, "LsgLine": LSG_LINE}
+STRUCTS = {"LineNode": structs.register_struct("lsg.h", "LineNode", LINE_NODE),
+           "LsgLine": structs.register_struct("lsg.h", "LsgLine", LSG_LINE)}
 
 # Host + device bytes one lighting segment costs while its chunk is processed, as
 # PreparedLines.nbytes and Gatherer.add count them: the traced LightSegment (64), the
@@ -116,6 +118,7 @@ class ChunkResult:
     tree_seconds: float
     gather_seconds: float
     pairs: np.ndarray | None   # (k, 2) int32 (view index, input light index) if recorded
+    leaf_points: int = 0       # points in the leaves the hierarchy visited (paper's count)
 
 
 class Gatherer:
@@ -152,7 +155,7 @@ class Gatherer:
         self.views_buf = engine.to_device(views)
         self.medium_buf = engine.to_device(self.medium)
         self.out_buf = engine.zeros(max(self.n, 1) * 16)
-        self.counts_buf = engine.empty(min(self.per_launch, max(self.n, 1)) * 8)
+        self.counts_buf = engine.empty(min(self.per_launch, max(self.n, 1)) * 16)
         self.pairs_buf = engine.empty(max(self.record, 1) * 8)
         self.pair_count = engine.empty(4)
         # valid pairs per view segment, summed over add() calls (automatic radius)
@@ -181,7 +184,7 @@ class Gatherer:
             eng.cl.enqueue_fill_buffer(eng.queue, self.pair_count, np.zeros(1, np.int32), 0, 4)
             fr = prep.frame
             centre = structs.vec4(fr.centre)
-            tests = valid = 0
+            tests = valid = leaf = 0
             if len(prep.lines):
                 with progress(self.n, "lsg gather", self.show_progress) as bar:
                     for start in range(0, self.n, self.per_launch):
@@ -195,8 +198,9 @@ class Gatherer:
                                  exhaustive=int(bruteforce), out=self.out_buf,
                                  counts=self.counts_buf, pairs=self.pairs_buf,
                                  pair_count=self.pair_count, max_pairs=self.record)
-                        c = eng.read(self.counts_buf, (m, 2), np.int32)  # (also waits for the launch)
+                        c = eng.read(self.counts_buf, (m, 4), np.int32)  # (also waits for the launch)
                         tests += int(c[:, 0].sum(dtype=np.int64))
+                        leaf += int(c[:, 2].sum(dtype=np.int64))
                         valid += int(c[:, 1].sum(dtype=np.int64))
                         self.valid_per_view[start:start + m] += c[:, 1]
                         bar.update(m)
@@ -208,7 +212,7 @@ class Gatherer:
                 pairs = eng.read(self.pairs_buf, (got, 2), np.int32)
             eng.free(lines_buf, points_buf, ids_buf, nodes_buf, ranges_buf)
         return ChunkResult(tests, valid, len(prep.lines), int(prep.nbytes + dev_bytes),
-                           t_build.seconds, t_gather.seconds, pairs)
+                           t_build.seconds, t_gather.seconds, pairs, leaf)
 
     def reset(self) -> None:
         """Zero the accumulator and the per-view pair counts."""
@@ -290,20 +294,31 @@ class LineSpaceGathering(Method):
     it) and ``targeted`` (default), every light emits only towards the bounding spheres
     of the mirrors and glass (directional lights: their projected footprint), each ray
     weighted by its exact pdf (``clscatter.emission``), so the expected image is the same
-    and no ray is spent on light that cannot make a caustic. ``light_rays`` then counts
-    targeted rays.
+    and no ray is spent on light that cannot make a caustic. ``light_rays`` keeps its
+    meaning (rays over the whole emission); only the part of them that would have gone
+    towards the mirrors and glass is traced (``light_rays`` in ``--stats``), so the noise
+    is that of ``light_rays`` untargeted rays at a fraction of the cost (a glass ball
+    under a point light: ~3%).
 
     *Automatic radius* (``radius = 0``, the default). A pilot traces ``light_rays / 8``
-    rays (at least 2000) and gathers them at a trial radius r0 (4 pixel footprints at the
-    median view-segment distance, doubled until 64 view segments find a pair), counting
+    rays (at least 2000) and gathers them at a trial radius r0 (a quarter of the pixel
+    footprint at the median view-segment distance, doubled until 64 view segments find a
+    pair), counting
     the valid pairs of every view segment. The number of lighting segments a view
     segment's cylinder catches grows linearly with r (lines crossing a segment within
     distance r), so, scaled to the full ``light_rays``, the median count c over the lit
     view segments gives ``r_n = r0 * auto_count / c``: the radius at which a typical lit
     view segment gathers ``auto_count`` lighting segments (relative noise per segment
-    ~ 1 / sqrt(auto_count)). The radius is not allowed below half the median pixel
-    footprint f at those segments (blur below a pixel is invisible, while the noise keeps
-    growing as r shrinks): ``r = max(r_n, f / 2)``. Both terms are measured in the data,
+    ~ 1 / sqrt(auto_count); 16 by default: on caustic_sphere the blur bias of a larger
+    count outweighed the noise it saves, e.g. at 24 x 18 and 200k rays the relMSE
+    against a converged reference was 0.043 / 0.49 / 9.7 for 16 / 48 / 128, the noise
+    part 0.005 / 0.002 / 0.0007). The radius is not allowed below 1/16 of the median pixel
+    footprint f at those segments (a blur that small is invisible even with 16 x 16
+    samples per pixel, while the noise keeps growing as r shrinks):
+    ``r = max(r_n, f / 16)``. At the default 200k rays on caustic_sphere this gives
+    r ~ 0.003 of the extent, the best fixed radius measured by hand before (relMSE 6.7e-4,
+    9.7e-5, 6.7e-5, 1.7e-4, 5.3e-4 at 0.001, 0.002, 0.003, 0.005, 0.01; 128 x 96 against
+    a 1.6M-ray render). Both terms are measured in the data,
     in the normalised frame, so the same physical scene gets the same radius at any
     scale and with objects added far away (tests/test_invariance.py); the bounding box
     plays no part. ``radius > 0`` overrides it (a multiple of the scene extent, as before).
@@ -329,9 +344,15 @@ class LineSpaceGathering(Method):
     segment tests after the tree and per-point plane culling), ``pair_tests_bruteforce``
     (light segments x view segments), ``valid_pairs`` (closer than r),
     ``lsg_cull_fraction`` (1 - pair_tests / bruteforce), ``lsg_valid_fraction`` (valid /
-    tested), ``tree_build_seconds`` (clipping, Plücker points, tree), ``gather_seconds``,
+    tested); counted the paper's way (sec. 4.3: the share of exhaustive "line
+    intersection tests" the hierarchy culls, and the valid share of the rest):
+    ``lsg_leaf_points_tested`` (points in the leaves the tree walk reaches, before the
+    per-point plane test), ``lsg_cull_fraction_paper`` (1 - that / (lighting segments
+    kept after clipping x view segments)), ``lsg_valid_fraction_paper`` (valid /
+    leaf points); ``tree_build_seconds`` (clipping, Plücker points, tree), ``gather_seconds``,
     ``chunks``, ``lsg_chunks_retraced``, ``lsg_chunk_bytes_max`` (largest chunk working
-    set), ``lsg_radius`` (first pass, normalised units), ``lsg_radius_last``,
+    set), ``lsg_radius`` (first pass, normalised units; ``lsg_radius_world`` in scene
+    units), ``lsg_radius_last``,
     ``lsg_passes``, ``lsg_pass_seconds``, ``lsg_time_budget``, ``lsg_auto_radius`` (what
     the automatic radius was chosen from), ``lsg_targeted``,
     ``light_rays_specular_fraction`` (emitted rays whose first hit is a mirror or glass);
@@ -346,13 +367,15 @@ class LineSpaceGathering(Method):
         Param("light_rays", 200_000, "lighting rays per pass, shared among lights by power", lo=1),
         Param("radius", 0.0, "gather radius relative to the scene extent; 0: automatic, "
               "from the lighting-ray density and the pixel footprint", lo=0),
-        Param("auto_count", 48.0, "automatic radius: lighting segments a typical lit view "
+        Param("auto_count", 16.0, "automatic radius: lighting segments a typical lit view "
               "segment should gather", lo=1),
         Param("passes", 1, "progressive passes of fresh rays (an upper bound with time_budget)", lo=1),
         Param("time_budget", 0.0, "seconds for progressive passes (0: run `passes`)", lo=0),
         Param("alpha", 0.7, "progressive radius reduction r_(i+1) = r_i (i + alpha) / (i + 1)",
               lo=0, hi=1, lo_open=True, hi_open=True),
         Param("targeted", True, "with min_light_depth >= 1, emit only towards mirrors and glass"),
+        Param("light_seed", 0, "selects an independent set of lighting rays (view paths unchanged)",
+              lo=0),
         Param("max_bytes", 1 << 30, "working-set bound for one chunk of rays", lo=1),
         Param("leaf_size", 4, "least points per tree leaf (at most 8x)", lo=1),
         Param("min_sin", 1e-6, "sin(theta) below this counts as parallel", lo=0, hi=1, hi_open=True),
@@ -361,12 +384,40 @@ class LineSpaceGathering(Method):
               "specular bounces (1: caustics only, as auto uses it beside a direct method)", lo=0),
     )
     TERMS = frozenset({"direct", "caustics"})
-    # auto: the caustic pass alone, targeted, progressive under a time budget
-    AUTO = {"caustics": AutoRole(priority=10, params={"min_light_depth": 1, "time_budget": 20.0,
-                                                     "passes": 64})}
+    PREVIEW_SCALE = {"light_rays": 0.125, "passes": 0.0, "time_budget": 0.0}
+    # auto: the caustic pass alone (targeted), progressive under a time budget that the
+    # scene's [render.lsg] can change (defaults), caustics only (required)
+    AUTO = {"caustics": AutoRole(priority=10, params={"min_light_depth": 1},
+                                 defaults={"time_budget": 10.0, "passes": 8})}
+
+    @classmethod
+    def estimate(cls, scene, params):
+        """Working set: one chunk of lighting segments (bounded by ``max_bytes``; ~3
+        segments per ray at BYTES_PER_SEGMENT each) plus 80 bytes per view segment; work:
+        the segments traced over all passes (the gather's pair tests scale with them)."""
+        from ...budget import Estimate, camera_samples
+        views = 2.0 * camera_samples(scene)
+        rays = float(params["light_rays"])
+        chunk = min(float(params["max_bytes"]), rays * 3 * BYTES_PER_SEGMENT)
+        return [Estimate("lsg", "render.lsg.light_rays", chunk + views * 80,
+                         rays * 3 * params["passes"] + views * 200,
+                         "lighting segments (order of magnitude)")]
+
+    #: optional ``f(passes_done, radius, mean values per view segment)`` called after every
+    #: pass (tests and benchmarks: the error after each pass from one progressive run)
+    pass_callback = None
 
     def targeted(self) -> bool:
         return bool(self.params["targeted"]) and self.params["min_light_depth"] >= 1
+
+    def traced_rays(self, ps: PreparedScene) -> int:
+        """Rays one pass traces: ``light_rays``, or targeted, the part of them that
+        untargeted emission would have sent towards the mirrors and glass (the same flux
+        per ray, hence the same caustic noise, for a fraction of the work)."""
+        n = int(self.params["light_rays"])
+        if self.targeted():
+            n = max(1, math.ceil(n * targeted_fraction(ps)))
+        return n
 
     def render(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
                show_progress: bool = True) -> np.ndarray:
@@ -375,6 +426,7 @@ class LineSpaceGathering(Method):
         views = paths.segments
         p = self.params
         stats.set(view_segments=int(len(views)), lsg_targeted=self.targeted())
+        self._rays = self.traced_rays(ps)
         if len(views) == 0 or ps.num_lights == 0 or p["light_rays"] == 0:
             stats.set(pair_tests=0, pair_tests_bruteforce=0, valid_pairs=0, chunks=0,
                       lsg_radius=0.0, lsg_passes=0)
@@ -399,9 +451,13 @@ class LineSpaceGathering(Method):
         totals["pair_tests_bruteforce"] = totals.pop("light_x_view")
         bf = max(totals["pair_tests_bruteforce"], 1)
         spec, rays = totals.pop("specular_rays"), totals.pop("rays")
+        kept_x_view = max(totals.pop("lsg_kept_x_view"), 1)
+        stats.set(lsg_cull_fraction_paper=1.0 - totals["lsg_leaf_points_tested"] / kept_x_view,
+                  lsg_valid_fraction_paper=totals["valid_pairs"] / max(totals["lsg_leaf_points_tested"], 1))
         stats.set(**totals, lsg_cull_fraction=1.0 - totals["pair_tests"] / bf,
                   lsg_valid_fraction=totals["valid_pairs"] / max(totals["pair_tests"], 1),
                   lsg_radius=float(r1), lsg_radius_last=float(radii[-1]), lsg_passes=passes,
+                  lsg_radius_world=float(r1) * ps.frame.scale,
                   lsg_pass_seconds=pass_seconds, lsg_time_budget=p["time_budget"],
                   light_rays_specular_fraction=spec / max(rays, 1))
         return accumulate_segments(values, views["pixel"], cam.width, cam.height)
@@ -409,16 +465,17 @@ class LineSpaceGathering(Method):
     # ---- automatic radius ----
     def auto_radius(self, ps: PreparedScene, gat: Gatherer, views: np.ndarray) -> AutoRadius:
         """The automatic radius (class docstring): a pilot gather at a trial radius."""
-        n_rays = self.params["light_rays"]
+        n_rays = self._rays
         pilot = int(min(n_rays, max(2000, n_rays // 8)))
         cam = ps.camera
         mid = 0.5 * (views["a"][:, :3] + views["b"][:, :3]).astype(np.float64)
         dist = np.linalg.norm(mid - cam["origin"][:3].astype(np.float64), axis=1)
         pix = 2.0 * float(np.linalg.norm(cam["right"][:3])) / max(int(cam["width"]), 1)
         foot = dist * pix                       # pixel footprint at each view segment
-        lp = trace_light_paths(ps, pilot, None, False, targeted=self.targeted(), seed_offset=-1)
+        lp = trace_light_paths(ps, pilot, None, False, targeted=self.targeted(),
+                               seed_offset=-1 - self.params["light_seed"])
         segs = self._select(lp.segments)
-        r0 = 4.0 * float(np.median(foot)) if len(foot) else 1e-3
+        r0 = 0.25 * float(np.median(foot)) if len(foot) else 1e-3
         lit = np.zeros(0, np.int64)
         for _ in range(12):
             gat.reset()
@@ -428,12 +485,12 @@ class LineSpaceGathering(Method):
             if len(lit) >= min(64, max(1, len(views) // 4)) or len(segs) == 0:
                 break
             r0 *= 2.0
+        count = float(np.median(gat.valid_per_view[lit])) * n_rays / pilot if len(lit) else 0.0
         gat.reset()
         if len(lit) == 0:                       # no light reaches any view segment
             return AutoRadius(r0, r0, pilot, 0.0, float(np.median(foot)), 0)
-        count = float(np.median(gat.valid_per_view[lit])) * n_rays / pilot
         f = float(np.median(foot[lit]))
-        r = max(r0 * self.params["auto_count"] / count, 0.5 * f)
+        r = max(r0 * self.params["auto_count"] / count, f / 16)
         return AutoRadius(float(r), float(r0), pilot, count, f, int(len(lit)))
 
     # ---- passes ----
@@ -458,8 +515,10 @@ class LineSpaceGathering(Method):
                 with Timer() as t:
                     gat.radius = r
                     res = self._gather_chunks(ps, gat, stats, show_progress and most == 1,
-                                              seed_offset=i)
+                                              seed_offset=i + (self.params["light_seed"] << 16))
                 seconds.append(t.seconds)
+                if self.pass_callback is not None:
+                    self.pass_callback(i + 1, r, gat.values() / (i + 1))
                 for key, v in res.items():
                     tot[key] = max(tot.get(key, 0), v) if key.endswith("_max") else tot.get(key, 0) + v
                 bar.update(1)
@@ -471,14 +530,16 @@ class LineSpaceGathering(Method):
         """Trace and gather one pass of lighting rays chunk by chunk within max_bytes."""
         eng = ps.engine
         targeted = self.targeted()
-        counts = ray_counts(ps, self.params["light_rays"], targeted)
+        n_rays = self._rays
+        counts = ray_counts(ps, n_rays, targeted)
         budget = self.params["max_bytes"]
         seg_per_ray = 1.0          # lower bound until a chunk has been traced
-        n0 = max(1, math.ceil(self.params["light_rays"] * seg_per_ray * BYTES_PER_SEGMENT / budget))
+        n0 = max(1, math.ceil(n_rays * seg_per_ray * BYTES_PER_SEGMENT / budget))
         queue = deque((k, n0) for k in range(n0))
         tot = dict(pair_tests=0, valid_pairs=0, light_x_view=0, chunks=0, lsg_light_segments_kept=0,
                    tree_build_seconds=0.0, gather_seconds=0.0, lsg_chunk_bytes_max=0,
-                   lsg_chunks_retraced=0, specular_rays=0, rays=0)
+                   lsg_chunks_retraced=0, specular_rays=0, rays=0, lsg_leaf_points_tested=0,
+                   lsg_kept_x_view=0)
         while queue:
             k, n = queue.popleft()
             rays = _chunk_rays(counts, k, n)
@@ -489,7 +550,7 @@ class LineSpaceGathering(Method):
                 queue.extendleft((k * split + j, n * split) for j in reversed(range(split)))
                 continue
             with stats.stage("light_paths"):
-                lp = trace_light_paths(ps, self.params["light_rays"], None, show_progress,
+                lp = trace_light_paths(ps, n_rays, None, show_progress,
                                        chunk=(k, n), targeted=targeted, seed_offset=seed_offset)
             segs = self._select(lp.segments)
             seg_per_ray = max(seg_per_ray, len(segs) / rays)
@@ -509,6 +570,8 @@ class LineSpaceGathering(Method):
             tot["light_x_view"] += len(segs) * gat.n
             tot["chunks"] += 1
             tot["lsg_light_segments_kept"] += res.kept
+            tot["lsg_leaf_points_tested"] += res.leaf_points
+            tot["lsg_kept_x_view"] += res.kept * gat.n
             tot["tree_build_seconds"] += res.tree_seconds
             tot["gather_seconds"] += res.gather_seconds
             tot["lsg_chunk_bytes_max"] = max(tot["lsg_chunk_bytes_max"], res.nbytes)

@@ -18,7 +18,7 @@ DEPOSIT_BATCH = 1 << 16
 
 
 def deposit_photons(segments: np.ndarray, kappa: np.ndarray, num_photons: int, seed: int,
-                    batch: int = DEPOSIT_BATCH) -> tuple[np.ndarray, float]:
+                    batch: int = DEPOSIT_BATCH, independent: bool = False) -> tuple[np.ndarray, float]:
     """Photons along lighting segments: ``(packed PHOTON array, power_scale W)``.
 
     Each segment carries flux ``Phi(s) = Phi_a exp(-kappa s)`` (rgb) along its length.
@@ -32,6 +32,13 @@ def deposit_photons(segments: np.ndarray, kappa: np.ndarray, num_photons: int, s
     proportionally fewer photons: Russian roulette by stratification). For any function
     g, ``E[sum_j power_j g(x_j)] = int Phi(s) g(x(s)) ds``: the photons are an unbiased
     track-length discretisation of the lighting rays, in W * length.
+
+    ``independent=True``: no stratification, a Poisson process instead. A segment gets
+    ``Poisson(expected)`` photons, each at an independent position ``C(s_j) = U_j
+    expected`` (U uniform), the same density and power: photons are independent of one
+    another (a photon mapper's classic photons; with ~1 photon per ray also independent
+    of each other's rays), which is what the kNN estimate's ``(k - 1) / V`` assumes.
+    The total is ``num_photons`` in expectation.
     """
     kappa = np.asarray(kappa, np.float64)[:3]
     kbar = float(kappa.mean())
@@ -55,7 +62,10 @@ def deposit_photons(segments: np.ndarray, kappa: np.ndarray, num_photons: int, s
     rng = np.random.default_rng(seed)
     u = rng.random(len(segments))
     expected = mass / W
-    counts = np.maximum(np.ceil(expected - u), 0).astype(np.int64)
+    if independent:
+        counts = rng.poisson(expected).astype(np.int64)
+    else:
+        counts = np.maximum(np.ceil(expected - u), 0).astype(np.int64)
     dir_code = encode_direction(d)      # one code per segment, shared by its photons
     photons = np.zeros(int(counts.sum()), PHOTON)
     ends = np.cumsum(counts)
@@ -68,7 +78,10 @@ def deposit_photons(segments: np.ndarray, kappa: np.ndarray, num_photons: int, s
         idx = np.repeat(np.arange(first, last), n)
         if len(idx):
             j = np.arange(len(idx)) - np.repeat(np.cumsum(n) - n, n)
-            c = (j + u[idx]) * W / phi[idx]          # (1 - exp(-kbar s)) / kbar at the photon
+            if independent:                          # C(s) = U * expected, U iid uniform
+                c = rng.random(len(idx)) * expected[idx] * W / phi[idx]
+            else:
+                c = (j + u[idx]) * W / phi[idx]      # (1 - exp(-kbar s)) / kbar at the photon
             s = np.minimum(-np.log1p(-kbar * c) / kbar if kbar > 0 else c, length[idx])
             pos = a[idx] + s[:, None] * d[idx]
             # power = Phi(s) / rho(s), rho(s) = phi_a exp(-kbar s) / W
@@ -165,8 +178,10 @@ class VolumetricPhotonMapping(Method):
     *Photons.* ``photons / photons_per_ray`` lighting rays are traced by
     ``clscatter.light_paths`` (the rays LSG uses: stratified emission, mirrors,
     Fresnel-split dielectrics, TIR, interior absorption, ``render.max_depth``). Along every
-    lighting segment in the medium, photons are placed at stratified positions with a
-    density proportional to the flux the segment still carries, so that ``photons``
+    lighting segment in the medium, photons are placed with a density proportional to
+    the flux the segment still carries (``deposit``: ``independent`` by default, a Poisson
+    process, each photon's position drawn on its own; ``stratified``: evenly spaced
+    with one random offset per segment), so that ``photons``
     photons of (for grey media) equal power are stored in all (:func:`deposit_photons`:
     an unbiased track-length discretisation of the lighting rays; dim branches such as
     Fresnel reflections get proportionally fewer photons). The photon map stores 20 bytes
@@ -194,7 +209,15 @@ class VolumetricPhotonMapping(Method):
     box (``knn`` 32) the total came out 0.3% low at 2 photons per ray, 0.9% at 8 and 1.5%
     at 16 to 32; on ``caustic_sphere`` (160 x 120, 1M photons, ``knn`` 32) the relMSE
     against a converged LSG render was 6.2e-4, 4.8e-4, 3.8e-4, 3.3e-4 and 3.3e-4 at 2, 8,
-    16, 32 and 64 photons per ray, hence the default.
+    16, 32 and 64 photons per ray (stratified). Those correlated photons make VPM look
+    better than the method is (32 photons on one line are worth far fewer than 32
+    independent ones, and the benchmark then weighs LSG against a cheaper tracer), so
+    the defaults are the classic photon map: independent photons, one per lighting ray
+    on average (``photons_per_ray = 1``, ``deposit = "independent"``).
+
+    *Caustic pass.* ``min_light_depth >= 1`` keeps only lighting segments after a
+    specular bounce (as LSG's caustic pass); with ``targeted`` the lights then emit only
+    towards the mirrors and glass (``clscatter.emission``), so no photon ray is wasted.
 
     *Cost.* Gather time is proportional to the number of march samples (view segments x
     length in the medium / ``dx``) times the kNN cost (~log photons + a few x ``knn``);
@@ -204,7 +227,9 @@ class VolumetricPhotonMapping(Method):
 
     Statistics: ``photons`` (stored), ``light_rays``, ``light_segments``,
     ``gather_steps`` (kNN queries), ``knn_boxes_tested``, ``knn_photons_tested``,
-    ``photon_trace_seconds``, ``photon_build_seconds`` (deposition and tree),
+    ``photon_trace_seconds``, ``photon_build_seconds`` (deposition and tree, NumPy: the
+    benchmarks report it apart from the device gather), ``vpm_targeted``,
+    ``light_rays_specular_fraction``,
     ``gather_seconds``, ``photon_map_bytes``; ``peak_bytes`` covers the whole render.
 
     The LSG paper's comparisons use ``p`` photons, ``knn`` and ``dx`` (scene extent 1);
@@ -216,15 +241,22 @@ class VolumetricPhotonMapping(Method):
     NAME = "vpm"
     PARAMS = (
         Param("photons", 1_000_000, "photons stored in the photon map", lo=1),
-        Param("photons_per_ray", 32.0, "photons per traced lighting ray (sets the ray count: "
-              "photons / photons_per_ray)", lo=0, lo_open=True),
+        Param("photons_per_ray", 1.0, "photons per traced lighting ray, on average (sets the "
+              "ray count: photons / photons_per_ray)", lo=0, lo_open=True),
+        Param("deposit", "independent", "photon placement along the lighting segments: "
+              "independent (Poisson) or stratified", choices=("independent", "stratified")),
         Param("knn", 32, "photons per density estimate", lo=2, hi=1024),
         Param("dx", 0.004, "march step, relative to the scene's extent", lo=0, lo_open=True),
         Param("max_radius", 0.05, "largest gather radius, relative to the extent", lo=0, lo_open=True),
         Param("leaf_size", 8, "least photons per kd-tree leaf (at most 2x)", lo=1, hi=4096),
         Param("segments_per_launch", 16384, "view segments per kernel launch (progress)", lo=1),
+        Param("min_light_depth", 0, "deposit photons only on lighting segments with at least "
+              "this many specular bounces (1: caustics only)", lo=0),
+        Param("targeted", True, "with min_light_depth >= 1, emit only towards mirrors and glass"),
+        Param("light_seed", 0, "selects an independent set of lighting rays and photons", lo=0),
     )
     TERMS = frozenset({"direct", "caustics"})
+    PREVIEW_SCALE = {"photons": 0.125}
 
     @classmethod
     def estimate(cls, scene, params):
@@ -235,6 +267,9 @@ class VolumetricPhotonMapping(Method):
         return [Estimate("vpm", "render.vpm.photons", photons * (72 + 64 / params["photons_per_ray"]),
                          steps * params["knn"] * 4, "photon distance tests (upper bound)")]
 
+    def targeted(self) -> bool:
+        return bool(self.params["targeted"]) and self.params["min_light_depth"] >= 1
+
     def rays(self) -> int:
         """Lighting rays to trace."""
         return max(1, round(self.params["photons"] / self.params["photons_per_ray"]))
@@ -244,13 +279,18 @@ class VolumetricPhotonMapping(Method):
         """Trace the lighting rays and build the photon map (host arrays)."""
         eng = ps.engine
         with stats.stage("photon_trace") as t_trace:
-            lp = trace_light_paths(ps, self.rays(), stats, show_progress)
-        stats.set(photon_trace_seconds=t_trace.seconds)
+            lp = trace_light_paths(ps, self.rays(), stats, show_progress,
+                                   targeted=self.targeted(), seed_offset=self.params["light_seed"])
+        stats.set(photon_trace_seconds=t_trace.seconds, vpm_targeted=self.targeted(),
+                  light_rays_specular_fraction=float(lp.specular_rays.sum()) / max(int(lp.rays.sum()), 1))
         with stats.stage("photon_build") as t_build:
             segs = lp.segments
+            if self.params["min_light_depth"] > 0:
+                segs = segs[segs["depth"] >= self.params["min_light_depth"]]
             del lp
-            seed = (ps.scene.render.seed * 1000003 + 7) & 0xFFFFFFFF
-            photons, scale = deposit_photons(segs, ps.medium["kappa"], self.params["photons"], seed)
+            seed = (ps.scene.render.seed * 1000003 + 7 + 7919 * self.params["light_seed"]) & 0xFFFFFFFF
+            photons, scale = deposit_photons(segs, ps.medium["kappa"], self.params["photons"], seed,
+                                             independent=self.params["deposit"] == "independent")
             # working sets (measured with tracemalloc): the deposition holds the segments,
             # ~180 bytes of per-segment arrays, the photons and one batch's temporaries;
             # the tree build ~BUILD_BYTES_PER_PHOTON per photon beyond the photons

@@ -29,13 +29,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ... import structs
+
 PHOTON = np.dtype([("x", np.float32), ("y", np.float32), ("z", np.float32),
                    ("dir", np.uint32), ("power", np.uint32)])
 
 PHOTON_NODE = np.dtype([("bmin", np.float32, 3), ("bmax", np.float32, 3)])
 
 # name in vpm.h -> dtype (for the layout test)
-ALL = {"Photon": PHOTON, "PhotonNode": PHOTON_NODE}
+ALL = {"Photon": structs.register_struct("vpm.h", "Photon", PHOTON),
+       "PhotonNode": structs.register_struct("vpm.h", "PhotonNode", PHOTON_NODE)}
 
 EMPTY = 1e30
 

@@ -1,0 +1,169 @@
+/* raymap.cl: batched ray-map queries and density estimation (raymap.h; host:
+ * clscatter/methods/raymap/queries.py and density.py). One work-item per query.
+ *
+ * rm_knn_batch     K nearest segments of every query (indices, distances, counts)
+ * rm_intersect     all segments meeting every query's domain, appended as (query, segment)
+ *                  pairs (a segment listed by several leaves comes more than once; the
+ *                  host removes repeats)
+ * rm_density       irradiance estimates on surfaces (Havran et al. 2005, eq. 1):
+ *                  E(x) = sum_i w(t_i) Phi_i / (pi R^2)
+ *                  over the K nearest incoming rays (ray map: RM_HEMIDISC, weights from the
+ *                  tangent-plane distance II.a; photon map: RM_SEGMENT on points), R = the
+ *                  K-th distance (the domain radius when fewer than K exist), t_i = d_i / R,
+ *                  w = 1 inside R for the box kernel, w = 2 (1 - t^2) for Epanechnikov's
+ *                  (normalised over the unit disc: int_0^1 2 (1 - t^2) 2 pi t dt = pi).
+ *                  With K found, the box kernel sums the K - 1 rays strictly inside R: for
+ *                  a Poisson process E[(K - 1) / (pi R_K^2)] is exactly the density, while
+ *                  K / (pi R_K^2) overestimates it by K / (K - 1); Epanechnikov's weight is
+ *                  0 at the K-th ray, so both kernels are unbiased for uniform density.
+ */
+#include "common.h"
+#include "raymap.h"
+
+/* this work-item's heap (raymap.h, RM_HEAP): scratch_d/x hold RM_K entries per work-item
+ * when RM_K > 256 and are unused (1 element) otherwise */
+#if RM_K > 256
+#define RM_HEAP_DECLARE \
+    __global float *hd = scratch_d + (size_t)get_global_id(0) * RM_K; \
+    __global int *hx = scratch_x + (size_t)get_global_id(0) * RM_K;
+#else
+#define RM_HEAP_DECLARE float hd[RM_K]; int hx[RM_K];
+#endif
+
+__kernel void rm_knn_batch(__global const RMNode *nodes, __global const int *refs,
+                           __global const float4 *seg_a, __global const float4 *seg_b,
+                           __global const float4 *seg_d, __global const float4 *qx,
+                           __global const float4 *qn, int num_q, int k, int metric, int domain,
+                           float radius, int incoming, float cos_alpha,
+                           __global float *scratch_d, __global int *scratch_x,
+                           __global int *out_idx, __global float *out_dist,
+                           __global int *out_count, __global int *out_work) {
+    int q = get_global_id(0);
+    if (q >= num_q) return;
+    RM_HEAP_DECLARE
+    int work[2] = {0, 0};
+    int c = rm_knn(nodes, refs, seg_a, seg_b, seg_d, qx[q], qn[q], min(k, RM_K), metric,
+                   domain, radius, incoming, cos_alpha, hd, hx, work);
+    for (int j = 0; j < k; ++j) {
+        out_idx[q * k + j] = j < c ? hx[j] : -1;
+        out_dist[q * k + j] = j < c ? hd[j] : -1.0f;
+    }
+    out_count[q] = c;
+    out_work[2 * q] = work[0];
+    out_work[2 * q + 1] = work[1];
+}
+
+__kernel void rm_intersect(__global const RMNode *nodes, __global const int *refs,
+                           __global const float4 *seg_a, __global const float4 *seg_b,
+                           __global const float4 *seg_d, __global const float4 *qx,
+                           __global const float4 *qn, __global const float *qr, int num_q,
+                           int qtype, float cos_alpha,
+                           __global int2 *pairs, int max_pairs, volatile __global int *pair_count) {
+    int q = get_global_id(0);
+    if (q >= num_q) return;
+    float4 x = qx[q], n = qn[q];
+    float r = qr[q];
+    int incoming = qtype == RM_Q_DISC || qtype == RM_Q_HEMISPHERE;
+    int stack[RM_STACK];
+    int top = 0;
+    stack[top++] = 0;
+    while (top > 0) {
+        __global const RMNode *nd = &nodes[stack[--top]];
+        /* constrained traversal (Sec. 5.3): the domain's bounding box against the cell */
+        if (qtype == RM_Q_BOX) {
+            if (any(nd->lo.xyz > n.xyz) || any(nd->hi.xyz < x.xyz)) continue;
+        } else {
+            if (rm_box_dist(nd, x) > r) continue;
+            if (qtype == RM_Q_HEMISPHERE && rm_box_above(nd, x, n) < 0.0f) continue;
+        }
+        if (nd->kind == RM_LEAF) {
+            for (int j = 0; j < nd->count; ++j) {
+                int s = refs[nd->first + j];
+                if (rm_meets(qtype, x, n, r, seg_a[s], seg_b[s], seg_d[s])) {
+                    int idx = atomic_inc(pair_count);
+                    if (idx < max_pairs) pairs[idx] = (int2)(q, s);
+                }
+            }
+            continue;
+        }
+        if (top + 2 > RM_STACK) continue;
+        if (nd->kind == RM_DIRECTIONAL && incoming && rm_covered(nd, n, cos_alpha)) {
+            stack[top++] = nd->child;
+            continue;
+        }
+        stack[top++] = nd->child + 1;
+        stack[top++] = nd->child;
+    }
+}
+
+#ifndef RM_LIST
+#define RM_LIST 48          /* leaves in a reusable candidate list */
+#endif
+
+/* Eq. (1) from the heap of a finished K-nearest query (see the header of this file). */
+float4 rm_estimate(__global const float4 *seg_a, __global const float4 *seg_d,
+                   __global const float4 *seg_flux, float4 x, float4 n, RM_HEAP const float *hd,
+                   RM_HEAP const int *hx, int c, int kk, float radius, int plane_weights, int epanechnikov) {
+    float R = c == kk ? hd[0] : radius;
+    float4 e = (float4)(0.0f);
+    if (c == 0 || !(R > 0.0f)) return e;
+    for (int j = 0; j < c; ++j) {
+        if (c == kk && j == 0 && !epanechnikov) continue;       /* the K-th: on the boundary */
+        int s = hx[j];
+        float d = plane_weights ? rm_plane_dist(x, n, seg_a[s], seg_d[s]) : hd[j];
+        float t = fmin(d / R, 1.0f);
+        float w = epanechnikov ? 2.0f * (1.0f - t * t) : 1.0f;
+        e += w * seg_flux[s];
+    }
+    e *= 1.0f / (PI_F * R * R);
+    e.w = 0.0f;
+    return e;
+}
+
+/* One work-item answers `run` consecutive queries (keep them coherent, e.g. in pixel
+ * order); with reuse_eps > 0 it reuses candidate lists between them (raymap.h). */
+__kernel void rm_density(__global const RMNode *nodes, __global const int *refs,
+                         __global const float4 *seg_a, __global const float4 *seg_b,
+                         __global const float4 *seg_d, __global const float4 *seg_flux,
+                         __global const float4 *qx, __global const float4 *qn, int num_q,
+                         int k, int metric, float radius, int plane_weights, int epanechnikov,
+                         float cos_alpha, int run, float reuse_eps,
+                         __global float *scratch_d, __global int *scratch_x,
+                         __global float4 *out_e, __global int *out_work) {
+    int first = get_global_id(0) * run;
+    if (first >= num_q) return;
+    int last = min(first + run, num_q);
+    RM_HEAP_DECLARE
+    int list[RM_LIST];
+    int nlist = -1;
+    float4 x0 = (float4)(0.0f);
+    float d0 = 0.0f;
+    int kk = min(k, RM_K);
+    int domain = metric == RM_HEMIDISC ? RM_DOM_HEMISPHERE : RM_DOM_SPHERE;
+    for (int q = first; q < last; ++q) {
+        float4 x = qx[q], n = qn[q];
+        int work[2] = {0, 0};
+        int c = -1;
+        if (nlist >= 0 && length3(x - x0) <= reuse_eps) {
+            c = 0;
+            for (int j = 0; j < nlist; ++j)
+                rm_leaf(&nodes[list[j]], refs, seg_a, seg_b, seg_d, x, n, kk, metric, domain,
+                        radius, 1, hd, hx, &c, work);
+            float dk = c == kk ? hd[0] : radius;
+            if (!(dk <= d0 + reuse_eps)) c = -1;           /* not provably exact: walk */
+        }
+        if (c < 0) {
+            c = rm_knn(nodes, refs, seg_a, seg_b, seg_d, x, n, kk, metric, domain, radius, 1,
+                       cos_alpha, hd, hx, work);
+            if (reuse_eps > 0.0f) {
+                x0 = x;
+                d0 = c == kk ? hd[0] : radius;
+                nlist = rm_collect(nodes, x, d0 + 2.0f * reuse_eps, list, RM_LIST);
+            }
+        }
+        out_e[q] = rm_estimate(seg_a, seg_d, seg_flux, x, n, hd, hx, c, kk, radius,
+                               plane_weights, epanechnikov);
+        out_work[2 * q] = work[0];
+        out_work[2 * q + 1] = work[1];
+    }
+}

@@ -1,0 +1,134 @@
+"""``raymap``: surface caustics from ray maps (Havran, Bittner, Herzog, Seidel 2005).
+
+The package: :mod:`.kdtree` (the lazy kd-tree over ray segments, LRU-bounded, with
+directional nodes), :mod:`.queries` (batched device queries and their NumPy references),
+:mod:`.density` (surface density estimation shared with ``photonmap``).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ...prepared import PreparedScene
+from ...stats import Stats
+from ...view_paths import ViewPaths
+from .. import register
+from ..base import AutoRole, Method, Param
+from .density import DensitySettings, surface_caustics
+from .kdtree import TreeParams
+
+MEDIUM_METHODS = ("lsg", "raymarch", "vpm", "none")
+
+
+def medium_term(ps: PreparedScene, paths: ViewPaths, stats: Stats, name: str,
+                show_progress: bool = True) -> np.ndarray:
+    """The medium's single scattering by the engine's method ``name`` (its own
+    ``[render.<name>]`` table applies), or zeros for "none" or no medium."""
+    from .. import get_method
+    cam = ps.scene.camera
+    zero = np.zeros((cam.height, cam.width, 3), np.float32)
+    if name == "none" or not ps.has_medium or ps.num_lights == 0:
+        return zero
+    m = get_method(name)(ps.scene.render.params.get(name) or {})
+    out = m.render(ps, paths, stats, show_progress)
+    if isinstance(out, dict):
+        return out.get("medium", zero)
+    return out
+
+
+def scene_relative(ps: PreparedScene) -> float:
+    """Normalised length of one scene extent (radii are given relative to it)."""
+    return ps.scene.scene_extent() / ps.frame.scale
+
+
+COMMON_PARAMS = (
+    Param("photons", 50_000, "lighting rays aimed at mirrors and glass, shared among lights by "
+          "the power they send there", lo=1),
+    Param("k", 64, "nearest rays (photons) per estimate", lo=2, hi=1024),
+    Param("kernel", "epanechnikov", "density estimation kernel", choices=("epanechnikov", "box")),
+    Param("max_radius", 0.05, "largest estimation radius, relative to the scene extent", lo=0,
+          lo_open=True),
+    Param("batch", 32768, "queries per kernel launch (and per lazy refinement step)", lo=1),
+    Param("medium", "lsg", "method for the medium term when run alone ('none': surfaces only)",
+          choices=MEDIUM_METHODS),
+)
+
+
+def render_surface_and_medium(method: Method, estimator: str, settings: DensitySettings,
+                              ps: PreparedScene, paths: ViewPaths, stats: Stats,
+                              show_progress: bool) -> np.ndarray | dict:
+    """Surface caustics (and the medium term unless ``medium`` is "none")."""
+    p = method.params
+    settings.max_radius = p["max_radius"] * scene_relative(ps)
+    surf = surface_caustics(ps, estimator, p["photons"], settings, stats, show_progress)
+    if p["medium"] == "none":
+        return surf
+    return {"surface": surf, "medium": medium_term(ps, paths, stats, p["medium"], show_progress)}
+
+
+@register
+class RayMapMethod(Method):
+    """``raymap``: diffuse surfaces lit through mirrors and glass, by density estimation over
+    a ray map (Havran et al. 2005), plus the medium by the engine's ``medium`` method.
+
+    Lighting rays aimed at the mirrors and glass (``clscatter.emission``, exact pdf
+    weights) are traced through them (``clscatter.light_paths``, Fresnel split,
+    ``render.max_depth``) and kept as *segments*: the last piece of every
+    branch after at least one specular bounce (ending on a diffuse or black surface, or
+    leaving the scene), with the flux it delivers. A kd-tree over the segments (every leaf
+    lists the segments crossing its cell; spatial median of the longest axis; split while
+    more than ``c_min`` references, cell diagonal above ``r_min`` of the scene diagonal,
+    depth below ``d_max``) is refined lazily by the queries, with directional nodes
+    (``alpha``) and an LRU bound (``memory_mb``) that collapses cold subtrees.
+
+    Every point where a camera path meets a diffuse surface gets the irradiance
+    ``E = sum w_i Phi_i / (pi R^2)`` from its ``k`` nearest incoming rays under the
+    paper's *hemisphere-disc* metric (a ray counts when it comes within R of the point
+    above the tangent plane and its prolongation meets the disc of radius R), weighted
+    by ``kernel`` on the distance where the ray meets the tangent plane; the pixel gets
+    ``albedo / pi * E`` times the path's throughput. Rays passing a boundary are counted
+    as if the surface went on, so edges and corners keep their brightness where a photon
+    map darkens them (boundary bias).
+
+    Run alone it renders the whole picture: direct surface light (view paths) + surface
+    caustics + the medium (``medium``: ``lsg`` by default, which gives direct single
+    scattering and volumetric caustics). In ``auto`` it is the surface-caustic pass only.
+
+    Statistics: ``raymap_rays_stored``, ``diffuse_hits``, ``raymap_tree_nodes``,
+    ``raymap_tree_refs``, ``raymap_index_peak_bytes``, ``raymap_collapses``,
+    ``raymap_nodes_visited``, ``raymap_refs_tested``; stages ``raymap_trace``,
+    ``raymap_build``, ``raymap_estimate``.
+
+    Usage: ``clscatter render builtin:caustic_sphere --method raymap --set render.raymap.k=128``
+    """
+
+    NAME = "raymap"
+    PARAMS = COMMON_PARAMS + (
+        Param("c_min", 32, "split kd-tree nodes with more references than this (C_min)", lo=1),
+        Param("r_min", 0.001, "... whose diagonal exceeds this fraction of the scene diagonal (R_min)",
+              lo=0),
+        Param("d_max", 30, "... and whose depth is below this (D_max)", lo=1, hi=40),
+        Param("alpha", 10.0, "directional nodes: extension angle in degrees (0: none)", lo=0, hi=45),
+        Param("memory_mb", 128.0, "LRU bound on the kd-tree index in MB (0: none)", lo=0),
+        Param("lazy", True, "build the kd-tree lazily, driven by the queries"),
+    )
+    TERMS = frozenset({"surface_caustics", "direct", "caustics"})
+    PREVIEW_SCALE = {"photons": 0.125}
+    AUTO = {"surface_caustics": AutoRole(priority=10, params={"medium": "none"})}
+
+    def settings(self) -> DensitySettings:
+        p = self.params
+        tree = TreeParams(c_min=p["c_min"], r_min=p["r_min"], d_max=p["d_max"], alpha_deg=p["alpha"],
+                          max_bytes=int(p["memory_mb"] * (1 << 20)))
+        return DensitySettings(k=p["k"], kernel=p["kernel"], batch=p["batch"], lazy=p["lazy"], tree=tree)
+
+    def render(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
+               show_progress: bool = True) -> np.ndarray | dict:
+        """Surface caustics (H, W, 3); run alone, ``{"surface", "medium"}``."""
+        return render_surface_and_medium(self, "raymap", self.settings(), ps, paths, stats,
+                                         show_progress)
+
+    def surface_caustics(self, ps: PreparedScene, stats: Stats, show_progress: bool = True) -> np.ndarray:
+        """The surface-caustic image alone (H, W, 3)."""
+        s = self.settings()
+        s.max_radius = self.params["max_radius"] * scene_relative(ps)
+        return surface_caustics(ps, "raymap", self.params["photons"], s, stats, show_progress)

@@ -1,0 +1,172 @@
+"""Surface density estimation from lighting rays: the ray map (hemisphere-disc, Havran et
+al. 2005 Sec. 4.2) and the photon map (Jensen 1996), sharing everything but the query.
+
+Both start from the same lighting rays (:func:`caustic_pieces`: the light tracer's
+:data:`~clscatter.structs.RAY_PIECE` records after at least one specular bounce) and
+estimate irradiance with eq. (1) of the paper, ``E(x) = sum_i w_i Phi_i / (pi R^2)``
+(``rm_density`` in ``cl_kernels/raymap.cl``):
+
+* **photon map**: the pieces that end on diffuse surfaces, as points (their end points),
+  the K nearest incoming ones by Euclidean distance; R = distance of the K-th;
+* **ray map**: every piece as a segment (also those that end on black surfaces or leave the
+  scene: they pass by boundaries), the K nearest incoming ones under max(II.a, distance to
+  the part above the tangent plane), i.e. the rays that meet a hemisphere of radius R and
+  whose prolongation meets its disc; kernel weights from the tangent-plane distance II.a.
+
+Near a boundary (an edge, a corner, the rim of a caustic on a small object) the photon
+map's disc covers area that received no photons, so it underestimates; the ray map counts
+the rays that pass the boundary as if the surface went on (no boundary bias).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ... import structs
+from ...light_paths import trace_light_paths
+from ...stats import Stats, progress
+from .kdtree import TreeParams
+from .queries import RayMap, _f4, heap_define, heap_scratch
+
+ESTIMATORS = ("raymap", "photonmap")
+KERNELS = ("box", "epanechnikov")
+
+
+@dataclass
+class DensitySettings:
+    """What a surface estimate needs (radii in the normalised frame)."""
+
+    k: int = 64
+    kernel: str = "epanechnikov"
+    max_radius: float = 0.05
+    batch: int = 32768
+    lazy: bool = True
+    run: int = 1                 # queries per work-item (consecutive, coherent)
+    reuse_eps: float = 0.0       # candidate-list reuse distance (Sec. 6.3); 0 = off
+    tree: TreeParams = field(default_factory=TreeParams)
+
+
+def caustic_pieces(ps, rays: int, stats: Stats | None = None, show_progress: bool = True,
+                   min_depth: int = 1, targeted: bool = True) -> np.ndarray:
+    """Lighting-ray pieces that carry light through mirrors or glass (``depth >=
+    min_depth``), ending on a surface or leaving the scene (normalised frame).
+    ``targeted``: emit only towards the specular objects (``clscatter.emission``, exact
+    pdf weights), since light that never meets one is not kept anyway."""
+    lp = trace_light_paths(ps, rays, stats, show_progress, pieces=True,
+                           targeted=targeted and min_depth >= 1)
+    p = lp.segments
+    return p[p["depth"] >= min_depth]
+
+
+def build_map(engine, pieces: np.ndarray, estimator: str, settings: DensitySettings) -> RayMap:
+    """The ray map (segments) or photon map (diffuse end points) of ``pieces``."""
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"estimator must be one of {ESTIMATORS}")
+    if estimator == "photonmap":
+        pieces = pieces[pieces["end"] == structs.PIECE_DIFFUSE]
+    a = pieces["a"][:, :3].astype(np.float64)
+    b = pieces["b"][:, :3].astype(np.float64)
+    d = b - a
+    length = np.linalg.norm(d, axis=1, keepdims=True)
+    d = np.where(length > 0, d / np.where(length > 0, length, 1.0), 0.0)
+    return RayMap(engine, a, b, d, pieces["flux"][:, :3].astype(np.float64), settings.tree,
+                  points=estimator == "photonmap", lazy=settings.lazy)
+
+
+def lazy_radius(rmap: RayMap, x: np.ndarray, k: int, max_radius: float) -> np.ndarray:
+    """Per query, the region the lazy tree refines: the distance to the K-th nearest ray
+    end point (scipy's point kd-tree), at most ``max_radius``. The ray map's K nearest
+    rays mostly end near the query; the refinement only steers the work, the query
+    itself is exact whatever the tree."""
+    from scipy.spatial import cKDTree
+    if len(rmap.b) == 0:
+        return np.full(len(x), max_radius)
+    kk = min(k, len(rmap.b))
+    tree = getattr(rmap, "_end_points", None)
+    if tree is None:
+        tree = rmap._end_points = cKDTree(rmap.b)          # once per map, not per batch
+    dist, _ = tree.query(x, k=[kk], workers=1)
+    return np.minimum(dist[:, 0] * 1.01, max_radius)
+
+
+def estimate(rmap: RayMap, x: np.ndarray, n: np.ndarray, estimator: str,
+             settings: DensitySettings, show_progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Irradiance (Q, 3) at points ``x`` with unit normals ``n`` (normalised frame) and the
+    work per query (Q, 2: nodes visited, references tested). Queries run in batches of
+    ``settings.batch`` in the given order (keep them coherent, e.g. in pixel order): each
+    batch refines the lazy tree, then one kernel launch answers it."""
+    eng = rmap.engine
+    x = np.asarray(x, np.float64).reshape(-1, 3)
+    n = np.asarray(n, np.float64).reshape(-1, 3)
+    nq = len(x)
+    out = np.zeros((nq, 3), np.float32)
+    work = np.zeros((nq, 2), np.int64)
+    if nq == 0 or len(rmap.b) == 0:
+        return out, work
+    metric = 3 if estimator == "raymap" else 1     # RM_HEMIDISC / RM_SEGMENT (points)
+    k = int(settings.k)
+    batch = settings.batch
+    if heap_define(k)["RM_K"] > 256:        # global heaps: bound their scratch (~64 MB)
+        batch = max(1, min(batch, 8192 * max(1, int(settings.run))))
+    with progress(nq, f"{estimator} density", show_progress) as bar:
+        for start in range(0, nq, batch):
+            sl = slice(start, min(nq, start + batch))
+            xb, nb = x[sl], n[sl]
+            m = len(xb)
+            rmap.prepare(xb, nb, lazy_radius(rmap, xb, k, settings.max_radius) if rmap.lazy else 0.0)
+            run = max(1, int(settings.run))
+            bufs = [eng.to_device(_f4(xb)), eng.to_device(_f4(nb)), eng.empty(16 * m), eng.empty(8 * m),
+                    *heap_scratch(eng, k, (m + run - 1) // run)]
+            eng.call("raymap", "rm_density", (m + run - 1) // run, heap_define(k), **rmap.tree_args(),
+                     seg_flux=rmap.buf["seg_flux"], qx=bufs[0], qn=bufs[1], num_q=m, k=k,
+                     metric=metric, radius=settings.max_radius,
+                     plane_weights=int(estimator == "raymap"),
+                     epanechnikov=int(settings.kernel == "epanechnikov"),
+                     cos_alpha=rmap.cos_alpha, run=run, reuse_eps=settings.reuse_eps,
+                     scratch_d=bufs[4], scratch_x=bufs[5], out_e=bufs[2], out_work=bufs[3])
+            out[sl] = eng.read(bufs[2], (m, 4), np.float32)[:, :3]
+            work[sl] = eng.read(bufs[3], (m, 2), np.int32)
+            eng.free(*bufs)
+            bar.update(m)
+    return out, work
+
+
+def surface_caustics(ps, estimator: str, rays: int, settings: DensitySettings, stats: Stats,
+                     show_progress: bool = True) -> np.ndarray:
+    """Radiance (H, W, 3) of diffuse surfaces lit through mirrors and glass, seen along the
+    camera paths (directly or through specular chains): sum over diffuse hits of
+    weight * E(hit). Settings' radii are in the normalised frame."""
+    from ...view_paths import trace_diffuse_hits
+    cam = ps.scene.camera
+    img = np.zeros((cam.height, cam.width, 3), np.float32)
+    if ps.num_lights == 0:
+        return img
+    eng = ps.engine
+    with stats.stage(f"{estimator}_trace"):
+        pieces = caustic_pieces(ps, rays, stats, show_progress)
+        hits = trace_diffuse_hits(ps)
+    stats.set(**{f"{estimator}_rays_stored": int(len(pieces)), "diffuse_hits": int(len(hits))})
+    if len(pieces) == 0 or len(hits) == 0:
+        return img
+    with stats.stage(f"{estimator}_build"):
+        rmap = build_map(eng, pieces, estimator, settings)
+    try:
+        with stats.stage(f"{estimator}_estimate"):
+            e, work = estimate(rmap, hits["p"][:, :3], hits["n"][:, :3], estimator, settings,
+                               show_progress)
+        t = rmap.tree
+        stats.set(**{f"{estimator}_tree_nodes": int(t.n), f"{estimator}_tree_refs": int(t.num_refs),
+                     f"{estimator}_index_peak_bytes": int(t.peak_bytes),
+                     f"{estimator}_collapses": int(t.collapses),
+                     f"{estimator}_nodes_visited": int(work[:, 0].sum()),
+                     f"{estimator}_refs_tested": int(work[:, 1].sum())})
+        eng.note_host(t.nbytes + pieces.nbytes + hits.nbytes)
+    finally:
+        rmap.release()
+    value = hits["weight"][:, :3].astype(np.float64) * e
+    flat = np.zeros((3, cam.width * cam.height))
+    for c in range(3):
+        flat[c] = np.bincount(hits["pixel"], weights=value[:, c], minlength=cam.width * cam.height)
+    img = flat.T.reshape(cam.height, cam.width, 3).astype(np.float32)
+    return np.where(np.isfinite(img), img, 0.0).astype(np.float32)

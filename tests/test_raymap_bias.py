@@ -1,0 +1,217 @@
+"""The paper's bias study (Havran et al. 2005, Sec. 4.3, Fig. 4): density estimation on a
+convex and a concave corner lit by parallel rays and on a wave surface lit by cosine and
+parallel rays, photon map against the ray map's hemisphere-disc. 100,000 rays, K = 200,
+Epanechnikov kernel as in the paper; the reference is the flux of 50x more rays landing in
+small patches of the surface, over the patches' true area. Estimates are averaged over 24
+positions along the extruded (z) direction, which averages noise out and leaves the bias.
+
+Measured (this file's seeds; mean |E / E_ref - 1| over the path points within 0.02 of the
+edge for the corners (inside the typical estimation radius R ~ 0.025), over one period
+for the wave; the reference itself has ~1.5 % noise):
+
+=========================  ==========  ===================
+scene                      photon map  ray map (hemi-disc)
+=========================  ==========  ===================
+convex corner (edge)       36.4 %      1.5 %
+concave corner             33.8 %      7.9 %
+wave, cosine rays          2.6 %       2.1 %
+wave, parallel rays        2.8 %       2.1 %
+=========================  ==========  ===================
+
+At the convex edge the photon map falls to 0.51 of the true irradiance (half its disc
+is off the surface); the ray map stays within 1.2 %. In the concave corner the photon
+map also reads 0.51 at the corner line, the ray map 0.84: rays that the wall stops more
+than R above the floor do not meet the hemisphere although their prolongation meets
+the disc, so part of the disc behind the wall stays uncounted.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from clscatter.methods.raymap.density import DensitySettings, estimate
+from clscatter.methods.raymap.kdtree import TreeParams
+from clscatter.methods.raymap.queries import RayMap
+
+N_RAYS, K, REF_FACTOR, Z = 100_000, 200, 50, 0.5
+Z_EVAL = 0.35        # estimates (and the wave's reference) over |z| <= Z_EVAL: the source is finite in z
+D_PAR = np.array([-1.0, -2.0, 0.0]) / math.sqrt(5.0)     # parallel rays, slanting to -x
+SETTINGS = DensitySettings(k=K, kernel="epanechnikov", max_radius=0.2, batch=4096,
+                           tree=TreeParams())
+
+
+def _parallel(n, x_lo, x_hi, y0, rng):
+    """Rays of direction D_PAR starting on the plane y = y0; flux so that a horizontal
+    surface receives irradiance 1."""
+    o = np.c_[rng.uniform(x_lo, x_hi, n), np.full(n, y0), rng.uniform(-Z, Z, n)]
+    return o, np.tile(D_PAR, (n, 1)), (x_hi - x_lo) * 2 * Z / n
+
+
+def convex_corner(n, rng):
+    """Step edge: top y = 0 (x < 0), side x = 0 (y in [-1, 0], facing +x), ground y = -1."""
+    o, d, f = _parallel(n, -1.0, 1.5, 0.5, rng)
+    t_top = (0.0 - o[:, 1]) / d[:, 1]
+    x_top = o[:, 0] + t_top * d[:, 0]
+    t_side = (0.0 - o[:, 0]) / d[:, 0]
+    y_side = o[:, 1] + t_side * d[:, 1]
+    t_gnd = (-1.0 - o[:, 1]) / d[:, 1]
+    t = np.where(x_top <= 0, t_top, np.where((y_side <= 0) & (y_side >= -1), t_side, t_gnd))
+    on_top = x_top <= 0
+    return o, o + t[:, None] * d, d, f, on_top
+
+
+def concave_corner(n, rng):
+    """Floor y = 0 (x > 0) and wall x = 0 (y in [0, 1], facing +x)."""
+    o, d, f = _parallel(n, -0.5, 1.5, 1.0, rng)
+    t_floor = (0.0 - o[:, 1]) / d[:, 1]
+    x_floor = o[:, 0] + t_floor * d[:, 0]
+    t_wall = (0.0 - o[:, 0]) / d[:, 0]
+    t = np.where(x_floor >= 0, t_floor, t_wall)
+    ok = (x_floor >= 0) | (o[:, 0] >= 0)                  # rays starting behind the wall: none
+    return o[ok], (o + t[:, None] * d)[ok], d[ok], f, (x_floor >= 0)[ok]
+
+
+WAVE_L, WAVE_A = 0.25, 0.03
+
+
+def wave_y(x):
+    return WAVE_A * np.sin(2 * math.pi * x / WAVE_L)
+
+
+def wave_dy(x):
+    return WAVE_A * 2 * math.pi / WAVE_L * np.cos(2 * math.pi * x / WAVE_L)
+
+
+def wave(n, rng, cosine, roi=None):
+    """Height field y = A sin(2 pi x / L) over x in [-1, 1]; rays from y = 0.2, straight down
+    (parallel) or cosine-distributed (an area light's indirect-like distribution). ``roi``
+    (x0, x1): keep only the rays whose crossing of the slab |y| <= A overlaps it (the
+    reference needs only those)."""
+    o = np.c_[rng.uniform(-1.0, 1.0, n), np.full(n, 0.2), rng.uniform(-Z, Z, n)]
+    if cosine:
+        u1, u2 = rng.random(n), rng.random(n)
+        r, phi = np.sqrt(u1), 2 * math.pi * u2
+        d = np.c_[r * np.cos(phi), -np.sqrt(1 - u1), r * np.sin(phi)]
+    else:
+        d = np.tile([0.0, -1.0, 0.0], (n, 1))
+    flux = 2 * 2 * Z / n
+    if roi is not None:
+        xa = o[:, 0] + (0.2 - WAVE_A) / -d[:, 1] * d[:, 0]
+        xb = o[:, 0] + (0.2 + WAVE_A) / -d[:, 1] * d[:, 0]
+        keep = (np.maximum(xa, xb) >= roi[0]) & (np.minimum(xa, xb) <= roi[1])
+        o, d = o[keep], d[keep]
+        n = len(o)
+    # first crossing of the height field: 48 samples across the slab |y| <= A (the wave's
+    # phase advances 2 A k tan(theta) there: < pi/4 per sample below 88 degrees), bisection
+    t = np.empty(n)
+    frac = np.linspace(0.0, 1.0, 49)
+    for c in range(0, n, 1 << 17):
+        oc, dc = o[c:c + (1 << 17)], d[c:c + (1 << 17)]
+        t0 = (0.2 - WAVE_A) / -dc[:, 1]
+        t1 = (0.2 + WAVE_A) / -dc[:, 1]
+        ts = t0[:, None] + (t1 - t0)[:, None] * frac[None]
+        below = oc[:, 1, None] + ts * dc[:, 1, None] <= wave_y(oc[:, 0, None] + ts * dc[:, 0, None])
+        first = np.argmax(below, axis=1)
+        rows = np.arange(len(oc))
+        lo, hi = ts[rows, np.maximum(first - 1, 0)], ts[rows, first]
+        for _ in range(25):
+            mid = 0.5 * (lo + hi)
+            bb = oc[:, 1] + mid * dc[:, 1] <= wave_y(oc[:, 0] + mid * dc[:, 0])
+            hi, lo = np.where(bb, mid, hi), np.where(bb, lo, mid)
+        t[c:c + (1 << 17)] = hi
+    return o, o + t[:, None] * d, d, flux, np.ones(n, bool)
+
+
+def _reference(scene, rng, bins, area):
+    """Flux of REF_FACTOR x N_RAYS rays landing in x-bins of the surface / true areas."""
+    acc = np.zeros(len(bins) - 1)
+    for _ in range(REF_FACTOR // 10):
+        o, b, d, f, on = scene(10 * N_RAYS, rng)
+        acc += np.histogram(b[on, 0], bins)[0] * f / (REF_FACTOR // 10)
+    return acc / area
+
+
+def _estimates(engine, o, b, d, f, on, xs, ys, normals):
+    zs = np.linspace(-Z_EVAL, Z_EVAL, 24)
+    q = np.array([[x, y, z] for x, y in zip(xs, ys) for z in zs])
+    nq = np.repeat(normals, len(zs), axis=0)
+    out = {}
+    flux = np.full((len(o), 3), f)
+    for est in ("photonmap", "raymap"):
+        if est == "photonmap":
+            rm = RayMap(engine, b[on], b[on], d[on], flux[on], SETTINGS.tree, points=True, lazy=True)
+        else:
+            rm = RayMap(engine, o, b, d, flux, SETTINGS.tree, lazy=True)
+        e, _ = estimate(rm, q, nq, est, SETTINGS)
+        rm.release()
+        out[est] = e[:, 0].reshape(len(xs), len(zs)).mean(1)
+    return out
+
+
+_REPORT: dict = {}
+
+
+def _errors(name, est, ref, near):
+    res = {k: float(np.mean(np.abs(v[near] / ref[near] - 1))) for k, v in est.items()}
+    res_all = {k + "_all": float(np.mean(np.abs(v / ref - 1))) for k, v in est.items()}
+    _REPORT[name] = {**res, **res_all}
+    print(name, _REPORT[name])
+    print("  ref", np.round(ref, 3), {k: np.round(v, 3) for k, v in est.items()})
+    return res
+
+
+@pytest.mark.parametrize("kind", ["convex", "concave"])
+def test_corner_boundary_bias(engine, kind):
+    rng = np.random.default_rng(21 if kind == "convex" else 22)
+    scene = convex_corner if kind == "convex" else concave_corner
+    o, b, d, f, on = scene(N_RAYS, rng)
+    s = np.array([0.001, 0.003, 0.006, 0.01, 0.015, 0.02, 0.03, 0.05, 0.08, 0.12])
+    xs = -s if kind == "convex" else s                 # along the lit face, towards the edge
+    e = _estimates(engine, o, b, d, f, on, xs, np.zeros_like(xs), np.tile([0.0, 1.0, 0.0], (len(xs), 1)))
+    h = 0.001
+    bins = np.sort(np.r_[xs - h, xs + h])
+    ref = _reference(scene, np.random.default_rng(99), bins, 2 * h * 2 * Z)[::2]
+    ref = ref if kind == "concave" else ref            # bins are sorted by x
+    order = np.argsort(xs)
+    ref_at = np.empty_like(ref)
+    ref_at[order] = ref
+    assert np.allclose(ref_at, 1.0, rtol=0.05)         # the reference: uniform irradiance 1
+    err = _errors(kind + "_corner", e, ref_at, s <= 0.02)
+    # the hemisphere-disc removes the convex edge's boundary bias and most of the concave
+    # corner's (there, rays stopped by the wall higher than R above the floor miss the
+    # hemisphere although their prolongation meets the disc: ~0.84 at the corner line)
+    assert err["raymap"] < (0.03 if kind == "convex" else 0.12)
+    assert err["photonmap"] > 3 * err["raymap"]
+
+
+@pytest.mark.parametrize("cosine", [True, False])
+def test_wave_topological_bias(engine, cosine):
+    rng = np.random.default_rng(31 + cosine)
+    o, b, d, f, on = wave(N_RAYS, rng, cosine)
+    xs = np.linspace(-0.25, 0.0, 11)                   # one period: crest, trough
+    ys = wave_y(xs)
+    nrm = np.c_[-wave_dy(xs), np.ones_like(xs), np.zeros_like(xs)]
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    e = _estimates(engine, o, b, d, f, on, xs, ys, nrm)
+    h = 0.002
+    bins = np.r_[xs - h, xs + h]
+    order = np.argsort(bins)
+    fine = np.linspace(-h, h, 201)
+    arc = np.array([np.trapezoid(np.sqrt(1 + wave_dy(x + fine) ** 2), x + fine) for x in xs])
+    acc = np.zeros(len(xs))
+    rr = np.random.default_rng(98)
+    for _ in range(REF_FACTOR // 10):
+        o2, b2, _, f2, _ = wave(10 * N_RAYS, rr, cosine, (xs[0] - h, xs[-1] + h))
+        idx = np.searchsorted(xs - h, b2[:, 0]) - 1
+        ok = (idx >= 0) & (idx < len(xs)) & (b2[:, 0] <= xs[np.clip(idx, 0, len(xs) - 1)] + h)
+        ok &= np.abs(b2[:, 2]) <= Z_EVAL              # where the estimates are taken
+        acc += np.bincount(idx[ok], minlength=len(xs)) * f2 / (REF_FACTOR // 10)
+    ref = acc / (arc * 2 * Z_EVAL)
+    if not cosine:                                     # parallel: E = cos of the slope, exactly
+        assert np.allclose(ref, nrm[:, 1], rtol=0.02)
+    err = _errors("wave_" + ("cosine" if cosine else "parallel"), e, ref, np.ones(len(xs), bool))
+    # over a period the hemisphere-disc is closer to the reference than the photon map
+    # (less topological bias at crests and troughs; both carry ~1.5% noise here)
+    assert err["raymap"] < min(err["photonmap"], 0.03)

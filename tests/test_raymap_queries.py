@@ -1,0 +1,147 @@
+"""Ray-map kd-tree and queries against brute force over every segment (NumPy, float64):
+every intersection domain returns the same set, every K-nearest metric the same K, for
+static, lazy, directional and LRU-collapsed trees alike."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from clscatter.methods.raymap.kdtree import LEAF, DIRECTIONAL, SegmentTree, TreeParams
+from clscatter.methods.raymap.queries import RayMap, intersect, knn, knn_np, meets_np
+
+
+def _segments(n, seed=1):
+    """Random segments in the unit cube: long and short, mostly falling downwards."""
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(-0.5, 0.5, (n, 3))
+    d = rng.normal(size=(n, 3))
+    d[:, 1] = -np.abs(d[:, 1]) - 0.3
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    length = rng.exponential(0.15, n)
+    b = a + length[:, None] * d
+    return a, b, d
+
+
+def _queries(q, seed=2):
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-0.45, 0.45, (q, 3))
+    n = rng.normal(size=(q, 3))
+    n[:, 1] = np.abs(n[:, 1]) + 1.0          # roughly facing up: the rays come in
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return x, n
+
+
+SMALL = TreeParams(c_min=8, r_min=1e-3, d_max=30, alpha_deg=10.0, dir_min_depth=3, dir_max_diag=0.6)
+
+
+def test_static_tree_references_exactly_the_crossed_cells():
+    a, b, d = _segments(600)
+    t = SegmentTree(a, b, d, SMALL)
+    t.build_static()
+    assert t.n > 50
+    t.check()
+    counts = np.bincount(t.ref_node, minlength=t.n)
+    leaves = t.kind[:t.n] == LEAF
+    diag = np.linalg.norm(t.hi[:t.n] - t.lo[:t.n], axis=1)
+    # every leaf stops for one of the paper's three criteria
+    assert np.all((counts[leaves] <= 8) | (diag[leaves] <= 1e-3 * t.diag) | (t.depth[:t.n][leaves] >= 30))
+
+
+@pytest.mark.parametrize("kind", ["disc", "hemisphere", "sphere", "box"])
+def test_intersection_queries_match_brute_force(engine, kind):
+    a, b, d = _segments(3000)
+    x, n = _queries(200)
+    r = np.random.default_rng(3).uniform(0.02, 0.12, len(x))
+    if kind == "box":
+        x, n = x - r[:, None], x + r[:, None] * np.array([1.0, 0.5, 2.0])
+    results = []
+    for lazy in (False, True):
+        rm = RayMap(engine, a, b, d, np.ones_like(a), SMALL, lazy=lazy)
+        results.append(intersect(rm, kind, x, n, r))
+        if lazy:
+            assert (rm.tree.kind[:rm.tree.n] == DIRECTIONAL).any() or kind in ("sphere", "box")
+        rm.release()
+    expect = [(q, s) for q in range(len(x)) for s in np.nonzero(meets_np(kind, x[q], n[q], r[q], a, b, d))[0]]
+    expect = np.array(expect, np.int64).reshape(-1, 2)
+    assert len(expect) > 3 * len(x)                         # the test has something to find
+    for got in results:
+        assert np.array_equal(got, expect)
+
+
+@pytest.mark.parametrize("metric,domain,incoming", [
+    ("segment", "none", False), ("hemidisc", "none", True), ("hemidisc", "hemisphere", True),
+    ("plane", "sphere", True), ("line", "sphere", False), ("segment", "sphere", True)])
+def test_knn_matches_brute_force(engine, metric, domain, incoming):
+    a, b, d = _segments(3000)
+    x, n = _queries(150)
+    k, radius = 24, 0.15
+    rm = RayMap(engine, a, b, d, np.ones_like(a), SMALL, lazy=True)
+    idx, dist, work = knn(rm, x, n, k, metric, domain, radius, incoming, lazy_radius=0.05)
+    rm.release()
+    found = 0
+    for q in range(len(x)):
+        ei, ed = knn_np(metric, x[q], n[q], a, b, d, k, domain, radius, incoming)
+        m = len(ei)
+        found += m
+        got = idx[q][idx[q] >= 0]
+        assert len(got) == m
+        # same distances (float32 vs float64) and the same segments up to near-ties
+        assert np.allclose(dist[q, :m], ed, rtol=1e-4, atol=2e-6)
+        kth = ed[-1] if m else 0.0
+        sure = ed < kth - 1e-5
+        assert set(ei[sure]) <= set(got)
+    assert found > 0.8 * k * len(x)
+    if metric in ("segment", "hemidisc"):
+        # pruning works: far fewer references tested than segments
+        assert work[:, 1].mean() < 0.25 * len(a)
+
+
+def test_lru_bound_collapses_and_answers_unchanged(engine):
+    """Batches of queries in different corners; a bound far below the full tree forces
+    collapses of the least recently used subtrees; answers equal the static tree's."""
+    a, b, d = _segments(4000, seed=5)
+    x, n = _queries(400, seed=6)
+    full = SegmentTree(a, b, d, SMALL)
+    full.build_static()
+    budget = full.nbytes // 3
+    assert budget > len(a) * 4 * 2            # the root's references alone fit
+    lru = TreeParams(**{**SMALL.__dict__, "max_bytes": budget})
+    rm_lru = RayMap(engine, a, b, d, np.ones_like(a), lru, lazy=True)
+    rm_static = RayMap(engine, a, b, d, np.ones_like(a), SMALL, lazy=False)
+    order = np.argsort(x[:, 0])                 # sweep left to right: old regions go cold
+    for batch in np.array_split(order, 8):
+        i1, d1, _ = knn(rm_lru, x[batch], n[batch], 16, "hemidisc", "hemisphere", 0.2, True,
+                        lazy_radius=0.08)
+        i2, d2, _ = knn(rm_static, x[batch], n[batch], 16, "hemidisc", "hemisphere", 0.2, True)
+        assert np.array_equal(i1, i2) and np.array_equal(d1, d2)
+        assert rm_lru.tree.nbytes <= budget
+    t = rm_lru.tree
+    assert t.collapses > 0 and t.peak_bytes <= budget
+    t.check()                                   # collapsed leaves hold their cells' segments
+    rm_lru.release()
+    rm_static.release()
+
+
+def test_collapse_restores_the_unsplit_references():
+    a, b, d = _segments(800, seed=7)
+    t = SegmentTree(a, b, d, SMALL)
+    t.build_static()
+    refs_full, nodes_full = t.num_refs, t.n
+    t.now += 1                                  # everything is older than "now" ...
+    t.stamp[0] = t.now                          # ... but the root, reached by every query
+    freed = t.collapse(10 ** 12)                # collapse all it can: the root's children
+    assert freed > 0 and t.n == 3 and t.num_refs < refs_full and nodes_full > 3
+    t.check()
+
+
+def test_large_k_uses_global_heaps(engine):
+    """K above 256 keeps its heaps in a global scratch buffer (RM_K = 1024): same answers."""
+    a, b, d = _segments(3000, seed=8)
+    x, n = _queries(40, seed=9)
+    rm = RayMap(engine, a, b, d, np.ones_like(a), SMALL, lazy=True)
+    idx, dist, _ = knn(rm, x, n, 300, "segment", "none", 0.0, False, lazy_radius=0.1)
+    rm.release()
+    for q in range(len(x)):
+        ei, ed = knn_np("segment", x[q], n[q], a, b, d, 300)
+        assert np.allclose(dist[q], ed, rtol=1e-4, atol=2e-6)
+        assert set(ei[ed < ed[-1] - 1e-5]) <= set(idx[q])
