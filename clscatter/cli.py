@@ -5,6 +5,7 @@
                      [--stats FILE.json] [--device SPEC] [--exposure EV]
     clscatter relight [SCENE] -o DIR [--frames N] [--orbit light|camera] [--format png]
     clscatter check [SCENE] [--method M] [--set key=value ...] [--max-memory SIZE]
+    clscatter serve [SCENE] [--port P] [--host H] [--method M] [--set key=value ...]
     clscatter diff A B [--heatmap FILE.png] [--json]
     clscatter devices
     clscatter scenes [--dump NAME]
@@ -86,6 +87,9 @@ def _build_parser() -> argparse.ArgumentParser:
 
     v = sub.add_parser("devices", help="list OpenCL platforms and devices")
     v.add_argument("--device", default=None, help="show which device this spec chooses")
+
+    from .serve import add_serve_command       # imports no web framework until it runs
+    add_serve_command(sub)
 
     s = sub.add_parser("scenes", help="list built-in scenes")
     s.add_argument("--dump", default=None, metavar="NAME", help="print a built-in scene as TOML")
@@ -328,6 +332,11 @@ def _cmd_diff(args: argparse.Namespace) -> int:
     return diff_command(args.a, args.b, heatmap_path=args.heatmap, as_json=args.json)
 
 
+def _cmd_serve(args: argparse.Namespace) -> int:
+    from .serve import cmd_serve
+    return cmd_serve(args)
+
+
 def _cmd_devices(args: argparse.Namespace) -> int:
     from .device import choose_device, list_devices
     infos, problems = list_devices(probe=True)
@@ -374,7 +383,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return 2
     handlers = {"render": _cmd_render, "relight": _cmd_relight, "check": _cmd_check,
-                "diff": _cmd_diff,
+                "diff": _cmd_diff, "serve": _cmd_serve,
                 "devices": _cmd_devices, "scenes": _cmd_scenes}
     previous = signal.signal(signal.SIGTERM, _terminate)
     try:

@@ -14,6 +14,14 @@ if ! installed pocl-opencl-icd || ! installed ocl-icd-libopencl1; then
   $SUDO apt-get update -qq
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq pocl-opencl-icd ocl-icd-libopencl1 >/dev/null
 fi
+# headless Chromium for the browser test of `clscatter serve` (Playwright drives Debian's
+# chromium; Playwright's own browser download is not used)
+if ! command -v chromium >/dev/null 2>&1; then
+  echo "setup: installing chromium from Debian (browser test of clscatter serve)" >&2
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq chromium >/dev/null \
+    || echo "setup: chromium could not be installed; the browser test will be skipped" >&2
+fi
 PY=${PYTHON:-python3}
 if [ ! -x .venv/bin/python ]; then
   if ! $PY -m venv --system-site-packages .venv 2>/dev/null; then
@@ -23,7 +31,7 @@ if [ ! -x .venv/bin/python ]; then
     $PY -m venv --system-site-packages .venv
   fi
 fi
-if ! .venv/bin/python -c "import clscatter, pyopencl, trimesh, skimage, scipy, tqdm, OpenEXR, pytest, distributed" 2>/dev/null \
+if ! .venv/bin/python -c "import clscatter, pyopencl, trimesh, skimage, scipy, tqdm, OpenEXR, pytest, distributed, starlette, uvicorn, websockets, httpx, playwright" 2>/dev/null \
    || [ pyproject.toml -nt .venv/.installed ]; then
   echo "setup: installing clscatter and its dependencies into .venv" >&2
   .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]"

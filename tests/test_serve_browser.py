@@ -1,0 +1,140 @@
+"""The relighting page in a real browser: Playwright (Python) driving Debian's headless
+``chromium`` (``scripts/setup.sh`` installs it; Playwright's own browser downloads are not
+used). Skipped, saying why, only when Playwright or a Chromium executable is missing.
+
+Loads the page, drags the light's handle on the image, checks that the image's pixels
+change, types a new ``sigma_s`` and a bad one, checks the stats and the one-line error, and
+saves a screenshot into the test's output folder (``tmp_path``).
+"""
+from __future__ import annotations
+
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+pytest.importorskip("starlette", reason="clscatter serve needs the 'serve' extra (starlette)")
+pytest.importorskip("uvicorn", reason="clscatter serve needs the 'serve' extra (uvicorn)")
+sync_api = pytest.importorskip("playwright.sync_api",
+                               reason="Playwright is not installed (pip install playwright)")
+
+
+def _chromium() -> str | None:
+    for name in (os.environ.get("CLSCATTER_CHROMIUM"), "/usr/bin/chromium", "chromium",
+                 "chromium-browser"):
+        if name and (os.path.isfile(name) or shutil.which(name)):
+            return name if os.path.isfile(name) else shutil.which(name)
+    return None
+
+
+CHROMIUM = _chromium()
+pytestmark = pytest.mark.skipif(
+    CHROMIUM is None, reason="no Chromium executable (apt-get install chromium; scripts/setup.sh "
+                             "does this) and Playwright's browser download is not used")
+
+SPEC = "builtin:occluder"
+TINY = ["camera.resolution=[64,48]", "camera.spp=1", 'render.method="raymarch"',
+        "render.raymarch.steps=32"]
+
+
+def pixels(page) -> np.ndarray:
+    """The canvas's RGBA pixels as the page shows them."""
+    data = page.evaluate("""() => { const c = document.getElementById('frame');
+        return Array.from(c.getContext('2d').getImageData(0, 0, c.width, c.height).data); }""")
+    return np.asarray(data, dtype=np.int32).reshape(48, 64, 4)
+
+
+def wait_final(page, after: int) -> None:
+    """Until the page shows more than ``after`` full frames and is idle."""
+    page.wait_for_function(
+        f"Number(document.getElementById('frame').dataset.finals || 0) > {after} && "
+        "document.body.dataset.busy === '0'", timeout=60_000)
+
+
+def finals(page) -> int:
+    return int(page.evaluate("document.getElementById('frame').dataset.finals || '0'"))
+
+
+def test_drag_light_type_sigma_and_screenshot(tmp_path):
+    from clscatter.serve import BackgroundServer
+
+    with BackgroundServer(SPEC, TINY) as srv, sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True)
+        try:
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(srv.url)
+            wait_final(page, 0)
+            before = pixels(page)
+            assert before[..., :3].max() > 50                      # a lit image, not black
+
+            # drag the point light's handle 120 px right and 40 px up on the image
+            handle = page.locator(".handle.position")
+            box = handle.bounding_box()
+            x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+            n = finals(page)
+            page.mouse.move(x, y)
+            page.mouse.down()
+            for k in range(1, 9):
+                page.mouse.move(x + 15 * k, y - 5 * k)
+                page.wait_for_timeout(40)
+            page.mouse.up()
+            wait_final(page, n)
+            after = pixels(page)
+            changed = (np.abs(after[..., :3] - before[..., :3]).max(axis=-1) > 3).mean()
+            assert changed > 0.10, f"only {changed:.1%} of the pixels changed after the drag"
+            pos = page.input_value("#light-position")
+            assert pos != "[0, 2.6, 0]" and pos.startswith("[")
+            assert "bvh" in page.inner_text("#stats-reused")
+
+            # type sigma_s: a new frame, new stats
+            head = page.inner_text("#stats-head")
+            n = finals(page)
+            page.fill("#sigma_s", "0.35")
+            page.press("#sigma_s", "Enter")
+            wait_final(page, n)
+            assert page.inner_text("#stats-head") != head
+            assert "raymarch" in page.inner_text("#stats-run")
+            thicker = pixels(page)
+            assert np.abs(thicker[..., :3] - after[..., :3]).max() > 10
+
+            # a bad value: the command line's one-line message on the page
+            page.fill("#sigma_s", "-1")
+            page.press("#sigma_s", "Enter")
+            page.wait_for_function("document.getElementById('error').textContent.length > 0",
+                                   timeout=30_000)
+            assert page.inner_text("#error") == \
+                "medium.sigma_s: must be non-negative (got [-1, -1, -1])"
+            assert "bad" in (page.get_attribute("#sigma_s", "class") or "")
+            page.wait_for_function("document.body.dataset.busy === '0'", timeout=30_000)
+
+            # Save still gives the last good settings (the bad value changed nothing)
+            assert "disabled" not in (page.get_attribute("#save-toml", "class") or "")
+            with page.expect_download() as dl:
+                page.click("#save-toml")
+            saved = tmp_path / "saved.toml"
+            dl.value.save_as(saved)
+            assert "sigma_s = 0.35" in saved.read_text()
+
+            # orbit: drag the image itself; the camera moves and a new full frame comes
+            n = finals(page)
+            cbox = page.locator("#frame").bounding_box()
+            cx, cy = cbox["x"] + cbox["width"] * 0.2, cbox["y"] + cbox["height"] * 0.8
+            page.mouse.move(cx, cy)
+            page.mouse.down()
+            for k in range(1, 6):
+                page.mouse.move(cx + 12 * k, cy)
+                page.wait_for_timeout(40)
+            page.mouse.up()
+            wait_final(page, n)
+            assert np.abs(pixels(page)[..., :3] - thicker[..., :3]).max() > 10
+
+            shot = tmp_path / "serve_page.png"
+            page.screenshot(path=str(shot))
+            assert shot.stat().st_size > 10_000
+            print(f"screenshot: {shot}")
+            assert not errors, errors
+        finally:
+            browser.close()
