@@ -62,7 +62,7 @@ def estimate(scene, passes, settings: dict) -> list[Estimate]:
     out = [view_path_estimate(scene)]
     for p in passes:
         cls = get_method(p.method)
-        params = configure(p.method, {**(scene.render.params.get(p.method) or {}), **p.params})
+        params = configure(p.method, p.table(scene))
         out += cls.estimate(scene, params)
     return out
 

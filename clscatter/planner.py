@@ -31,7 +31,13 @@ from .scene.model import Scene
 class Pass:
     method: str
     role: str                                     # a term, or "all" for an explicit method
-    params: dict = field(default_factory=dict)    # overrides of the scene's [render.<method>]
+    params: dict = field(default_factory=dict)    # required: override [render.<method>]
+    defaults: dict = field(default_factory=dict)  # the role's defaults: [render.<method>] wins
+
+    def table(self, scene: Scene) -> dict:
+        """The parameter table this pass runs with: role defaults, then the scene's
+        ``[render.<method>]`` values, then what the role requires."""
+        return {**self.defaults, **(scene.render.params.get(self.method) or {}), **self.params}
 
 
 def needed_terms(scene: Scene) -> tuple[list[str], list[str]]:
@@ -94,13 +100,15 @@ def plan(scene: Scene, requested: str) -> tuple[list[Pass], list[str]]:
             notes.append(f"scene needs {term} but no available method computes it")
             continue
         _, name, role = max(candidates)
-        passes.append(Pass(name, term, dict(role.params or {})))
-        notes.append(f"{term} by {name}")
+        passes.append(Pass(name, term, dict(role.params or {}), dict(role.defaults or {})))
+        extra = ", ".join(f"{k} = {v}" for k, v in {**(role.defaults or {}),
+                                                    **(role.params or {})}.items())
+        notes.append(f"{term} by {name}" + (f" ({extra})" if extra else ""))
     for p in passes:
         cls = methods[p.method]
         if cls.ALONE:
             others = [f"{q.role} by {q.method}" for q in passes if q is not p]
             notes.append(f"{p.method} renders the whole image alone"
                          + (f" (instead of {', '.join(others)})" if others else ""))
-            return [Pass(p.method, "all", p.params)], notes
+            return [Pass(p.method, "all", p.params, p.defaults)], notes
     return passes, notes

@@ -218,7 +218,8 @@ class RenderSession:
         medium = np.zeros((cam.height, cam.width, 3), np.float32)
         for p in req.passes:
             stop_if_asked()
-            m = get_method(p.method)({**(scene.render.params.get(p.method) or {}), **p.params})
+            cls = get_method(p.method)
+            m = cls(cls.preview(p.table(scene)) if preview else p.table(scene))
             out = m.render(ps, paths, stats, show_progress)
             ran.append(p.method)
             if p.role == "surface_caustics":

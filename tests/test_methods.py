@@ -143,3 +143,12 @@ def test_scalars_are_converted_to_the_declared_type(engine):
         "num_segs": 5, "steps": 3, "seed": 7, "out": engine.empty(4)})
     assert [type(a) for a in args[3:4]] == [np.int32]
     assert isinstance(args[8], np.int32) and isinstance(args[9], np.uint32)
+
+
+def test_preview_parameters_scale_the_costly_ones():
+    lsg = get_method("lsg")
+    p = lsg.preview({"light_rays": 80_000, "time_budget": 10.0, "passes": 8})
+    assert p == {"light_rays": 10_000, "time_budget": 0.0, "passes": 1}
+    assert lsg.preview({})["light_rays"] == 25_000          # from the default
+    for name, cls in all_methods().items():
+        configure(name, cls.preview({}))                     # previews stay in range

@@ -106,10 +106,13 @@ class Param:
 @dataclass(frozen=True)
 class AutoRole:
     """A role a method can take in an ``auto`` plan: the highest ``priority`` among the
-    methods that suit the scene wins; ``params`` override the scene's values for that role."""
+    methods that suit the scene wins. ``params`` are what the role requires (they override
+    the scene's ``[render.<method>]`` values); ``defaults`` are the role's own defaults,
+    which the scene's values override."""
 
     priority: int
     params: dict[str, Any] | None = None
+    defaults: dict[str, Any] | None = None
 
 
 class Method:
@@ -145,6 +148,21 @@ class Method:
         """Cost estimates (:class:`clscatter.budget.Estimate`) of this pass on ``scene`` with
         checked ``params``, made before anything is allocated; [] when negligible."""
         return []
+
+    #: for previews (a relighting page while the user drags): parameters scaled by this
+    #: factor (integers rounded, at least 1) so a pass costs a fraction of its full time
+    PREVIEW_SCALE: ClassVar[dict[str, float]] = {}
+
+    @classmethod
+    def preview(cls, table: dict[str, Any]) -> dict[str, Any]:
+        """``table`` (a ``[render.<NAME>]`` table) for a fast preview: every parameter in
+        ``PREVIEW_SCALE`` scaled (from its given or default value), the rest unchanged."""
+        out = dict(table)
+        defaults = {p.name: p.default for p in cls.PARAMS}
+        for key, factor in cls.PREVIEW_SCALE.items():
+            value = out.get(key, defaults[key]) * factor
+            out[key] = max(1, int(round(value))) if isinstance(defaults[key], int) else value
+        return out
 
     def render(self, ps, paths, stats, show_progress: bool = True) -> np.ndarray:
         """Radiance (H, W, 3) this method adds to the image (its ``TERMS``)."""

@@ -94,6 +94,7 @@ class Voxel(Method):
         Param("voxelise_dielectrics", True, "voxelise dielectric objects as constant-index volumes"),
     )
     TERMS = frozenset({"direct", "volumes"})
+    PREVIEW_SCALE = {"photons": 0.25}
     AUTO = {"volumes": AutoRole(priority=10)}
     # When auto picks this method it must render the whole image alone: it computes the
     # direct term itself (raymarch outside its grid, photons inside) and voxelises glass,
