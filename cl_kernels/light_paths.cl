@@ -199,12 +199,7 @@ __kernel void trace_light(__global const BVHNode *nodes, __global const float4 *
         if (mat->type != MAT_MIRROR && mat->type != MAT_DIELECTRIC) continue;
         br.thr *= branch_attenuation(medium, materials, &br, t_hit);
         SurfaceFrame f = surface_frame(tris, normals, &hit, br.o, br.d);
-        Branch kids[2];
-        int n = specular_children(mat, mi, &br, &f, min_flux, kids);
-        for (int c = 0; c < n && top < PATH_STACK; ++c) {
-            kids[c].id = next_id++;
-            stack[top++] = kids[c];
-        }
+        push_specular(mat, mi, &br, &f, min_flux, stack, &top, PATH_STACK, &next_id);
     }
     ray_flags[gid] = flag;
 }

@@ -103,6 +103,18 @@ int specular_children(__global const Material *mat, int mi, const Branch *br,
     return n;
 }
 
+/* Push br's specular children (specular_children) onto a path stack of capacity cap,
+ * numbering them from *next_id: one place for the branching of every path tracer. */
+void push_specular(__global const Material *mat, int mi, const Branch *br, const SurfaceFrame *f,
+                   float min_weight, Branch *stack, int *top, int cap, int *next_id) {
+    Branch kids[2];
+    int n = specular_children(mat, mi, br, f, min_weight, kids);
+    for (int c = 0; c < n && *top < cap; ++c) {
+        kids[c].id = (*next_id)++;
+        stack[(*top)++] = kids[c];
+    }
+}
+
 /* The straight piece [*a, *b] of a branch before t_hit that lies in the medium (outside
  * every object, inside the medium bounds; cut at t_far when unbounded). Returns 0 when
  * there is none. Nothing attenuates the branch before *a: outside the bounds is vacuum. */

@@ -38,6 +38,41 @@ float4 camera_dir(__global const Camera *cam, int px, int py, int k, Rng *rng) {
     return normalize3(cam->forward + fx * cam->right + fy * cam->up);
 }
 
+/* The primary branch of camera sample s (pixel = s / spp): origin, stratified direction,
+ * throughput 1/spp, outside every object. Every camera-path tracer starts here. */
+Branch camera_branch(__global const Camera *cam, uint seed, int s, int *pixel) {
+    *pixel = s / cam->spp;
+    int k = s % cam->spp;
+    Rng rng = rng_seed(seed, (uint)*pixel, (uint)k);
+    float inv_spp = 1.0f / cam->spp;
+    Branch b;
+    b.o = cam->origin;
+    b.d = camera_dir(cam, *pixel % cam->width, *pixel / cam->width, k, &rng);
+    b.thr = (float4)(inv_spp, inv_spp, inv_spp, 0.0f);
+    b.depth = 0;
+    b.inside = -1;
+    b.id = 0;
+    b.pad = 0;
+    return b;
+}
+
+/* Append the medium piece [a, b] of branch br of camera sample s to the segment buffer. */
+void append_view_segment(__global ViewSegment *segs, int max_segs, volatile __global int *count,
+                         float4 a, float4 b, const Branch *br, int pixel, int s) {
+    int idx = atomic_inc(count);
+    if (idx < max_segs) {
+        ViewSegment sg;
+        sg.a = a;
+        sg.b = b;
+        sg.weight = br->thr;
+        sg.pixel = pixel;
+        sg.depth = br->depth;
+        sg.sample = s;
+        sg.branch = br->id;
+        segs[idx] = sg;
+    }
+}
+
 /* Direct light at a diffuse point p, every light: n is the shading normal and gn the
  * geometric normal, both facing the viewer (shadow rays leave along gn). */
 float4 shade_diffuse(__global const BVHNode *nodes, __global const float4 *tris,
@@ -67,23 +102,12 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
                          volatile __global int *seg_count) {
     int gid = get_global_id(0);
     if (gid >= num_samples) return;
-    int s = sample_offset + gid;
-    int pixel = s / cam->spp, k = s % cam->spp;
-    int px = pixel % cam->width, py = pixel / cam->width;
-    Rng rng = rng_seed(seed, (uint)pixel, (uint)k);
+    int s = sample_offset + gid, pixel;
     float inv_spp = 1.0f / cam->spp;
 
     Branch stack[PATH_STACK];
-    int top = 0;
-    stack[0].o = cam->origin;
-    stack[0].d = camera_dir(cam, px, py, k, &rng);
-    stack[0].thr = (float4)(inv_spp, inv_spp, inv_spp, 0.0f);
-    stack[0].depth = 0;
-    stack[0].inside = -1;
-    stack[0].id = 0;
-    stack[0].pad = 0;
-    top = 1;
-    int next_id = 1;
+    stack[0] = camera_branch(cam, seed, s, &pixel);
+    int top = 1, next_id = 1;
 
     float4 radiance = (float4)(0.0f), escape = (float4)(0.0f);
     while (top > 0) {
@@ -94,20 +118,8 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
 
         /* ---- the straight piece in the medium (the medium lies outside all objects) ---- */
         float4 a, b;
-        if (medium_piece(medium, &br, t_hit, &a, &b)) {
-            int idx = atomic_inc(seg_count);
-            if (idx < max_segs) {
-                ViewSegment sg;
-                sg.a = a;
-                sg.b = b;
-                sg.weight = br.thr;
-                sg.pixel = pixel;
-                sg.depth = br.depth;
-                sg.sample = s;
-                sg.branch = br.id;
-                segs[idx] = sg;
-            }
-        }
+        if (medium_piece(medium, &br, t_hit, &a, &b))
+            append_view_segment(segs, max_segs, seg_count, a, b, &br, pixel, s);
         if (found) br.thr *= branch_attenuation(medium, materials, &br, t_hit);
         if (!found) {
             escape += br.thr;
@@ -124,12 +136,8 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
             continue;
         }
         if (mat->type == MAT_BLACK || br.depth >= max_depth) continue;
-        Branch kids[2];
-        int n = specular_children(mat, mi, &br, &f, MIN_THROUGHPUT * inv_spp, kids);
-        for (int c = 0; c < n && top < PATH_STACK; ++c) {
-            kids[c].id = next_id++;
-            stack[top++] = kids[c];
-        }
+        push_specular(mat, mi, &br, &f, MIN_THROUGHPUT * inv_spp, stack, &top, PATH_STACK,
+                      &next_id);
     }
     surface[gid] = radiance;
     escaped[gid] = escape;
@@ -148,19 +156,10 @@ __kernel void trace_diffuse_hits(__global const BVHNode *nodes, __global const f
                                  volatile __global int *hit_count) {
     int gid = get_global_id(0);
     if (gid >= num_samples) return;
-    int s = sample_offset + gid;
-    int pixel = s / cam->spp, k = s % cam->spp;
-    int px = pixel % cam->width, py = pixel / cam->width;
-    Rng rng = rng_seed(seed, (uint)pixel, (uint)k);
+    int s = sample_offset + gid, pixel;
     float inv_spp = 1.0f / cam->spp;
     Branch stack[PATH_STACK];
-    stack[0].o = cam->origin;
-    stack[0].d = camera_dir(cam, px, py, k, &rng);
-    stack[0].thr = (float4)(inv_spp, inv_spp, inv_spp, 0.0f);
-    stack[0].depth = 0;
-    stack[0].inside = -1;
-    stack[0].id = 0;
-    stack[0].pad = 0;
+    stack[0] = camera_branch(cam, seed, s, &pixel);
     int top = 1, next_id = 1;
     while (top > 0) {
         Branch br = stack[--top];
@@ -187,12 +186,8 @@ __kernel void trace_diffuse_hits(__global const BVHNode *nodes, __global const f
             continue;
         }
         if (mat->type == MAT_BLACK || br.depth >= max_depth) continue;
-        Branch kids[2];
-        int n = specular_children(mat, mi, &br, &f, MIN_THROUGHPUT * inv_spp, kids);
-        for (int c = 0; c < n && top < PATH_STACK; ++c) {
-            kids[c].id = next_id++;
-            stack[top++] = kids[c];
-        }
+        push_specular(mat, mi, &br, &f, MIN_THROUGHPUT * inv_spp, stack, &top, PATH_STACK,
+                      &next_id);
     }
 }
 

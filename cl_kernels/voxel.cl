@@ -709,15 +709,8 @@ float4 voxel_follow(Branch first, int first_flags, int pixel, int sample, int de
                    ray_box(br.o, safe_inv_dir(br.d), gmin, gmax, 0.0f, t_hit, &tb0, &tb1);
         float t_end = stop ? tb0 : t_hit;
         float4 a, b;
-        if (!skip && medium_piece(medium, &br, t_end, &a, &b)) {
-            int idx = atomic_inc(seg_count);
-            if (idx < max_segs) {
-                ViewSegment sg;
-                sg.a = a; sg.b = b; sg.weight = br.thr; sg.pixel = pixel; sg.depth = br.depth;
-                sg.sample = sample; sg.branch = br.id;
-                segs[idx] = sg;
-            }
-        }
+        if (!skip && medium_piece(medium, &br, t_end, &a, &b))
+            append_view_segment(segs, max_segs, seg_count, a, b, &br, pixel, sample);
         if (!skip && (stop || found)) br.thr *= branch_attenuation(medium, materials, &br, t_end);
         skip = 0;
         if (stop) {
@@ -744,12 +737,7 @@ float4 voxel_follow(Branch first, int first_flags, int pixel, int sample, int de
             continue;
         }
         if (mat->type == MAT_BLACK || br.depth >= depth_limit) continue;
-        Branch kids[2];
-        int n = specular_children(mat, mi, &br, &f, min_weight, kids);
-        for (int c = 0; c < n && top < PATH_STACK; ++c) {
-            kids[c].id = next_id++;
-            stack[top++] = kids[c];
-        }
+        push_specular(mat, mi, &br, &f, min_weight, stack, &top, PATH_STACK, &next_id);
     }
     return radiance;
 }
@@ -768,16 +756,9 @@ __kernel void voxel_trace_camera(__global const BVHNode *nodes, __global const f
                                  volatile __global int *seg_count) {
     int gid = get_global_id(0);
     if (gid >= num_samples) return;
-    int s = sample_offset + gid;
-    int pixel = s / cam->spp, k = s % cam->spp;
-    int px = pixel % cam->width, py = pixel / cam->width;
-    Rng rng = rng_seed(seed, (uint)pixel, (uint)k);
+    int s = sample_offset + gid, pixel;
     float inv_spp = 1.0f / cam->spp;
-    Branch b;
-    b.o = cam->origin;
-    b.d = camera_dir(cam, px, py, k, &rng);
-    b.thr = (float4)(inv_spp, inv_spp, inv_spp, 0.0f);
-    b.depth = 0; b.inside = -1; b.id = 0; b.pad = 0;
+    Branch b = camera_branch(cam, seed, s, &pixel);
     surface[gid] = voxel_follow(b, 0, pixel, s, max_depth, nodes, tris, normals, tri_mat,
                                 materials, lights, num_lights, medium, gmin, gmax,
                                 MIN_THROUGHPUT * inv_spp, segs, max_segs, seg_count, stopped,

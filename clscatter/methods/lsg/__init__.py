@@ -11,6 +11,7 @@ from ... import structs
 from .linetree import (LINE_NODE, LineTree, PluckerFrame, build_linetree, canonical_signs,
                               plucker)
 from ...device import Engine
+from ...geometry import slab_interval
 from ...emission import targeted_fraction
 from ...light_paths import ray_counts, trace_light_paths
 from ...prepared import PreparedScene
@@ -63,17 +64,7 @@ def clip_segments(segs: np.ndarray, lo, hi, kappa) -> tuple[np.ndarray, ...]:
     ok = length > 0
     u = np.zeros_like(d)
     u[ok] = d[ok] / length[ok, None]
-    lo = np.asarray(lo, np.float64)
-    hi = np.asarray(hi, np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / u
-        t0, t1 = (lo - a) * inv, (hi - a) * inv
-    par = u == 0.0
-    inside = (a >= lo) & (a <= hi)
-    near = np.where(par, np.where(inside, -np.inf, np.inf), np.minimum(t0, t1))
-    far = np.where(par, np.where(inside, np.inf, -np.inf), np.maximum(t0, t1))
-    s0 = np.maximum(near.max(axis=1), 0.0)
-    s1 = np.minimum(far.min(axis=1), length)
+    s0, s1 = slab_interval(a, u, lo, hi, length)
     keep = np.flatnonzero(ok & (s1 > s0))
     s0 = s0[keep]
     flux = segs["flux"][keep, :3].astype(np.float64) * np.exp(-np.outer(s0, np.asarray(kappa)[:3]))

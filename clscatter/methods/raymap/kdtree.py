@@ -29,6 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...geometry import slab_interval
+
 from ...structs import register_struct
 
 # node kinds (RM_LEAF ... in raymap.h)
@@ -66,16 +68,7 @@ def clip_interval(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
     """Parameters [enter, leave] of the part of a + t (b - a), t in [0, 1], inside closed
     boxes [lo, hi] (empty when enter > leave); row-wise float64 slab test."""
-    d = b - a
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / d
-        t0 = (lo - a) * inv
-        t1 = (hi - a) * inv
-    tmin = np.where(d == 0, np.where((a >= lo) & (a <= hi), -np.inf, np.inf), np.minimum(t0, t1))
-    tmax = np.where(d == 0, np.where((a >= lo) & (a <= hi), np.inf, -np.inf), np.maximum(t0, t1))
-    enter = np.maximum(tmin.max(axis=1), 0.0)
-    leave = np.minimum(tmax.min(axis=1), 1.0)
-    return enter, leave
+    return slab_interval(a, b - a, lo, hi, 1.0)
 
 
 class SegmentTree:
