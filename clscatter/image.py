@@ -64,7 +64,6 @@ non-finite ones into the strings ``"inf"``, ``"-inf"`` and ``"nan"`` for JSON.
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 import re

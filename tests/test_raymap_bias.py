@@ -196,8 +196,6 @@ def test_wave_topological_bias(engine, cosine):
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     e = _estimates(engine, o, b, d, f, on, xs, ys, nrm)
     h = 0.002
-    bins = np.r_[xs - h, xs + h]
-    order = np.argsort(bins)
     fine = np.linspace(-h, h, 201)
     arc = np.array([np.trapezoid(np.sqrt(1 + wave_dy(x + fine) ** 2), x + fine) for x in xs])
     acc = np.zeros(len(xs))

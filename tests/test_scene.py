@@ -1,7 +1,6 @@
 """Scene loading: the TOML contract (docs/scene_format.md), overrides, validation, built-ins."""
 from __future__ import annotations
 
-import copy
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +14,7 @@ except ModuleNotFoundError:  # Python 3.10
 from clscatter.errors import SceneError
 from clscatter.scene import (BUILTIN, DEFAULT_BUILTIN, Scene, apply_overrides, builtin_toml,
                              load_scene, scene_from_dict)
-from clscatter.scene import loader, shapes
+from clscatter.scene import shapes
 
 DATA = Path(__file__).parent / "data"
 FULL = DATA / "full_scene.toml"

@@ -225,7 +225,6 @@ class Epipolar(Method):
                                 f"epipole ring ({out.info['ring_degrees']:.3g} degrees, "
                                 f"{out.info['ring_band_samples']} of them in its blended band)")
             per_light.append({"light": li, **out.info})
-        s = self.settings
         stats.set(epipolar_fallback=fallback, epipolar_lights=per_light,
                   epipolar_ring_steps=self.raymarch_steps)
         swept = [x for x in per_light if "fallback" not in x]
