@@ -1,4 +1,4 @@
-"""The caustic scenes (clscatter/scene/builtin_caustics.py): their meshes, that each loads
+"""The caustic scenes (clscatter/scene/builtin/caustics.py): their meshes, that each loads
 and renders, and LSG against a converged VPM on one of them."""
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from clscatter.render import render
 from clscatter.scene import scene_from_dict
 from clscatter.scene import procedural
 from clscatter.scene.builtin import to_toml
-from clscatter.scene.builtin_caustics import CAUSTIC_SCENES, MESH_DIR
+from clscatter.scene.builtin.caustics import CAUSTIC_SCENES, MESH_DIR
 
 
 # ---- meshes ---------------------------------------------------------------------------------

@@ -16,7 +16,7 @@ from clscatter.light_paths import trace_light_paths
 from clscatter.prepared import prepare_scene
 from clscatter.render import render
 from clscatter.scene import scene_from_dict
-from clscatter.scene.builtin_caustics import CAUSTIC_SCENES
+from clscatter.scene.builtin.caustics import CAUSTIC_SCENES
 
 HERE = Path(__file__).resolve().parent
 CAM = {"origin": [0.0, 0.0, 6.0], "target": [0.0, 0.0, 0.0], "resolution": [8, 8], "spp": 1}

@@ -2,7 +2,7 @@
 inside/outside the medium, light behind/beside/in front of the camera and along the view
 axis, directional and spot lights, wide spot cones; the error estimate and the fallback.
 
-Scenes: ``clscatter.scene.builtin_epipolar.epi_sweep`` (a 4 x 3 x 4 fog box with four
+Scenes: ``clscatter.scene.builtin.epipolar.epi_sweep`` (a 4 x 3 x 4 fog box with four
 black pillars) and ``epi_wide_spot`` (the grate under a spot light), small images.
 Where the method's own error estimate exceeds its tolerance it must ray march the light
 and say so (``epipolar_lights[i]["fallback"]``); those configurations are asserted to be
@@ -20,7 +20,7 @@ from clscatter.methods.epipolar import Epipolar
 from clscatter.methods.raymarch import RayMarch
 from clscatter.prepared import prepare_scene
 from clscatter.render import render
-from clscatter.scene.builtin_epipolar import epi_fog, epi_sweep, epi_wide_spot
+from clscatter.scene.builtin.epipolar import epi_fog, epi_sweep, epi_wide_spot
 from clscatter.scene.loader import apply_overrides, scene_from_dict
 from clscatter.stats import Stats
 from clscatter.view_paths import trace_view_paths
@@ -161,7 +161,7 @@ def test_epipole_ring_in_angle_with_a_blended_band(engine):
     <= 1e-3 and at most half the hard edge's; whole image <= 5e-4."""
     import dataclasses
     from clscatter.methods.epipolar import geometry as geo
-    from clscatter.scene.builtin_epipolar import EPIPOLAR_SCENES
+    from clscatter.scene.builtin.epipolar import EPIPOLAR_SCENES
     W, H = 96, 72
     d = apply_overrides(EPIPOLAR_SCENES["epi_sun"](), [f"camera.resolution=[{W}, {H}]", "camera.spp=1"])
     ps = prepare_scene(scene_from_dict(d), engine)

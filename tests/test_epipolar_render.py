@@ -13,7 +13,7 @@ from clscatter.methods.epipolar import Epipolar
 from clscatter.prepared import prepare_scene
 from clscatter.view_paths import trace_view_paths
 from clscatter.render import render
-from clscatter.scene.builtin_epipolar import EPIPOLAR_SCENES, load_epipolar_scene
+from clscatter.scene.builtin.epipolar import EPIPOLAR_SCENES, load_epipolar_scene
 from clscatter.scene.loader import scene_from_dict
 from clscatter.stats import Stats
 

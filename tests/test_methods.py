@@ -119,6 +119,24 @@ def test_kernel_signature_parsing():
         kernel_signature(src, "decoy")
 
 
+def test_kernel_signature_follows_cl_includes(tmp_path):
+    """A kernel defined in a ``.cl`` file that the program's file ``#include``s is found
+    (``voxel_direct.cl`` builds ``raymarch.cl``'s kernel); headers are not entry points."""
+    from clscatter.device import program_signature
+    (tmp_path / "a.cl").write_text('#include "h.h"\n// #include "decoy.cl"\n#include "b.cl"\n'
+                                   "__kernel void own(int x) { }\n")
+    (tmp_path / "b.cl").write_text('#include "c.cl"\n__kernel void mid(float y) { }\n')
+    (tmp_path / "c.cl").write_text("__kernel void deep(__global int *z, int n) { }\n")
+    (tmp_path / "decoy.cl").write_text("__kernel void decoy(int q) { }\n")
+    assert [p.name for p in program_signature("a", "own", tmp_path)] == ["x"]
+    assert [p.name for p in program_signature("a", "mid", tmp_path)] == ["y"]
+    assert [(p.name, p.pointer) for p in program_signature("a", "deep", tmp_path)] == [
+        ("z", True), ("n", False)]
+    with pytest.raises(KernelArgError, match="decoy"):
+        program_signature("a", "decoy", tmp_path)
+    assert program_signature("voxel_direct", "raymarch") == program_signature("raymarch", "raymarch")
+
+
 def test_keyword_launch_runs_and_checks_names(engine):
     a = np.arange(16, dtype=np.float32)
     ab, ob = engine.to_device(a), engine.empty(a.nbytes)

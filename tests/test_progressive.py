@@ -16,7 +16,7 @@ from clscatter.methods.lsg import LineSpaceGathering, ppb_radii
 from clscatter.prepared import prepare_scene
 from clscatter.render import render
 from clscatter.scene import scene_from_dict
-from clscatter.scene.builtin_caustics import CAUSTIC_SCENES
+from clscatter.scene.builtin.caustics import CAUSTIC_SCENES
 from clscatter.stats import Stats
 from clscatter.view_paths import accumulate_segments, trace_view_paths
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from clscatter.render import render
-from clscatter.scene.builtin_volumes import VOLUME_SCENES
+from clscatter.scene.builtin.volumes import VOLUME_SCENES
 from clscatter.scene.loader import scene_from_dict
 
 

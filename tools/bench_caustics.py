@@ -58,7 +58,7 @@ from clscatter.image import relmse, write_image                 # noqa: E402
 from clscatter.prepared import prepare_scene
 from clscatter.view_paths import trace_view_paths     # noqa: E402
 from clscatter.scene import scene_from_dict                     # noqa: E402
-from clscatter.scene.builtin_caustics import CAUSTIC_SCENES     # noqa: E402
+from clscatter.scene.builtin.caustics import CAUSTIC_SCENES     # noqa: E402
 from clscatter.stats import Stats, write_json                   # noqa: E402
 
 OUT = REPO / "bench_out" / "caustics"

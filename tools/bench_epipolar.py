@@ -2,7 +2,7 @@
 """Benchmark: the epipolar method (Baran et al. 2010) against brute-force ``raymarch``.
 
 For each scene of rising shadow complexity (``epi_window``, ``epi_grille``,
-``epi_forest``; clscatter/scene/builtin_epipolar.py), plus issue 8's thick fog seen from
+``epi_forest``; clscatter/scene/builtin/epipolar.py), plus issue 8's thick fog seen from
 outside with the sun behind the camera (``epi_fog``: optical depth 4.4, where the method
 raises its SVD terms/light rays on its own error estimate), at 1280 x 960, 1 spp:
 
@@ -61,7 +61,7 @@ from clscatter.methods.epipolar import Epipolar
 from clscatter.methods.raymarch import RayMarch
 from clscatter.prepared import prepare_scene
 from clscatter.view_paths import trace_view_paths
-from clscatter.scene.builtin_epipolar import load_epipolar_scene
+from clscatter.scene.builtin.epipolar import load_epipolar_scene
 from clscatter.stats import Stats, write_json
 
 SCENES = ("epi_window", "epi_grille", "epi_forest", "epi_fog")

@@ -55,7 +55,7 @@ from clscatter.device import get_engine                         # noqa: E402
 from clscatter.methods import get_method                        # noqa: E402
 from clscatter.prepared import prepare_scene                    # noqa: E402
 from clscatter.scene import scene_from_dict                     # noqa: E402
-from clscatter.scene.builtin_caustics import CAUSTIC_SCENES     # noqa: E402
+from clscatter.scene.builtin.caustics import CAUSTIC_SCENES     # noqa: E402
 from clscatter.stats import Stats                               # noqa: E402
 from clscatter.view_paths import accumulate_segments, trace_view_paths   # noqa: E402
 

@@ -49,7 +49,7 @@ from clscatter.methods.raymap.density import (DensitySettings, build_map,  # noq
 from clscatter.methods.raymap.queries import knn, knn_np                 # noqa: E402
 from clscatter.prepared import prepare_scene                             # noqa: E402
 from clscatter.scene import scene_from_dict                              # noqa: E402
-from clscatter.scene.builtin_caustics import CAUSTIC_SCENES              # noqa: E402
+from clscatter.scene.builtin.caustics import CAUSTIC_SCENES              # noqa: E402
 from clscatter.view_paths import trace_diffuse_hits                      # noqa: E402
 
 OUT = REPO / "bench_out" / "raymap"

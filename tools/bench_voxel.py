@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 def stage_table(quick: bool) -> list[dict]:
     from clscatter.methods.voxel.relight import Relighter
-    from clscatter.scene.builtin_volumes import VOLUME_SCENES
+    from clscatter.scene.builtin.volumes import VOLUME_SCENES
     from clscatter.scene.loader import scene_from_dict
     grids = (64,) if quick else (64, 128)
     images = (256,) if quick else (256, 512)
@@ -129,7 +129,7 @@ def adaptive_vs_fixed_glass(resolution: int = 64, photons: int = 1 << 16) -> lis
     from clscatter.methods.voxel.photons import MarchSettings, light_pass
     from clscatter.methods.voxel.pipeline import Pipeline
     from clscatter.prepared import prepare_scene
-    from clscatter.scene.builtin_volumes import VOLUME_SCENES
+    from clscatter.scene.builtin.volumes import VOLUME_SCENES
     from clscatter.scene.loader import scene_from_dict
     eng = get_engine()
     s = as_volume_scene(scene_from_dict(VOLUME_SCENES["volume_glass"]()), True)

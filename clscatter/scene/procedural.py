@@ -3,7 +3,7 @@
 Each generator returns ``(vertices (V, 3) float64, faces (F, 3) int64)``; closed meshes
 are wound counter-clockwise seen from outside (the renderer decides entering/leaving a
 dielectric by the winding). ``tools/make_caustic_meshes.py`` writes them as the small
-OBJ files in ``clscatter/scene/meshes/`` that ``builtin_caustics.py`` references, so
+OBJ files in ``clscatter/scene/meshes/`` that ``builtin/caustics.py`` references, so
 scenes load without regenerating anything; :func:`write_obj` is that writer.
 """
 from __future__ import annotations

@@ -24,9 +24,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable
 
-from .builtin import _RENDER, _camera, _floor
+from .parts import RENDER as _RENDER, camera as _camera, floor as _floor
 
-MESH_DIR = Path(__file__).resolve().parent / "meshes"
+MESH_DIR = Path(__file__).resolve().parents[1] / "meshes"
 
 _FLOOR = {"type": "diffuse", "albedo": 0.55}
 _BOX = {"min": [-2.5, 0.0, -2.5], "max": [2.5, 3.6, 2.5]}

@@ -1,6 +1,6 @@
 """Built-in scenes with graded-index ``[[volumes]]`` (the voxel pipeline, Sun et al. 2008).
 
-Dicts in the TOML schema of docs/scene_format.md, like ``builtin_caustics.py``: a diffuse floor,
+Dicts in the TOML schema of docs/scene_format.md, like ``builtin/caustics.py``: a diffuse floor,
 a medium box around everything, 320 x 240 at 4 spp.
 
 ==================  ===================================================================
@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from typing import Callable
 
-from .builtin import _RENDER, _camera, _floor
+from .parts import RENDER as _RENDER, camera as _camera, floor as _floor
 
 _BOX = {"min": [-2.0, 0.0, -2.0], "max": [2.0, 3.4, 2.0]}
 _FOG = {"sigma_s": 0.15, "sigma_a": 0.02, "g": 0.2}

@@ -243,8 +243,8 @@ EPIPOLAR_SCENES: dict[str, Callable[[], dict]] = {
 
 def load_epipolar_scene(name: str, overrides=()):
     """``load_scene("builtin:NAME")`` for these scenes, also before they are registered."""
-    from ..errors import SceneError
-    from .loader import apply_overrides, scene_from_dict
+    from ...errors import SceneError
+    from ..loader import apply_overrides, scene_from_dict
 
     if name not in EPIPOLAR_SCENES:
         raise SceneError(f"builtin:{name}", f"unknown scene (one of {', '.join(EPIPOLAR_SCENES)})")

@@ -1,4 +1,4 @@
-"""Built-in scenes, generated in code as dicts in exactly the TOML schema of docs/scene_format.md.
+"""The basic built-in scenes (dicts in the TOML schema of docs/scene_format.md).
 
 ``load_scene("builtin:NAME")`` validates them through the same ``scene_from_dict`` as a
 file; ``builtin_toml(NAME)`` writes one out as a TOML file to start from. All render at
@@ -17,26 +17,8 @@ file; ``builtin_toml(NAME)`` writes one out as a TOML file to start from. All re
 """
 from __future__ import annotations
 
-import json
-import math
-from typing import Any, Callable
 
-DEFAULT_BUILTIN = "shafts"
-
-# _camera, _floor and _RENDER are shared with builtin_caustics.py: keep their signatures
-_CAMERA = {"resolution": [320, 240], "spp": 4}
-_RENDER = {"method": "auto", "max_depth": 16, "seed": 0}
-
-
-def _camera(origin: list[float], target: list[float], fov: float) -> dict:
-    return {"origin": origin, "target": target, "up": [0.0, 1.0, 0.0], "fov": fov,
-            "fov_axis": "x", **_CAMERA}
-
-
-def _floor(half: float = 4.0, material: str = "floor") -> dict:
-    return {"shape": "quad", "origin": [-half, 0.0, -half], "edge_u": [2 * half, 0.0, 0.0],
-            "edge_v": [0.0, 0.0, 2 * half], "material": material}
-
+from .parts import RENDER as _RENDER, camera as _camera, floor as _floor
 
 def shafts() -> dict:
     """The demo: sun shafts through a grille of bars into a medium box, striped floor.
@@ -133,98 +115,10 @@ def airlight() -> dict:
     }
 
 
-BUILTIN: dict[str, Callable[[], dict]] = {
+BASIC_SCENES = {
     "shafts": shafts,
     "occluder": occluder,
     "spotlight": spotlight,
     "glass": glass,
     "airlight": airlight,
 }
-
-
-def _register_technique_scenes() -> None:
-    """Add the scenes written for each technique (their modules import helpers from here)."""
-    from .builtin_caustics import CAUSTIC_SCENES
-    from .builtin_epipolar import EPIPOLAR_SCENES
-    from .builtin_volumes import VOLUME_SCENES
-    BUILTIN.update(CAUSTIC_SCENES)
-    BUILTIN.update(EPIPOLAR_SCENES)
-    BUILTIN.update(VOLUME_SCENES)
-
-
-_register_technique_scenes()
-
-
-# ---- A tiny TOML writer for the subset the scenes use -----------------------------------
-
-# dicts under these keys are written inline ({ ... }) rather than as [table] headers
-_INLINE_KEYS = frozenset({"bounds", "transform", "material"})
-
-
-def _value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if math.isnan(v):
-            return "nan"
-        if math.isinf(v):
-            return "inf" if v > 0 else "-inf"
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)   # a JSON string is a valid TOML basic string
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_value(x) for x in v) + "]"
-    if isinstance(v, dict):
-        return "{ " + ", ".join(f"{_key(k)} = {_value(x)}" for k, x in v.items()) + " }"
-    raise TypeError(f"cannot write {type(v).__name__} as TOML")
-
-
-def _key(k: str) -> str:
-    return k if k and all(c.isalnum() or c in "_-" for c in k) else json.dumps(k)
-
-
-def _is_table_array(v: Any) -> bool:
-    return isinstance(v, list) and bool(v) and all(isinstance(x, dict) for x in v)
-
-
-def _emit(table: dict, path: list[str], out: list[str]) -> None:
-    """Write ``table``'s plain keys, then its sub-tables and arrays of tables in order."""
-    def is_header(k: str, v: Any) -> bool:
-        return (isinstance(v, dict) and k not in _INLINE_KEYS) or _is_table_array(v)
-
-    for k, v in table.items():
-        if not is_header(k, v):
-            out.append(f"{_key(k)} = {_value(v)}")
-    for k, v in table.items():
-        if not is_header(k, v):
-            continue
-        name = ".".join(_key(p) for p in [*path, k])
-        if isinstance(v, dict):
-            # a table holding only sub-tables ([materials]) needs no header of its own
-            if not v or any(not is_header(ik, iv) for ik, iv in v.items()):
-                out.extend(["", f"[{name}]"])
-            _emit(v, [*path, k], out)
-            continue
-        for item in v:
-            out.extend(["", f"[[{name}]]"])
-            # everything inside an array element is written inline: simple and unambiguous
-            for ik, iv in item.items():
-                out.append(f"{_key(ik)} = {_value(iv)}")
-
-
-def to_toml(data: dict) -> str:
-    """Serialise a scene dict (strings, numbers, booleans, arrays, tables) as TOML text."""
-    out: list[str] = []
-    _emit(data, [], out)
-    return "\n".join(out).lstrip("\n") + "\n"
-
-
-def builtin_toml(name: str) -> str:
-    """The built-in scene ``name`` as the text of a TOML scene file."""
-    from ..errors import SceneError
-
-    if name not in BUILTIN:
-        raise SceneError(f"builtin:{name}", f"unknown built-in scene (one of {', '.join(BUILTIN)})")
-    return f"# clscatter built-in scene '{name}'\n" + to_toml(BUILTIN[name]())
