@@ -17,8 +17,8 @@ file; ``builtin_toml(NAME)`` writes one out as a TOML file to start from. All re
 """
 from __future__ import annotations
 
-
 from .parts import RENDER as _RENDER, camera as _camera, floor as _floor
+
 
 def shafts() -> dict:
     """The demo: sun shafts through a grille of bars into a medium box, striped floor.
