@@ -229,12 +229,20 @@ class KernelParam:
     pointer: bool
 
 
+_CL_INCLUDE = re.compile(r'^[ \t]*#[ \t]*include[ \t]+"([^"]+\.cl)"', re.M)
+
+
+def _strip_comments(source: str) -> str:
+    return re.sub(r"/\*.*?\*/|//[^\n]*", " ", source, flags=re.S)
+
+
 def kernel_signature(source: str, kernel: str) -> tuple[KernelParam, ...]:
     """The parameters of ``__kernel void <kernel>(...)`` in ``source`` (comments removed).
 
-    Only the ``.cl`` file that defines the kernel is parsed; headers hold no entry points.
+    Only the ``.cl`` file that defines the kernel is parsed; headers hold no entry points
+    (see :func:`program_signature` for a kernel in a ``.cl`` file that another includes).
     """
-    text = re.sub(r"/\*.*?\*/|//[^\n]*", " ", source, flags=re.S)
+    text = _strip_comments(source)
     m = re.search(r"__kernel\s+void\s+" + re.escape(kernel) + r"\s*\(([^)]*)\)", text)
     if not m:
         raise KernelArgError(f"kernel '{kernel}' is not defined in its program source")
@@ -250,6 +258,29 @@ def kernel_signature(source: str, kernel: str) -> tuple[KernelParam, ...]:
                           "const", "restrict", "__restrict", "*"))
         params.append(KernelParam(name, ctype + ("*" if pointer else ""), pointer))
     return tuple(params)
+
+
+def program_signature(program: str, kernel: str, root: Path | None = None) -> tuple[KernelParam, ...]:
+    """The parameters of ``kernel`` as built from ``<root>/<program>.cl`` (root: the kernel
+    directory): defined there, or in a ``.cl`` file it ``#include``s, directly or not
+    (``voxel_direct.cl`` builds ``raymarch.cl``'s kernel)."""
+    root = Path(root) if root is not None else kernel_dir()
+    path = root / f"{program}.cl"
+    if not path.is_file():
+        raise KernelBuildError(f"kernel source {path} does not exist")
+    queue, seen = [path], {path}
+    while queue:
+        text = queue.pop(0).read_text()
+        try:
+            return kernel_signature(text, kernel)
+        except KernelArgError:
+            pass
+        for name in _CL_INCLUDE.findall(_strip_comments(text)):
+            inc = root / name
+            if inc not in seen and inc.is_file():
+                seen.add(inc)
+                queue.append(inc)
+    raise KernelArgError(f"kernel '{kernel}' is not defined in {program}.cl or the .cl files it includes")
 
 
 class Engine:
@@ -298,13 +329,11 @@ class Engine:
         return self._kernels[key]
 
     def signature(self, program: str, kernel: str) -> tuple[KernelParam, ...]:
-        """The declared parameters of ``kernel`` in ``cl_kernels/<program>.cl`` (cached)."""
+        """The declared parameters of ``kernel`` in ``cl_kernels/<program>.cl`` or a ``.cl``
+        file it includes (cached; see :func:`program_signature`)."""
         key = (program, kernel)
         if key not in self._signatures:
-            path = kernel_dir() / f"{program}.cl"
-            if not path.is_file():
-                raise KernelBuildError(f"kernel source {path} does not exist")
-            self._signatures[key] = kernel_signature(path.read_text(), kernel)
+            self._signatures[key] = program_signature(program, kernel)
         return self._signatures[key]
 
     def bind(self, program: str, kernel: str, args: dict[str, object]) -> list:

@@ -62,7 +62,8 @@ class PreparedScene:
         """:meth:`Engine.call` with the scene filled in: every kernel parameter named like
         a :class:`SceneBuffers` field, and ``num_lights``, is bound from this scene unless
         given explicitly."""
-        self.engine.call(program, kernel, global_size, defines, **self.scene_args(program, kernel), **args)
+        self.engine.call(program, kernel, global_size, defines,
+                         **self.scene_args(program, kernel, **args), **args)
 
     def scene_args(self, program: str, kernel: str, **given) -> dict[str, object]:
         """The scene's part of a kernel's arguments (parameters not in ``given``)."""

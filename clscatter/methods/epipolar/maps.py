@@ -147,8 +147,8 @@ def trace_shadow_map(ps: PreparedScene, frame_buf, res: int, defines: dict | Non
     own = faces_buf is None
     fb = eng.to_device(faces if faces is not None else np.zeros(1, EPI_FACE)) if own else faces_buf
     try:
-        eng.launch(eng.kernel("epipolar", "epi_shadow_map", defines), n, ps.dev.nodes,
-                   ps.dev.tris, frame_buf, fb, np.int32(n), out)
+        eng.call("epipolar", "epi_shadow_map", n, defines, nodes=ps.dev.nodes, tris=ps.dev.tris,
+                 fr=frame_buf, faces=fb, ntex=n, out=out)
     finally:
         if own:
             eng.queue.finish()
@@ -161,6 +161,6 @@ def trace_depth_map(ps: PreparedScene, width: int, height: int, defines: dict | 
     camera ray through each pixel centre of a width x height raster (T_INF: none)."""
     eng = ps.engine
     out = eng.empty(4 * width * height)
-    eng.launch(eng.kernel("epipolar", "epi_depth_map", defines), width * height, ps.dev.nodes,
-               ps.dev.tris, ps.dev.camera, np.int32(width), np.int32(height), out)
+    eng.call("epipolar", "epi_depth_map", width * height, defines, nodes=ps.dev.nodes,
+             tris=ps.dev.tris, cam=ps.dev.camera, w=width, h=height, out=out)
     return out

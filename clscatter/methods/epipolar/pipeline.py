@@ -165,7 +165,6 @@ def render_light(ps: PreparedScene, li: int, segs: np.ndarray, st: Settings, sta
     kappa = np.asarray(ps.medium["kappa"][:3], np.float64)
     nch = 1 if np.all(kappa == kappa[0]) else 3
     defines = {"EPI_NT": int(st.svd_terms), "EPI_NCH": nch}
-    kern = lambda name: eng.kernel("epipolar", name, defines)     # rebound to the terms used
     values = np.zeros((n, 3), np.float64)
     d = int(st.light_rays)
     bufs = []
@@ -209,9 +208,9 @@ def render_light(ps: PreparedScene, li: int, segs: np.ndarray, st: Settings, sta
                 geo_buf, idx_buf = scratch(16 * max(n, 1)), scratch(16 * max(n, 1))
                 # the ring is decided on the host, in angle (the kernel's pixel disc is off)
                 no_ring = np.array([slices.P[0], slices.P[1], -1.0, 0.0], np.float32)
-                eng.launch(kern("epi_samples"), n, frame_buf, phi_buf, np.int32(S),
-                           np.int32(slices.full), ps.dev.camera, no_ring, up(segs), np.int32(n),
-                           geo_buf, idx_buf)
+                eng.call("epipolar", "epi_samples", n, defines, fr=frame_buf, phis=phi_buf,
+                         nslices=S, full=slices.full, cam=ps.dev.camera, ring=no_ring,
+                         segs=up(segs), n=n, geo=geo_buf, idx=idx_buf)
                 sgeo = eng.read(geo_buf, (n, 4), np.float32)
                 sidx = eng.read(idx_buf, (n, 4), np.int32)
                 w_ring = ring_weights(sgeo[:, 0], slices.front, ring_rad, st.ring_band)
@@ -299,24 +298,26 @@ def render_light(ps: PreparedScene, li: int, segs: np.ndarray, st: Settings, sta
         srt = scratch(8 * batch * d * 4)
         out = scratch(16 * max(n_ev, 1))
         work = scratch(8 * S)
-        k_rs, k_rd, k_int = kern("epi_rectify_shadow"), kern("epi_rectify_depth"), kern("epi_integrate")
         with progress(S, "epipolar slices", show_progress) as bar:
             for s0 in range(0, S, batch):
                 nb = min(batch, S - s0)
                 with stats.stage("epipolar_rectify"):
-                    eng.launch(k_rs, nb * d, frame_buf, slice_buf, np.int32(s0), np.int32(nb),
-                               faces_buf, smap, term)
+                    eng.call("epipolar", "epi_rectify_shadow", nb * d, defines, fr=frame_buf,
+                             slices=slice_buf, slice0=s0, nbatch=nb, faces=faces_buf, smap=smap,
+                             term=term)
                     if st.lookup == "grid":
-                        eng.launch(k_rd, nb * R, frame_buf, slice_buf, np.int32(s0), np.int32(nb),
-                                   ps.dev.medium, ps.dev.camera, depth, np.int32(dw),
-                                   np.int32(dh), ev_buf)
+                        eng.call("epipolar", "epi_rectify_depth", nb * R, defines, fr=frame_buf,
+                                 slices=slice_buf, slice0=s0, nbatch=nb, medium=ps.dev.medium,
+                                 cam=ps.dev.camera, depth=depth, dw=dw, dh=dh, events=ev_buf)
                     eng.queue.finish()
                 with stats.stage("epipolar_integrate"):
-                    _launch_slices(eng, k_int, nb, frame_buf, slice_buf, np.int32(s0),
-                                   np.int32(nb), term, off_buf, ev_buf, gtab_buf,
-                                   np.int32(sv.gtab.shape[1]), btab_buf,
-                                   np.int32(sv.btab.shape[1]), gref_buf, bref_buf, grp_buf,
-                                   tree, leaf, cnt, srt, out, work)
+                    _launch_slices(eng, "epi_integrate", nb, defines, fr=frame_buf,
+                                   slices=slice_buf, slice0=s0, nbatch=nb, term=term,
+                                   ev_off=off_buf, events=ev_buf, gtab_all=gtab_buf,
+                                   n_g=sv.gtab.shape[1], btab_all=btab_buf, n_b=sv.btab.shape[1],
+                                   gref_all=gref_buf, bref_all=bref_buf, groups=grp_buf,
+                                   tree=tree, leaf=leaf, cnt_all=cnt, sorted_all=srt, out=out,
+                                   work=work)
                     eng.queue.finish()
                 bar.update(nb)
 
@@ -330,9 +331,9 @@ def render_light(ps: PreparedScene, li: int, segs: np.ndarray, st: Settings, sta
             else:
                 dbuf = up(segment_dirs(segs[live], cam.origin))
                 ubuf = scratch(16 * len(live))
-                eng.launch(kern("epi_unrectify"), len(live), frame_buf, slice_buf, phi_buf,
-                           np.int32(S), np.int32(slices.full), np.int32(R), out, dbuf,
-                           np.int32(len(live)), ubuf)
+                eng.call("epipolar", "epi_unrectify", len(live), defines, fr=frame_buf,
+                         slices=slice_buf, phis=phi_buf, nslices=S, full=slices.full, R=R,
+                         grid=out, dirs=dbuf, n=len(live), out=ubuf)
                 acc = eng.read(ubuf, (len(live), 4), np.float32)[:, :nch].astype(np.float64)
             colour = (np.asarray(ps.medium["sigma_s"][:3], np.float64)
                       * np.asarray(ps.lights[li]["power"][:3], np.float64))
@@ -588,7 +589,9 @@ def _svd(axis, box, ps, kappas, slices, sgeo, sidx, live, st: Settings, R, extra
     return best, tried
 
 
-def _launch_slices(eng, kernel, n, *args) -> None:
-    """One work-item per slice, each its own work-group: the sweeps are long sequential
-    loops, so a driver that groups many work-items per group would serialise them."""
-    kernel(eng.queue, (int(n),), (1,), *args)
+def _launch_slices(eng, kernel: str, n: int, defines: dict, **args) -> None:
+    """Keyword launch (see ``Engine.call``) of an ``epipolar.cl`` kernel with one work-item
+    per slice, each its own work-group: the sweeps are long sequential loops, so a driver
+    that groups many work-items per group would serialise them."""
+    eng.kernel("epipolar", kernel, defines)(eng.queue, (int(n),), (1,),
+                                            *eng.bind("epipolar", kernel, args))

@@ -46,13 +46,12 @@ def build_octree(eng: Engine, box: GridBox, n_buf, eps: float, eps2: float, limi
         cl = eng.cl
         cl.enqueue_copy(eng.queue, pmin, n_buf, byte_count=4 * box.size)
         cl.enqueue_copy(eng.queue, pmax, n_buf, byte_count=4 * box.size)
-        red = eng.kernel("voxel", "oct_reduce")
         for k in range(1, levels):
             sd, dd = level_dims(box.dims, k - 1), level_dims(box.dims, k)
-            eng.launch(red, sizes[k], pmin, pmax, np.int32(off[k - 1]), np.array([*sd, 0], np.int32),
-                       np.int32(off[k]), np.array([*dd, 0], np.int32))
-        eng.launch(eng.kernel("voxel", "oct_levels"), box.size, pmin, pmax, off_buf, np.int32(levels),
-                   box.dims4(), np.float32(eps), np.float32(eps2), np.float32(limit), level, smax)
+            eng.call("voxel", "oct_reduce", sizes[k], pmin=pmin, pmax=pmax, soff=int(off[k - 1]),
+                     sd=sd, doff=int(off[k]), dd=dd)
+        eng.call("voxel", "oct_levels", box.size, pmin=pmin, pmax=pmax, off=off_buf, levels=levels,
+                 dims=box.dims4(), eps=eps, eps2=eps2, limit=limit, level=level, smax=smax)
     finally:
         eng.free(pmin, pmax, off_buf)
     return Octree(level, smax, levels)

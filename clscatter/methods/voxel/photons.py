@@ -176,7 +176,6 @@ def march(eng: Engine, fields: Fields, state: MarchState, rad, dirs, ms: MarchSe
     """Launch ``photon_march`` until almost all photons are done; deposits add into
     ``rad``/``dirs``. Returns counters: launches, steps, photons still live."""
     box = fields.box
-    kern = eng.kernel("voxel", "photon_march")
     counters = eng.empty(8)
     nodes, tris = (bvh if bvh is not None else (fields.n, fields.n))
     launches = steps = 0
@@ -184,12 +183,14 @@ def march(eng: Engine, fields: Fields, state: MarchState, rad, dirs, ms: MarchSe
     try:
         while launches < ms.max_launches and live > (1.0 - ms.done_fraction) * state.count:
             eng.cl.enqueue_fill_buffer(eng.queue, counters, np.zeros(1, np.int32), 0, 8)
-            eng.launch(kern, state.count, state.pos, state.vel, state.flux, np.int32(state.count),
-                       np.int32(ms.steps_per_launch), box.lo4(), box.hi4(), box.dims4(),
-                       np.float32(box.h), fields.n, fields.grad, fields.kappa, fields.octree.level,
-                       fields.octree.smax, np.int32(ms.adaptive), np.float32(ms.ds_min * box.h),
-                       np.float32(ms.min_rel), nodes, tris, np.int32(test_surfaces), rad, dirs,
-                       counters)
+            eng.call("voxel", "photon_march", state.count, pos=state.pos, vel=state.vel,
+                     flux=state.flux, count=state.count, steps=ms.steps_per_launch,
+                     glo=box.lo4(), ghi=box.hi4(), dims=box.dims4(), h=box.h, n_grid=fields.n,
+                     grad=fields.grad, kappa=fields.kappa, level=fields.octree.level,
+                     smax=fields.octree.smax, adaptive=ms.adaptive,
+                     ds_min=ms.ds_min * box.h, min_rel=ms.min_rel, nodes=nodes,
+                     tris=tris, test_surfaces=test_surfaces, rad=rad, dirs=dirs,
+                     counters=counters)
             c = eng.read(counters, 2, np.int32)
             live, steps, launches = int(c[0]), steps + int(c[1]), launches + 1
     finally:
@@ -235,7 +236,6 @@ def light_pass(eng: Engine, fields: Fields, ps, photons: int, ms: MarchSettings,
     total = {"voxel_photons": 0, "voxel_photons_entering": 0, "voxel_launches": 0,
              "voxel_photon_steps": 0, "voxel_photons_unfinished": 0}
     seed = np.uint32((ps.scene.render.seed * 40503 + 7) & 0xFFFFFFFF)
-    emit = eng.kernel("voxel", "photon_emit")
     exits: list[np.ndarray] = []
     app = AppendBuffer(eng, structs.LIGHT_SEGMENT, 1024)
     for li in range(ps.num_lights):
@@ -243,10 +243,12 @@ def light_pass(eng: Engine, fields: Fields, ps, photons: int, ms: MarchSettings,
         N = em.S * em.S
         st = MarchState(eng.empty(16 * N), eng.empty(16 * N), eng.empty(16 * N), N)
         try:
-            eng.launch(emit, N, ps.dev.nodes, ps.dev.tris, ps.dev.lights, np.int32(li),
-                       ps.dev.medium, np.int32(em.S), seed, em.axis, np.float32(em.cos_max),
-                       em.rect[0], em.rect[1], em.rect[2], em.flux, box.lo4(), box.hi4(),
-                       box.dims4(), np.float32(box.h), fields.n, st.pos, st.vel, st.flux)
+            eng.call("voxel", "photon_emit", N, nodes=ps.dev.nodes, tris=ps.dev.tris,
+                     lights=ps.dev.lights, light_index=li, medium=ps.dev.medium, S=em.S,
+                     seed=seed, axis=em.axis, cos_max=em.cos_max, rect_o=em.rect[0],
+                     rect_u=em.rect[1], rect_v=em.rect[2], flux_per_photon=em.flux,
+                     glo=box.lo4(), ghi=box.hi4(), dims=box.dims4(), h=box.h, n_grid=fields.n,
+                     pos=st.pos, vel=st.vel, flux=st.flux)
             alive = int((eng.read(st.pos, (N, 4), np.float32)[:, 3] > 0).sum())
             c = march(eng, fields, st, rad, dirs, ms, (ps.dev.nodes, ps.dev.tris), test_surfaces)
             exits.append(app.call("voxel", "photon_exits", N, pos=st.pos, vel=st.vel, flux=st.flux,

@@ -142,13 +142,12 @@ def direct_outside(ps, box, segs: np.ndarray, steps: int, per_launch: int = 6553
     out = eng.empty(16 * chunk)
     values = np.zeros((n, 4), np.float32)
     seed = np.uint32((ps.scene.render.seed * 7919 + 17) & 0xFFFFFFFF)   # as raymarch
-    kern = eng.kernel("voxel_direct", "raymarch")
     try:
+        scene = ps.scene_args("voxel_direct", "raymarch", medium=med_buf)   # box rides in medium
         for start in range(0, n, chunk):
             m = min(chunk, n - start)
-            args = {**ps.scene_args("raymarch", "raymarch"), "medium": med_buf, "segs": seg_buf,
-                    "seg_offset": start, "num_segs": m, "steps": steps, "seed": seed, "out": out}
-            eng.launch(kern, m, *eng.bind("raymarch", "raymarch", args))
+            eng.call("voxel_direct", "raymarch", m, **scene, medium=med_buf, segs=seg_buf,
+                     seg_offset=start, num_segs=m, steps=steps, seed=seed, out=out)
             values[start:start + m] = eng.read(out, (chunk, 4), np.float32)[:m]
     finally:
         eng.free(med_buf, seg_buf, out)

@@ -50,8 +50,8 @@ def inside_grid(eng: Engine, box: GridBox, triangles: np.ndarray) -> np.ndarray:
     bufs = build_bvh(np.asarray(triangles, np.float64)).upload(eng)
     out = eng.empty(box.size)
     try:
-        eng.launch(eng.kernel("voxel", "vox_inside"), box.dims[1] * box.dims[2], bufs.nodes,
-                   bufs.triangles, box.lo4(), box.dims4(), np.float32(box.h), out)
+        eng.call("voxel", "vox_inside", box.dims[1] * box.dims[2], nodes=bufs.nodes,
+                 tris=bufs.triangles, lo=box.lo4(), dims=box.dims4(), h=box.h, inside=out)
         return eng.read(out, box.dims, np.uint8)
     finally:
         eng.free(out)
@@ -66,10 +66,11 @@ def mesh_coverage(eng: Engine, box: GridBox, triangles: np.ndarray, refine_all: 
     inside = eng.empty(box.size)
     cov = eng.empty(4 * box.size)
     try:
-        eng.launch(eng.kernel("voxel", "vox_inside"), box.dims[1] * box.dims[2], bufs.nodes,
-                   bufs.triangles, box.lo4(), box.dims4(), np.float32(box.h), inside)
-        eng.launch(eng.kernel("voxel", "vox_coverage"), box.size, bufs.nodes, bufs.triangles,
-                   box.lo4(), box.dims4(), np.float32(box.h), inside, np.int32(refine_all), cov)
+        eng.call("voxel", "vox_inside", box.dims[1] * box.dims[2], nodes=bufs.nodes,
+                 tris=bufs.triangles, lo=box.lo4(), dims=box.dims4(), h=box.h, inside=inside)
+        eng.call("voxel", "vox_coverage", box.size, nodes=bufs.nodes, tris=bufs.triangles,
+                 lo=box.lo4(), dims=box.dims4(), h=box.h, inside=inside, refine_all=refine_all,
+                 coverage=cov)
         return eng.read(cov, box.dims, np.float32)
     finally:
         eng.free(inside, cov)
@@ -107,17 +108,17 @@ def blur_buffers(eng: Engine, a, b, dims, channels: int, taps_buf, radius: int) 
     n = int(np.prod(dims))
     for axis, (src, dst) in enumerate(((a, b), (b, a), (a, b))):
         if channels == 4:
-            eng.launch(eng.kernel("voxel", "vox_blur4"), n, src, dst, d4, np.int32(axis), taps_buf,
-                       np.int32(radius))
+            eng.call("voxel", "vox_blur4", n, src=src, dst=dst, dims=d4, axis=axis, w=taps_buf,
+                     r=radius)
         else:
-            eng.launch(eng.kernel("voxel", "vox_blur"), n * channels, src, dst, d4, np.int32(channels),
-                       np.int32(axis), taps_buf, np.int32(radius))
+            eng.call("voxel", "vox_blur", n * channels, src=src, dst=dst, dims=d4,
+                     channels=channels, axis=axis, w=taps_buf, r=radius)
 
 
 def gradient(eng: Engine, box: GridBox, n_buf) -> object:
     """Device buffer of grad n (float4 per voxel) by central differences."""
     g = eng.empty(16 * box.size)
-    eng.launch(eng.kernel("voxel", "vox_gradient"), box.size, n_buf, box.dims4(), np.float32(box.h), g)
+    eng.call("voxel", "vox_gradient", box.size, n=n_buf, dims=box.dims4(), h=box.h, grad=g)
     return g
 
 
