@@ -13,7 +13,7 @@ import numpy as np
 from . import structs
 from .accel.bvh import BVH, build_bvh
 from .device import Engine
-from .scene.frame import Frame, camera_struct, light_structs, medium_struct, triangle_soup
+from .scene.normalised import Frame, camera_struct, light_structs, medium_struct, triangle_soup
 from .scene.model import Scene
 from .stats import Stats
 

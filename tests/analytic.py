@@ -87,7 +87,7 @@ def _normalize(v):
 def camera_rays(origin, target, up, fov, fov_axis, width, height, u=0.5, v=0.5):
     """Unit view-ray directions ``(H, W, 3)`` of the renderer's pinhole camera.
 
-    The convention (identical to ``clscatter/scene/frame.py`` and the kernels)::
+    The convention (identical to ``clscatter/scene/normalised.py`` and the kernels)::
 
         forward = normalize(target - origin)
         right   = normalize(cross(forward, up)),   true_up = cross(right, forward)

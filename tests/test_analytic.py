@@ -349,8 +349,8 @@ def test_camera_edges_span_fov(W, H):
 
 
 def test_camera_matches_renderer_struct():
-    """The same basis and tangents as clscatter.scene.frame.camera_struct (if importable)."""
-    frame = pytest.importorskip("clscatter.scene.frame")
+    """The same basis and tangents as clscatter.scene.normalised.camera_struct (if importable)."""
+    frame = pytest.importorskip("clscatter.scene.normalised")
     model = pytest.importorskip("clscatter.scene.model")
     for axis in ("x", "y"):
         cam = model.Camera(origin=np.array(CAM["origin"]), target=np.array(CAM["target"]),

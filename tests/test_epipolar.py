@@ -14,7 +14,7 @@ from clscatter import structs
 from clscatter.accel.bvh import build_bvh, trace
 from clscatter.methods.epipolar import geometry as geo
 from clscatter.methods.epipolar import svd
-from clscatter.scene.frame import Frame, camera_struct
+from clscatter.scene.normalised import Frame, camera_struct
 from clscatter.scene.model import Camera
 
 DEF1 = {"EPI_NT": 4, "EPI_NCH": 1}

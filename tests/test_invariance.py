@@ -1,7 +1,7 @@
 """Translation/scale invariance of every medium method, and of LSG's automatic radius:
 the same physical scene moved and scaled (and, for the radius, with far-away objects
 added) renders the same image. Every kernel works in the normalised frame
-(clscatter/scene/frame.py), so a method that derives no length from the world units
+(clscatter/scene/normalised.py), so a method that derives no length from the world units
 sees the same numbers up to float rounding."""
 from __future__ import annotations
 

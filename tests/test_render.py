@@ -260,7 +260,7 @@ def test_view_segments_follow_camera_rays(engine):
     q, qlo, qhi = proj(dirs), proj(lo[p]), proj(hi[p])
     assert np.all(q >= np.minimum(qlo, qhi) - 1e-6) and np.all(q <= np.maximum(qlo, qhi) + 1e-6)
     # unbounded medium: segments end where the least-attenuated channel falls to 1e-5
-    from clscatter.scene.frame import TRANSMITTANCE_CUTOFF
+    from clscatter.scene.normalised import TRANSMITTANCE_CUTOFF
     length = np.linalg.norm(segs["b"][:, :3] - segs["a"][:, :3], axis=1) * ps.frame.scale
     kmin = min(np.add(d["medium"]["sigma_s"], d["medium"]["sigma_a"]))
     assert np.allclose(length, np.log(1 / TRANSMITTANCE_CUTOFF) / kmin, rtol=1e-4)

@@ -143,7 +143,7 @@ def test_grid_volume_fields():
     voxel centres: trilinear between its data's centres (exact for a linear field), the
     nearest centre's value beyond the outermost ones; sigma converted to the frame's units."""
     from clscatter.methods.voxel.voxelise import volume_fields
-    from clscatter.scene.frame import Frame
+    from clscatter.scene.normalised import Frame
     from clscatter.scene.model import Volume
     bmin, bmax = np.array([-1.0, -0.5, -0.5]), np.array([1.0, 0.5, 0.5])
     shape = (8, 4, 4)

@@ -3,7 +3,7 @@
 Everything is in *scene units* and world space, as the scene file says (float64 on the
 host). Shapes are already triangulated and transformed: an :class:`Object` holds a
 triangle mesh. Conversion to the normalised device frame happens later, in
-``clscatter/scene/frame.py``; nothing here knows about OpenCL.
+``clscatter/scene/normalised.py``; nothing here knows about OpenCL.
 """
 from __future__ import annotations
 

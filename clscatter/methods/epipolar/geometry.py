@@ -1,7 +1,7 @@
 """Epipolar geometry for one light: the axis, the slices and the (alpha, beta, gamma) coordinates.
 
 Baran et al. 2010, Sec. 3, 8 and 9. Everything here is float64 NumPy in the normalised
-device frame (``clscatter/scene/frame.py``).
+device frame (``clscatter/scene/normalised.py``).
 
 The axis
     The line through the eye ``e`` towards the light: ``u = -direction`` for a

@@ -1,6 +1,6 @@
 """The voxel grid: where it lies, and the NumPy mirror of the kernels' shared struct.
 
-Everything is in the normalised device frame (``clscatter/scene/frame.py``). A grid has
+Everything is in the normalised device frame (``clscatter/scene/normalised.py``). A grid has
 cubic voxels of side ``h``; voxel (i, j, k) spans ``lo + [i, i+1) h`` and its values live
 at the centre ``lo + (i + 0.5) h``. Host arrays have shape (nx, ny, nz) in C order, which
 is exactly the device layout (``idx = (i * ny + j) * nz + k``, ``cl_kernels/voxel.cl``).
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ... import structs
-from ...scene.frame import Frame
+from ...scene.normalised import Frame
 from ...scene.model import Scene, Volume
 
 F4 = (np.float32, 4)

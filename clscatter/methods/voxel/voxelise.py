@@ -29,7 +29,7 @@ import numpy as np
 
 from ...accel.bvh import build_bvh
 from ...device import Engine
-from ...scene.frame import Frame
+from ...scene.normalised import Frame
 from ...scene.model import Volume
 from .grid import GridBox
 
