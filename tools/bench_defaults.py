@@ -102,6 +102,7 @@ def main() -> None:
     ap.add_argument("--set", dest="overrides", action="append", default=[])
     ap.add_argument("--out", default=str(ROOT / "bench_out"))
     ap.add_argument("--no-reference", action="store_true")
+    ap.add_argument("--methods", nargs="*", default=None, help="only these (default: all that apply)")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(exist_ok=True)
@@ -112,6 +113,8 @@ def main() -> None:
         terms, _ = needed_terms(scene)
         ref = None if args.no_reference else reference(spec, args.overrides, "caustics" in terms)
         for method in methods_for(scene):
+            if args.methods and method not in args.methods:
+                continue
             wall, st, img = whole_process(spec, method, args.overrides)
             warm, ran = warm_light_move(spec, method, args.overrides)
             covered = sum(st["stages"].values())
