@@ -7,12 +7,15 @@ clscatter[cluster]``).
 
 Work units
     *Sample sets* of one image: the camera samples are cut into contiguous ranges; a task
-    traces the view paths of its range and runs every pass of the plan on the segments it
+    traces the view paths of its range and runs the passes of the plan on the segments it
     produced. A sample's paths and a segment's estimate depend only on their indices and
-    the scene (deterministic seeds; the lighting rays of the caustic passes are traced by
-    every task from the same seeds), so the partial images sum to the single-process image
-    up to float summation order. The driver adds them in unit order, whatever order they
-    finish in.
+    the scene (deterministic seeds), so the partial images sum to the single-process image
+    up to float summation order.
+    *Progressive passes* of a caustic pass (methods with ``SPLIT_PASSES``: LSG): pass k of
+    P traces its own lighting rays (seeded by k) with its own radius over the whole image,
+    so each task does 1/P of the lighting-ray work; the driver averages them, exactly as one
+    process averages its passes (a time budget becomes its pass count on a cluster).
+    The driver adds all parts in unit order, whatever order they finish in.
     *Frames* of an animation (a list of ``--set`` overrides per frame): one task each.
 
 Per worker, a :class:`ClscatterPlugin` opens the OpenCL device once and keeps a
@@ -84,12 +87,46 @@ def _worker_session(payload: dict, method: str | None):
     return plugin.sessions[key]
 
 
-def _render_samples(payload: dict, method: str | None, lo: int, hi: int) -> dict:
-    """Task: camera samples [lo, hi) of the image, every pass."""
+def _render_unit(payload: dict, method: str | None, unit: dict) -> dict:
+    """Task: one unit (:func:`plan_units`): camera samples [lo, hi) of the passes that are
+    not split by pass, or one progressive pass of a split pass over the whole image."""
     t = time.perf_counter()
-    res = _worker_session(payload, method).render(show_progress=False, samples=(lo, hi))
-    return {"surface": res.surface, "medium": res.medium, "stats": res.stats,
-            "seconds": time.perf_counter() - t}
+    session = _worker_session(payload, method)
+    res = session.render(show_progress=False, samples=unit.get("samples"), only=unit["only"],
+                         pass_params={int(k): v for k, v in unit.get("params", {}).items()})
+    surface = res.surface
+    if unit.get("pass_unit"):        # the view paths' own shading comes with the sample sets
+        surface = (surface - session.view_surface()) * unit["scale"]
+    return {"surface": surface, "medium": res.medium * unit.get("scale", 1.0),
+            "stats": res.stats, "seconds": time.perf_counter() - t}
+
+
+def plan_units(passes, scene, total_samples: int, sample_units: int) -> tuple[list[dict], list[str]]:
+    """Cut a render into tasks. A pass whose method can run its progressive passes apart
+    (``SPLIT_PASSES``: LSG) becomes one task per progressive pass (its lighting rays are
+    split across workers; each task's image is weighted 1/passes, so the sum is the mean of
+    the passes, as in one process); a time budget becomes its pass count (a budget depends
+    on the machine, a pass count does not). Every other pass runs on camera-sample sets;
+    surface shading comes with the sample sets only."""
+    from .methods import get_method
+    split, rest, notes = [], [], []
+    for k, p in enumerate(passes):
+        cls = get_method(p.method)
+        (split if cls.SPLIT_PASSES else rest).append(k)
+    units: list[dict] = []
+    n = max(1, min(int(sample_units), total_samples))
+    bounds = [total_samples * i // n for i in range(n + 1)]
+    units += [{"samples": (bounds[i], bounds[i + 1]), "only": rest} for i in range(n)]
+    for k in split:
+        table = passes[k].table(scene)
+        count = int(table.get("passes", 1))
+        if float(table.get("time_budget", 0.0)) > 0:
+            notes.append(f"{passes[k].method}: time budget {table['time_budget']} s replaced by "
+                         f"{count} passes on the cluster (deterministic)")
+        units += [{"only": [k], "pass_unit": True, "scale": 1.0 / count,
+                   "params": {str(k): {"first_pass": i, "passes": 1, "time_budget": 0.0}}}
+                  for i in range(count)]
+    return units, notes
 
 
 def _render_frame(payload: dict, method: str | None, overrides: list[str]) -> dict:
@@ -168,11 +205,12 @@ class Cluster:
 
         stats = stats or Stats()
         scene = load_scene(spec, overrides)
-        check(scene, method)                      # bad input fails here, not on a worker
+        req = check(scene, method)                # bad input fails here, not on a worker
         cam = scene.camera
         total = cam.width * cam.height * cam.spp
-        n = max(1, min(int(units or 4 * max(1, self.workers())), total))
-        bounds = [total * k // n for k in range(n + 1)]
+        work, unit_notes = plan_units(req.passes, scene, total,
+                                      units or 4 * max(1, self.workers()))
+        n = len(work)
         payload = scene_payload(spec, overrides)
         parts: dict[int, dict] = {}
         scatters = 0
@@ -183,8 +221,8 @@ class Cluster:
                 # the units still missing
                 fut = self.client.scatter(payload, broadcast=True, hash=False)
                 scatters += 1
-                futures = {self.client.submit(_render_samples, fut, method, bounds[k],
-                                              bounds[k + 1], pure=False, retries=2): k
+                futures = {self.client.submit(_render_unit, fut, method, work[k], pure=False,
+                                              retries=2): k
                            for k in range(n) if k not in parts}
                 for f in as_completed(futures):
                     try:
@@ -213,7 +251,10 @@ class Cluster:
                                            "device") if k in first},
                   width=cam.width, height=cam.height, spp=cam.spp,
                   peak_bytes=max(int(p["stats"].get("peak_bytes", 0)) for p in parts.values()),
-                  cluster_workers=self.workers(), cluster_tasks=n, cluster_unit="samples",
+                  cluster_workers=self.workers(), cluster_tasks=n,
+                  cluster_units={"sample_sets": sum(1 for w in work if not w.get("pass_unit")),
+                                 "progressive_passes": sum(1 for w in work if w.get("pass_unit"))},
+                  cluster_notes=unit_notes,
                   cluster_task_seconds=[round(parts[k]["seconds"], 4) for k in range(n)],
                   cluster_bytes_in=int(payload["bytes"]) * self.workers() * scatters,
                   cluster_bytes_out=int(out_bytes))

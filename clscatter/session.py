@@ -138,14 +138,17 @@ class RenderSession:
     # ---- rendering -------------------------------------------------------------------------
     def render(self, show_progress: bool = True, cancel: Callable[[], bool] | None = None,
                on_note: Callable[[str], None] | None = None, preview: bool = False,
-               stats: Stats | None = None, samples: tuple[int, int] | None = None):
+               stats: Stats | None = None, samples: tuple[int, int] | None = None,
+               only: Sequence[int] | None = None, pass_params: dict | None = None):
         """Render the current scene, re-running only what changed since the last render.
 
         ``preview`` renders at a quarter of the resolution with one sample per pixel (the
         stats say so); ``cancel()`` is polled between stages and raises :class:`Cancelled`.
         ``stats`` may be one the caller started earlier (the CLI times scene loading and
         output writing in it too). ``samples = (lo, hi)`` renders only those camera samples
-        (see :func:`~clscatter.view_paths.trace_view_paths`).
+        (see :func:`~clscatter.view_paths.trace_view_paths`). ``only`` runs just those passes
+        of the plan (by index) and ``pass_params`` (``{index: {param: value}}``) overrides their
+        parameters: how a cluster splits a render into tasks (:mod:`clscatter.cluster`).
         """
         from .render import check, scene_notes
 
@@ -207,19 +210,22 @@ class RenderSession:
 
         # ---- passes ----
         return self._run_passes(scene, req, ps, paths, stats, show_progress, stop_if_asked,
-                                ran, reused, preview)
+                                ran, reused, preview, only, pass_params or {})
 
     def _run_passes(self, scene, req, ps, paths, stats, show_progress, stop_if_asked, ran,
-                    reused, preview):
+                    reused, preview, only, pass_params):
         from .render import RenderResult
         engine = ps.engine
         cam = scene.camera
         surface = paths.surface.copy()
         medium = np.zeros((cam.height, cam.width, 3), np.float32)
-        for p in req.passes:
+        for k, p in enumerate(req.passes):
+            if only is not None and k not in only:
+                continue
             stop_if_asked()
             cls = get_method(p.method)
-            m = cls(cls.preview(p.table(scene)) if preview else p.table(scene))
+            table = {**p.table(scene), **pass_params.get(k, {})}
+            m = cls(cls.preview(table) if preview else table)
             out = m.render(ps, paths, stats, show_progress)
             ran.append(p.method)
             if p.role == "surface_caustics":
@@ -243,6 +249,11 @@ class RenderSession:
                   preview=bool(preview))
         return RenderResult(image.astype(np.float32), stats.to_dict(),
                             surface.astype(np.float32), medium.astype(np.float32))
+
+    def view_surface(self) -> np.ndarray:
+        """The surface image of the last render's view paths (direct light on diffuse
+        surfaces, before any pass added to it)."""
+        return self._paths.surface
 
     def release(self) -> None:
         """Free the device buffers (the session can render again; it prepares anew)."""

@@ -27,6 +27,7 @@ class ViewPaths:
     surface: np.ndarray    # (H, W, 3) float32 radiance from directly lit diffuse surfaces
     escaped: np.ndarray    # (H, W, 3) float32 throughput of branches that left the scene
     segments: np.ndarray   # structs.VIEW_SEGMENT array, the medium pieces of all paths
+    sample_range: tuple[int, int] | None = None   # the camera samples traced (None: all)
 
 
 def trace_view_paths(ps: PreparedScene, stats: Stats | None = None, show_progress: bool = True,
@@ -77,21 +78,25 @@ def trace_view_paths(ps: PreparedScene, stats: Stats | None = None, show_progres
         pixels = np.arange(lo, hi) // spp
         surf_img = accumulate_segments(surface, pixels, w, h)
         esc_img = accumulate_segments(escaped, pixels, w, h)
-    return ViewPaths(surf_img.astype(np.float32), esc_img.astype(np.float32), segments)
+    return ViewPaths(surf_img.astype(np.float32), esc_img.astype(np.float32), segments,
+                     sample_range if sample_range is None else (lo, hi))
 
 
-def trace_diffuse_hits(ps: PreparedScene, samples_per_launch: int = SAMPLES_PER_LAUNCH) -> np.ndarray:
+def trace_diffuse_hits(ps: PreparedScene, samples_per_launch: int = SAMPLES_PER_LAUNCH,
+                       sample_range: tuple[int, int] | None = None) -> np.ndarray:
     """Where the camera paths of :func:`trace_view_paths` meet diffuse surfaces.
 
     The same samples and branches (same seeds), one :data:`~clscatter.structs.DIFFUSE_HIT`
     per branch ending on a diffuse surface, with weight = throughput * albedo / pi: a
     method that knows the irradiance E arriving at a hit adds ``weight * E`` to its pixel
     (surface caustics). Sorted by (sample, branch), so runs are reproducible.
+    ``sample_range`` (lo, hi) restricts it to those camera samples, as for the view paths.
     """
     eng = ps.engine
     cam = ps.scene.camera
-    total = cam.width * cam.height * cam.spp
-    chunk = int(min(samples_per_launch, total))
+    lo, hi = sample_range if sample_range is not None else (0, cam.width * cam.height * cam.spp)
+    total = max(int(hi) - int(lo), 0)
+    chunk = int(max(1, min(samples_per_launch, total)))
     hits = AppendBuffer(eng, structs.DIFFUSE_HIT, chunk)
     seed = np.uint32(ps.scene.render.seed & 0xFFFFFFFF)
     parts: list[np.ndarray] = []
@@ -100,7 +105,7 @@ def trace_diffuse_hits(ps: PreparedScene, samples_per_launch: int = SAMPLES_PER_
         parts.append(hits.call(
             "view_paths", "trace_diffuse_hits", n, **ps.scene_args("view_paths", "trace_diffuse_hits"),
             cam=ps.dev.camera, max_depth=ps.scene.render.max_depth, seed=seed,
-            sample_offset=start, num_samples=n))
+            sample_offset=int(lo) + start, num_samples=n))
     hits.release()
     out = np.concatenate(parts) if parts else np.zeros(0, structs.DIFFUSE_HIT)
     out = out[np.lexsort((out["branch"], out["sample"]))]

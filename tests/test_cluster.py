@@ -40,11 +40,16 @@ def test_direct_scene_equals_single_process(cluster, engine):
 
 
 def test_caustic_scene_equals_single_process(cluster, engine):
-    sets = SMALL + ["render.method=lsg", "render.lsg.light_rays=20000", "render.lsg.radius=0.01"]
-    res = cluster.render("builtin:caustic_sphere", sets, units=5, show_progress=False)
-    ref = _single("builtin:caustic_sphere", sets, engine)
-    assert res.image.max() > 0
-    np.testing.assert_allclose(res.image, ref, rtol=1e-4, atol=1e-6 * ref.max())
+    """auto on a glass ball: direct, surface caustics on sample sets, the progressive LSG
+    caustic pass split into one task per pass (its lighting rays spread over the workers)."""
+    sets = SMALL + ["render.lsg.light_rays=20000", "render.lsg.passes=3",
+                    "render.lsg.time_budget=0", "render.raymap.photons=5000"]
+    res = cluster.render("builtin:caustic_sphere", sets, units=3, show_progress=False)
+    ref = render(load_scene("builtin:caustic_sphere", sets), engine=engine, show_progress=False)
+    assert res.stats["cluster_units"] == {"sample_sets": 3, "progressive_passes": 3}
+    assert ref.medium.max() > 0 and ref.surface.max() > 0
+    np.testing.assert_allclose(res.image, ref.image, rtol=1e-4, atol=1e-5 * ref.image.max())
+    np.testing.assert_allclose(res.medium, ref.medium, rtol=1e-4, atol=1e-5 * ref.medium.max())
 
 
 def test_animation_frames_equal_single_process(cluster, engine):

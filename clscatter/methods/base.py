@@ -149,6 +149,11 @@ class Method:
         checked ``params``, made before anything is allocated; [] when negligible."""
         return []
 
+    #: True when the method's progressive passes can run apart (``first_pass``/``passes``
+    #: parameters; pass k's rays and radius depend on k alone) and be averaged: a cluster
+    #: then splits the pass's lighting rays across workers, one task per pass
+    SPLIT_PASSES: ClassVar[bool] = False
+
     #: for previews (a relighting page while the user drags): parameters scaled by this
     #: factor (integers rounded, at least 1) so a pass costs a fraction of its full time
     PREVIEW_SCALE: ClassVar[dict[str, float]] = {}

@@ -362,6 +362,9 @@ class LineSpaceGathering(Method):
               "segment should gather", lo=1),
         Param("passes", 1, "progressive passes of fresh rays (an upper bound with time_budget)", lo=1),
         Param("time_budget", 0.0, "seconds for progressive passes (0: run `passes`)", lo=0),
+        Param("first_pass", 0, "index of the first progressive pass to run (pass k uses its "
+              "own rays and radius, so passes can run apart and be averaged: a cluster runs "
+              "each pass as a task)", lo=0),
         Param("alpha", 0.7, "progressive radius reduction r_(i+1) = r_i (i + alpha) / (i + 1)",
               lo=0, hi=1, lo_open=True, hi_open=True),
         Param("targeted", True, "with min_light_depth >= 1, emit only towards mirrors and glass"),
@@ -376,6 +379,8 @@ class LineSpaceGathering(Method):
     )
     TERMS = frozenset({"direct", "caustics"})
     PREVIEW_SCALE = {"light_rays": 0.125, "passes": 0.0, "time_budget": 0.0}
+    # a cluster may run each progressive pass as its own task (see clscatter.cluster)
+    SPLIT_PASSES = True
     # auto: the caustic pass alone (targeted), progressive under a time budget that the
     # scene's [render.lsg] can change (defaults), caustics only (required)
     AUTO = {"caustics": AutoRole(priority=10, params={"min_light_depth": 1},
@@ -438,7 +443,7 @@ class LineSpaceGathering(Method):
             values = gat.values() / max(passes, 1)
         finally:
             gat.release()
-        radii = ppb_radii(r1, p["alpha"], passes)
+        radii = ppb_radii(r1, p["alpha"], p["first_pass"] + passes)
         totals["pair_tests_bruteforce"] = totals.pop("light_x_view")
         bf = max(totals["pair_tests_bruteforce"], 1)
         spec, rays = totals.pop("specular_rays"), totals.pop("rays")
@@ -496,12 +501,14 @@ class LineSpaceGathering(Method):
         p = self.params
         budget = float(p["time_budget"])
         most = int(p["passes"]) if budget <= 0 or p["passes"] > 1 else 1 << 30
+        first = int(p["first_pass"])
         tot: dict = {}
         seconds: list[float] = []
-        r = r1
+        r = float(ppb_radii(r1, p["alpha"], first + 1)[-1])    # pass `first`'s radius
         with progress(most if most < 1 << 30 else 0, "lsg passes", show_progress) as bar:
-            for i in range(most):
-                if budget > 0 and i > 0 and sum(seconds) * (1 + 1 / i) > budget:
+            for i in range(first, first + most):
+                done = i - first
+                if budget > 0 and done > 0 and sum(seconds) * (1 + 1 / done) > budget:
                     break
                 with Timer() as t:
                     gat.radius = r
@@ -509,7 +516,7 @@ class LineSpaceGathering(Method):
                                               seed_offset=i + (self.params["light_seed"] << 16))
                 seconds.append(t.seconds)
                 if self.pass_callback is not None:
-                    self.pass_callback(i + 1, r, gat.values() / (i + 1))
+                    self.pass_callback(done + 1, r, gat.values() / (done + 1))
                 for key, v in res.items():
                     tot[key] = max(tot.get(key, 0), v) if key.endswith("_max") else tot.get(key, 0) + v
                 bar.update(1)

@@ -59,7 +59,8 @@ def render_surface_and_medium(method: Method, estimator: str, settings: DensityS
     """Surface caustics (and the medium term unless ``medium`` is "none")."""
     p = method.params
     settings.max_radius = p["max_radius"] * scene_relative(ps)
-    surf = surface_caustics(ps, estimator, p["photons"], settings, stats, show_progress)
+    surf = surface_caustics(ps, estimator, p["photons"], settings, stats, show_progress,
+                            sample_range=paths.sample_range)
     if p["medium"] == "none":
         return surf
     return {"surface": surf, "medium": medium_term(ps, paths, stats, p["medium"], show_progress)}

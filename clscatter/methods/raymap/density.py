@@ -133,7 +133,8 @@ def estimate(rmap: RayMap, x: np.ndarray, n: np.ndarray, estimator: str,
 
 
 def surface_caustics(ps, estimator: str, rays: int, settings: DensitySettings, stats: Stats,
-                     show_progress: bool = True) -> np.ndarray:
+                     show_progress: bool = True,
+                     sample_range: tuple[int, int] | None = None) -> np.ndarray:
     """Radiance (H, W, 3) of diffuse surfaces lit through mirrors and glass, seen along the
     camera paths (directly or through specular chains): sum over diffuse hits of
     weight * E(hit). Settings' radii are in the normalised frame."""
@@ -145,7 +146,7 @@ def surface_caustics(ps, estimator: str, rays: int, settings: DensitySettings, s
     eng = ps.engine
     with stats.stage(f"{estimator}_trace"):
         pieces = caustic_pieces(ps, rays, stats, show_progress)
-        hits = trace_diffuse_hits(ps)
+        hits = trace_diffuse_hits(ps, sample_range=sample_range)
     stats.set(**{f"{estimator}_rays_stored": int(len(pieces)), "diffuse_hits": int(len(hits))})
     if len(pieces) == 0 or len(hits) == 0:
         return img
