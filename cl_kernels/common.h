@@ -87,29 +87,22 @@ typedef struct {
  * directly into pixels. (sample, branch) identifies a segment independently of its
  * position in the buffer (segments are appended in no fixed order), so methods seed
  * their random numbers with it and stay deterministic. */
-typedef struct {
-    float4 a;          /* start (xyz) */
-    float4 b;          /* end (xyz) */
-    float4 weight;     /* rgb */
-    int pixel;         /* y * width + x */
-    int depth;         /* specular bounces before this segment */
-    int sample;        /* camera sample index (pixel * spp + k) */
-    int branch;        /* which branch of that sample's path tree (0 = primary ray) */
-} ViewSegment;
+/* One layout for every straight path piece (64 bytes; host: structs._segment): the ends
+ * a, b (xyz), an rgb value, the owner (pixel or light), the specular bounces before the
+ * piece, the path's index (camera sample or lighting ray) and its branch in that path's
+ * tree (0 = the primary ray). View and light segments share it under their own names. */
+#define SEGMENT_FIELDS(value, owner, index) \
+    float4 a; float4 b; float4 value; int owner; int depth; int index; int branch;
+
+/* weight (rgb), pixel = y * width + x, sample = pixel * spp + k */
+typedef struct { SEGMENT_FIELDS(weight, pixel, sample) } ViewSegment;
 
 /* ---- Light segments: the product of the light-path tracer (light_paths.cl) ----
  * A straight piece of a lighting ray inside the medium. flux is the rgb flux (W) the
  * ray carries at a (emitted flux per ray, times specular weights and attenuation up to
  * a); along the segment it decays as exp(-kappa s). */
-typedef struct {
-    float4 a;
-    float4 b;
-    float4 flux;
-    int light;         /* index of the emitting light */
-    int depth;         /* specular bounces before this segment */
-    int ray;           /* lighting ray index within its light */
-    int branch;        /* which branch of that ray's path tree (0 = straight from the light) */
-} LightSegment;
+/* flux (rgb), light = index of the emitting light, ray = lighting ray index within it */
+typedef struct { SEGMENT_FIELDS(flux, light, ray) } LightSegment;
 
 /* ---- Ray pieces: lighting rays that END (light_paths.cl built with -DRAY_PIECES) ----
  * The last straight piece of a lighting branch outside every object: it ends on a
