@@ -2,6 +2,7 @@
  * clscatter/methods/raymap/queries.py and density.py). One work-item per query.
  *
  * rm_knn_batch     K nearest segments of every query (indices, distances, counts)
+ * rm_knn_list      the same over host-built per-query candidate lists (domain queries)
  * rm_intersect     all segments meeting every query's domain, appended as (query, segment)
  *                  pairs (a segment listed by several leaves comes more than once; the
  *                  host removes repeats)
@@ -51,6 +52,34 @@ __kernel void rm_knn_batch(__global const RMNode *nodes, __global const int *ref
     out_count[q] = c;
     out_work[2 * q] = work[0];
     out_work[2 * q + 1] = work[1];
+}
+
+/* K nearest over a host-built candidate list (queries.py knn_lists): query q tests the
+ * segments cand_ids[cand_off[q] .. cand_off[q + 1]) (unique, from every leaf meeting its
+ * search box) with the same per-candidate test as the tree walk (rm_candidate). A domain
+ * is required (radius > 0): it bounds the candidates. */
+__kernel void rm_knn_list(__global const int *cand_off, __global const int *cand_ids,
+                          __global const float4 *seg_a, __global const float4 *seg_b,
+                          __global const float4 *seg_d, __global const float4 *qx,
+                          __global const float4 *qn, int num_q, int k, int metric, int domain,
+                          float radius, int incoming,
+                          __global float *scratch_d, __global int *scratch_x,
+                          __global int *out_idx, __global float *out_dist,
+                          __global int *out_count) {
+    int q = get_global_id(0);
+    if (q >= num_q) return;
+    RM_HEAP_DECLARE
+    float4 x = qx[q], n = qn[q];
+    int kk = min(k, RM_K), c = 0;
+    int end = cand_off[q + 1];
+    for (int j = cand_off[q]; j < end; ++j)
+        rm_candidate(cand_ids[j], seg_a, seg_b, seg_d, x, n, kk, metric, domain, radius,
+                     incoming, hd, hx, &c);
+    for (int j = 0; j < k; ++j) {
+        out_idx[q * k + j] = j < c ? hx[j] : -1;
+        out_dist[q * k + j] = j < c ? hd[j] : -1.0f;
+    }
+    out_count[q] = c;
 }
 
 __kernel void rm_intersect(__global const RMNode *nodes, __global const int *refs,

@@ -154,21 +154,30 @@ void rm_heap_push(RM_HEAP float *hd, RM_HEAP int *hx, int *count, int k, float v
     }
 }
 
+/* Test one candidate segment s (incoming, domain, metric <= r) and keep it in the heap
+ * if it qualifies (rm_leaf; rm_knn_list in raymap.cl over host-built candidate lists). */
+void rm_candidate(int s, __global const float4 *seg_a, __global const float4 *seg_b,
+                  __global const float4 *seg_d, float4 x, float4 n, int k, int metric,
+                  int domain, float r, int incoming, RM_HEAP float *hd, RM_HEAP int *hx,
+                  int *count) {
+    float4 a = seg_a[s], b = seg_b[s], d = seg_d[s];
+    if (incoming && dot3(d, n) >= 0.0f) return;
+    if (domain == RM_DOM_SPHERE && rm_seg_dist(x, a, b) > r) return;
+    if (domain == RM_DOM_HEMISPHERE && rm_hemi_dist(x, n, a, b) > r) return;
+    float v = rm_metric(metric, x, n, a, b, d);
+    if (!(v <= r)) return;                               /* also drops T_INF and NaN */
+    rm_heap_push(hd, hx, count, k, v, s);
+}
+
 /* Test the references of one leaf and keep the qualifying ones in the heap. */
 void rm_leaf(__global const RMNode *nd, __global const int *refs, __global const float4 *seg_a,
              __global const float4 *seg_b, __global const float4 *seg_d, float4 x, float4 n,
              int k, int metric, int domain, float r, int incoming, RM_HEAP float *hd,
              RM_HEAP int *hx, int *count, int *work) {
     for (int j = 0; j < nd->count; ++j) {
-        int s = refs[nd->first + j];
-        float4 a = seg_a[s], b = seg_b[s], d = seg_d[s];
         work[1] += 1;
-        if (incoming && dot3(d, n) >= 0.0f) continue;
-        if (domain == RM_DOM_SPHERE && rm_seg_dist(x, a, b) > r) continue;
-        if (domain == RM_DOM_HEMISPHERE && rm_hemi_dist(x, n, a, b) > r) continue;
-        float v = rm_metric(metric, x, n, a, b, d);
-        if (!(v <= r)) continue;                         /* also drops T_INF and NaN */
-        rm_heap_push(hd, hx, count, k, v, s);
+        rm_candidate(refs[nd->first + j], seg_a, seg_b, seg_d, x, n, k, metric, domain, r,
+                     incoming, hd, hx, count);
     }
 }
 

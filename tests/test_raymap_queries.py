@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from clscatter.methods.raymap.kdtree import LEAF, DIRECTIONAL, SegmentTree, TreeParams
-from clscatter.methods.raymap.queries import RayMap, intersect, knn, knn_np, meets_np
+from clscatter.methods.raymap.queries import RayMap, intersect, knn, knn_lists, knn_np, meets_np
 
 
 def _segments(n, seed=1):
@@ -145,3 +145,53 @@ def test_large_k_uses_global_heaps(engine):
         ei, ed = knn_np("segment", x[q], n[q], a, b, d, 300)
         assert np.allclose(dist[q], ed, rtol=1e-4, atol=2e-6)
         assert set(ei[ed < ed[-1] - 1e-5]) <= set(idx[q])
+
+
+@pytest.mark.parametrize("metric,domain,incoming", [
+    ("hemidisc", "hemisphere", True), ("segment", "sphere", False), ("segment", "hemisphere", True),
+    ("plane", "sphere", True), ("line", "hemisphere", False)])
+@pytest.mark.parametrize("lazy", [True, False])
+def test_knn_lists_match_brute_force_and_device_walk(engine, metric, domain, incoming, lazy):
+    """Host-built candidate lists (knn_lists) give the brute-force K nearest and the
+    device walk's, on lazy and static trees."""
+    a, b, d = _segments(3000)
+    x, n = _queries(150)
+    k, radius = 24, 0.15
+    rm = RayMap(engine, a, b, d, np.ones_like(a), SMALL, lazy=lazy)
+    il, dl, wl = knn_lists(rm, x, n, k, metric, domain, radius, incoming, lazy_radius=0.05)
+    it, dt, _ = knn(rm, x, n, k, metric, domain, radius, incoming, lazy_radius=0.05)
+    rm.release()
+    found = 0
+    for q in range(len(x)):
+        ei, ed = knn_np(metric, x[q], n[q], a, b, d, k, domain, radius, incoming)
+        m = len(ei)
+        found += m
+        got = il[q][il[q] >= 0]
+        assert len(got) == m and (it[q] >= 0).sum() == m
+        assert np.allclose(dl[q, :m], ed, rtol=1e-4, atol=2e-6)
+        assert np.allclose(dl[q, :m], dt[q, :m], rtol=1e-6, atol=1e-7)
+        kth = ed[-1] if m else 0.0
+        sure = ed < kth - 1e-5
+        assert set(ei[sure]) <= set(got)
+        assert set(got[dl[q, :m] < kth - 1e-5]) == set(it[q, :m][dt[q, :m] < kth - 1e-5])
+    assert found > 0.8 * k * len(x)
+    assert np.all(wl[:, 1] < len(a))                  # the lists are bounded by the domain
+
+
+def test_knn_lists_k_above_candidates_and_no_domain(engine):
+    """K larger than every query's candidate count: all qualifying segments, -1 after."""
+    a, b, d = _segments(400, seed=11)
+    x, n = _queries(60, seed=12)
+    k, radius = 300, 0.08
+    rm = RayMap(engine, a, b, d, np.ones_like(a), SMALL, lazy=True)
+    il, dl, wl = knn_lists(rm, x, n, k, "segment", "sphere", radius)
+    assert wl[:, 1].max() < k
+    for q in range(len(x)):
+        ei, ed = knn_np("segment", x[q], n[q], a, b, d, k, "sphere", radius)
+        assert len(ei) < k
+        assert set(il[q][il[q] >= 0]) == set(ei)
+        assert np.allclose(dl[q, :len(ei)], ed, rtol=1e-4, atol=2e-6)
+        assert np.all(il[q, len(ei):] == -1) and np.all(np.isinf(dl[q, len(ei):]))
+    with pytest.raises(ValueError):
+        knn_lists(rm, x, n, 8, "segment", "none", 0.0)
+    rm.release()

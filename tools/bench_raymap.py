@@ -11,7 +11,11 @@ visualisation), in one process:
   and on a static tree (build time reported apart), a NumPy brute force over every
   segment (on a sample of queries), and scipy's ``cKDTree`` point kNN over the photons'
   hit points (the photon map's anchor; 1 thread); plus the share of tested references
-  that qualified ("successful tests").
+  that qualified ("successful tests"). The alternative of issue 11, **candidate lists
+  prepared on the host** (``knn_lists``: a vectorised walk collecting every leaf whose box
+  meets a query's search box, then one kernel over the lists), on the same queries and
+  trees: ``lists_lazy_ms`` (refinement + list building + kernel), ``lists_static_ms``
+  (list building + kernel; ``lists_static_host_ms`` the building alone).
 * **Whole-image density estimation**, ray map against photon map from the same lighting
   rays: seconds (trace + build + estimate) and relMSE of the surface-caustic image
   against a converged reference (the ray map with ``--ref-factor`` x the largest ray
@@ -46,7 +50,7 @@ from clscatter.device import get_engine                                  # noqa:
 from clscatter.image import relmse                                       # noqa: E402
 from clscatter.methods.raymap.density import (DensitySettings, build_map,  # noqa: E402
                                               caustic_pieces, estimate, lazy_radius)
-from clscatter.methods.raymap.queries import knn, knn_np                 # noqa: E402
+from clscatter.methods.raymap.queries import candidate_lists, knn, knn_lists, knn_np  # noqa: E402
 from clscatter.prepared import prepare_scene                             # noqa: E402
 from clscatter.scene import scene_from_dict                              # noqa: E402
 from clscatter.scene.builtin.caustics import CAUSTIC_SCENES              # noqa: E402
@@ -129,6 +133,19 @@ def main() -> None:
             rm.release()
             return tq, out, stats
         t_lazy, (tq, (idx, dist, work), tstats) = best(lazy_run, args.repeats)
+        # the same on host-built candidate lists (refinement + list building + kernel)
+        def lazy_lists_run():
+            rm = build_map(eng, pieces, "raymap", s)
+            t = time.perf_counter()
+            out = knn_lists(rm, qx, qn, k, "hemidisc", "hemisphere", max_r, True,
+                            lazy_radius=lazy_radius(rm, qx, k, max_r))
+            tq = time.perf_counter() - t
+            rm.release()
+            return tq, out
+        _, (tq_l, (idx_l, dist_l, work_l)) = best(lazy_lists_run, args.repeats)
+        row.update(lists_lazy_ms=1e3 * tq_l / len(qx), lists_candidates=float(work_l[:, 1].mean()),
+                   lists_same_dist=bool(np.allclose(np.where(idx_l >= 0, dist_l, 0),
+                                                    np.where(idx >= 0, dist, 0), rtol=1e-5, atol=1e-7)))
         found = (idx >= 0).sum(1)
         row.update(raymap_lazy_ms=1e3 * tq / len(qx), found=float(found.mean()),
                    refs_tested=float(work[:, 1].mean()), nodes_visited=float(work[:, 0].mean()),
@@ -139,8 +156,11 @@ def main() -> None:
         rm = build_map(eng, pieces, "raymap", DensitySettings(k=k, max_radius=max_r, lazy=False))
         t_build = time.perf_counter() - t0
         t_static, _ = best(lambda: knn(rm, qx, qn, k, "hemidisc", "hemisphere", max_r, True), args.repeats)
+        t_lists, _ = best(lambda: knn_lists(rm, qx, qn, k, "hemidisc", "hemisphere", max_r, True), args.repeats)
+        t_build_lists, _ = best(lambda: candidate_lists(rm, qx, qn, max_r, True), args.repeats)
         row.update(static_build_s=t_build, raymap_static_ms=1e3 * t_static / len(qx),
-                   static_tree_refs=int(rm.tree.num_refs))
+                   static_tree_refs=int(rm.tree.num_refs), lists_static_ms=1e3 * t_lists / len(qx),
+                   lists_static_host_ms=1e3 * t_build_lists / len(qx))
         a, b, dd = rm.a, rm.b, rm.d
         rm.release()
         # brute force (NumPy, every segment) on a sample of queries
@@ -159,12 +179,16 @@ def main() -> None:
         print(f"  rays {r:>9,} segs {len(pieces):>8,} K {k:>3}: lazy {row['raymap_lazy_ms']:.4f} ms/q, "
               f"static {row['raymap_static_ms']:.4f} (+{t_build:.2f} s build), brute {row['bruteforce_ms']:.2f}, "
               f"cKDTree {row['ckdtree_ms']:.4f}; found {row['found']:.1f}, succ {100 * row['successful_tests']:.1f}%")
+        print(f"      host lists: lazy {row['lists_lazy_ms']:.4f} ms/q, static {row['lists_static_ms']:.4f} "
+              f"(list building {row['lists_static_host_ms']:.4f}); {row['lists_candidates']:.0f} candidates/q "
+              f"vs {row['refs_tested']:.0f} refs tested by the walk; same answers {row['lists_same_dist']}")
         return row
 
     # build every kernel variant once, so that no timing includes a compilation
     warm = build_map(eng, pieces_by[ray_counts[0]], "raymap", DensitySettings(k=16, max_radius=max_r))
     for k in sorted(set(ks) | {64, 100}):
         knn(warm, qx[:1], qn[:1], k, "hemidisc", "hemisphere", max_r, True)
+        knn_lists(warm, qx[:1], qn[:1], k, "hemidisc", "hemisphere", max_r, True)
         estimate(warm, qx[:1], qn[:1], "raymap", DensitySettings(k=k, max_radius=max_r))
     warm.release()
     for r in ray_counts:
@@ -235,8 +259,11 @@ def plot(report: dict, path: Path) -> None:
         xs = [r[x] for r in rows]
         for name, lab in (("raymap_lazy_ms", "ray map (lazy, incl. refinement)"),
                           ("raymap_static_ms", "ray map (static tree)"),
+                          ("lists_lazy_ms", "host candidate lists (lazy)"),
+                          ("lists_static_ms", "host candidate lists (static tree)"),
                           ("bruteforce_ms", "brute force (NumPy)"), ("ckdtree_ms", "cKDTree points (photon map)")):
-            a.loglog(xs, [r[name] for r in rows], "o-", label=lab)
+            if all(name in r for r in rows):
+                a.loglog(xs, [r[name] for r in rows], "o-", label=lab)
         a.set_xlabel(x)
         a.set_ylabel("ms per query")
         a.grid(True, which="both", alpha=0.3)

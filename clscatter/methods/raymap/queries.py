@@ -128,6 +128,98 @@ def knn(rmap: RayMap, x: np.ndarray, n: np.ndarray, k: int, metric: str = "segme
     return (np.take_along_axis(idx, order, 1), np.take_along_axis(dist, order, 1), work)
 
 
+def candidate_lists(rmap: RayMap, x: np.ndarray, n: np.ndarray, radius: float,
+                    incoming: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-query candidate segments on the host: every leaf whose (float32, widened) box
+    meets the query's search box (centre x, half-size ``radius``, plus a float margin)
+    contributes its references; directional nodes are pruned as on the device (incoming
+    queries covered by the reference direction take the back child only). A vectorised
+    level-by-level walk over (query, node) pairs, then (query, segment) pairs made
+    unique. Returns (offsets int32 (Q + 1), ids int32, nodes visited per query)."""
+    from .kdtree import DIRECTIONAL, LEAF
+    nodes, refs = rmap.tree.device_arrays()
+    nq = len(x)
+    lo = nodes["lo"][:, :3].astype(np.float64)
+    hi = nodes["hi"][:, :3].astype(np.float64)
+    kind, child = nodes["kind"], nodes["child"]
+    first, count = nodes["first"].astype(np.int64), nodes["count"].astype(np.int64)
+    rdir = nodes["aux"][:, :3].astype(np.float64)
+    pad = float(radius) * (1.0 + 1e-5) + 1e-6 * max(rmap.tree.diag, 1e-6)
+    qlo, qhi = x - pad, x + pad
+    q = np.arange(nq, dtype=np.int64)
+    nd = np.zeros(nq, np.int64)
+    visited = np.zeros(nq, np.int64)
+    leaf_q, leaf_n = [], []
+    while len(q):
+        ok = np.all((lo[nd] <= qhi[q]) & (hi[nd] >= qlo[q]), axis=1)
+        q, nd = q[ok], nd[ok]
+        visited += np.bincount(q, minlength=nq)
+        kd = kind[nd]
+        leaf = kd == LEAF
+        keep = leaf & (count[nd] > 0)
+        leaf_q.append(q[keep])
+        leaf_n.append(nd[keep])
+        qi, ni = q[~leaf], nd[~leaf]
+        c0 = child[ni].astype(np.int64)
+        second = np.ones(len(ni), bool)
+        if incoming:
+            dn = kind[ni] == DIRECTIONAL
+            if dn.any():
+                cov = np.einsum("ij,ij->i", rdir[ni[dn]], n[qi[dn]]) >= rmap.cos_alpha
+                second[np.nonzero(dn)[0][cov]] = False
+        q = np.concatenate([qi, qi[second]])
+        nd = np.concatenate([c0, c0[second] + 1])
+    lq = np.concatenate(leaf_q) if leaf_q else np.zeros(0, np.int64)
+    ln = np.concatenate(leaf_n) if leaf_n else np.zeros(0, np.int64)
+    cnt = count[ln]
+    total = int(cnt.sum())
+    starts = np.cumsum(cnt) - cnt
+    pos = np.repeat(first[ln] - starts, cnt) + np.arange(total, dtype=np.int64)
+    nseg = max(len(rmap.b), 1)
+    keys = np.repeat(lq, cnt) * nseg + refs[pos]
+    keys.sort()                     # (np.unique's hash path is far slower at this size)
+    if len(keys):
+        keys = keys[np.concatenate([[True], keys[1:] != keys[:-1]])]
+    offsets = np.zeros(nq + 1, np.int64)
+    np.cumsum(np.bincount(keys // nseg, minlength=nq), out=offsets[1:])
+    return offsets.astype(np.int32), (keys % nseg).astype(np.int32), visited
+
+
+def knn_lists(rmap: RayMap, x: np.ndarray, n: np.ndarray, k: int, metric: str = "segment",
+              domain: str = "hemisphere", radius: float = 0.0, incoming: bool = False,
+              lazy_radius: np.ndarray | float | None = None
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """K nearest segments of every query with candidate lists prepared on the host
+    (:func:`candidate_lists`) and one device kernel (``rm_knn_list``) doing the same
+    per-candidate test and heap as :func:`knn`. Same return contract as :func:`knn`
+    (work: host nodes visited, candidates tested). Domain queries only (finite radius)."""
+    if domain not in ("sphere", "hemisphere") or not radius > 0:
+        raise ValueError("knn_lists needs a domain (sphere or hemisphere) of finite radius > 0")
+    eng = rmap.engine
+    x = np.asarray(x, np.float64).reshape(-1, 3)
+    nq = len(x)
+    n = np.asarray(n, np.float64).reshape(-1, 3)
+    if rmap.lazy:
+        rmap.tree.refine(x, n, radius if lazy_radius is None else lazy_radius)
+    off, ids, visited = candidate_lists(rmap, x, n, radius, incoming)
+    bufs = [eng.to_device(off), eng.to_device(ids), eng.to_device(_f4(x)), eng.to_device(_f4(n)),
+            eng.empty(4 * nq * k), eng.empty(4 * nq * k), eng.empty(4 * nq),
+            *heap_scratch(eng, k, nq)]
+    eng.call("raymap", "rm_knn_list", nq, heap_define(k), cand_off=bufs[0], cand_ids=bufs[1],
+             seg_a=rmap.buf["seg_a"], seg_b=rmap.buf["seg_b"], seg_d=rmap.buf["seg_d"],
+             qx=bufs[2], qn=bufs[3], num_q=nq, k=k, metric=METRICS[metric],
+             domain=DOMAINS[domain], radius=radius, incoming=int(incoming),
+             scratch_d=bufs[7], scratch_x=bufs[8], out_idx=bufs[4], out_dist=bufs[5],
+             out_count=bufs[6])
+    idx = eng.read(bufs[4], (nq, k), np.int32)
+    dist = eng.read(bufs[5], (nq, k), np.float32)
+    eng.free(*bufs)
+    work = np.stack([visited, np.diff(off.astype(np.int64))], axis=1).astype(np.int32)
+    dist = np.where(idx >= 0, dist, np.inf)
+    order = np.argsort(dist, axis=1, kind="stable")
+    return (np.take_along_axis(idx, order, 1), np.take_along_axis(dist, order, 1), work)
+
+
 def intersect(rmap: RayMap, kind: str, x: np.ndarray, n: np.ndarray, r: np.ndarray | float
               ) -> np.ndarray:
     """All (query, segment) pairs whose segment meets the query's domain (device), unique
