@@ -56,6 +56,23 @@ Branch camera_branch(__global const Camera *cam, uint seed, int s, int *pixel) {
     return b;
 }
 
+/* What every camera-path tracer does where branch br hits a surface: returns 1 for a
+ * diffuse surface (the path ends there; *f and *mi hold the frame and material index for
+ * the caller's own use: shading, recording the hit), else 0 after pushing the specular
+ * children of a mirror or glass below depth_limit (a black surface just ends the path). */
+int surface_hit(__global const float4 *tris, __global const float4 *normals,
+                __global const int *tri_mat, __global const Material *materials,
+                const Hit *hit, const Branch *br, int depth_limit, float min_weight,
+                Branch *stack, int *top, int *next_id, SurfaceFrame *f, int *mi) {
+    *f = surface_frame(tris, normals, hit, br->o, br->d);
+    *mi = tri_mat[hit->tri];
+    __global const Material *mat = &materials[*mi];
+    if (mat->type == MAT_DIFFUSE) return 1;
+    if (mat->type != MAT_BLACK && br->depth < depth_limit)
+        push_specular(mat, *mi, br, f, min_weight, stack, top, PATH_STACK, next_id);
+    return 0;
+}
+
 /* Append the medium piece [a, b] of branch br of camera sample s to the segment buffer. */
 void append_view_segment(__global ViewSegment *segs, int max_segs, volatile __global int *count,
                          float4 a, float4 b, const Branch *br, int pixel, int s) {
@@ -127,17 +144,12 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
         }
 
         /* ---- surface interaction ---- */
-        SurfaceFrame f = surface_frame(tris, normals, &hit, br.o, br.d);
-        int mi = tri_mat[hit.tri];
-        __global const Material *mat = &materials[mi];
-        if (mat->type == MAT_DIFFUSE) {
+        SurfaceFrame f;
+        int mi;
+        if (surface_hit(tris, normals, tri_mat, materials, &hit, &br, max_depth,
+                        MIN_THROUGHPUT * inv_spp, stack, &top, &next_id, &f, &mi))
             radiance += br.thr * shade_diffuse(nodes, tris, lights, num_lights, medium, f.p, f.nf,
-                                               f.gf, mat->color);
-            continue;
-        }
-        if (mat->type == MAT_BLACK || br.depth >= max_depth) continue;
-        push_specular(mat, mi, &br, &f, MIN_THROUGHPUT * inv_spp, stack, &top, PATH_STACK,
-                      &next_id);
+                                               f.gf, materials[mi].color);
     }
     surface[gid] = radiance;
     escaped[gid] = escape;
@@ -166,16 +178,16 @@ __kernel void trace_diffuse_hits(__global const BVHNode *nodes, __global const f
         Hit hit;
         if (!bvh_closest(nodes, tris, br.o, br.d, 0.0f, T_INF, &hit)) continue;
         br.thr *= branch_attenuation(medium, materials, &br, hit.t);
-        SurfaceFrame f = surface_frame(tris, normals, &hit, br.o, br.d);
-        int mi = tri_mat[hit.tri];
-        __global const Material *mat = &materials[mi];
-        if (mat->type == MAT_DIFFUSE) {
+        SurfaceFrame f;
+        int mi;
+        if (surface_hit(tris, normals, tri_mat, materials, &hit, &br, max_depth,
+                        MIN_THROUGHPUT * inv_spp, stack, &top, &next_id, &f, &mi)) {
             int idx = atomic_inc(hit_count);
             if (idx < max_hits) {
                 DiffuseHit h;
                 h.p = f.p;
                 h.n = f.nf;
-                h.weight = br.thr * mat->color * (1.0f / PI_F);
+                h.weight = br.thr * materials[mi].color * (1.0f / PI_F);
                 h.weight.w = 0.0f;
                 h.pixel = pixel;
                 h.sample = s;
@@ -183,11 +195,7 @@ __kernel void trace_diffuse_hits(__global const BVHNode *nodes, __global const f
                 h.branch = br.id;
                 hits[idx] = h;
             }
-            continue;
         }
-        if (mat->type == MAT_BLACK || br.depth >= max_depth) continue;
-        push_specular(mat, mi, &br, &f, MIN_THROUGHPUT * inv_spp, stack, &top, PATH_STACK,
-                      &next_id);
     }
 }
 

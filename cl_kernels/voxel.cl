@@ -728,16 +728,12 @@ float4 voxel_follow(Branch first, int first_flags, int pixel, int sample, int de
             continue;
         }
         if (!found) continue;
-        SurfaceFrame f = surface_frame(tris, normals, &hit, br.o, br.d);
-        int mi = tri_mat[hit.tri];
-        __global const Material *mat = &materials[mi];
-        if (mat->type == MAT_DIFFUSE) {
+        SurfaceFrame f;
+        int mi;
+        if (surface_hit(tris, normals, tri_mat, materials, &hit, &br, depth_limit, min_weight,
+                        stack, &top, &next_id, &f, &mi))
             radiance += br.thr * shade_diffuse(nodes, tris, lights, num_lights, medium, f.p, f.nf,
-                                               f.gf, mat->color);
-            continue;
-        }
-        if (mat->type == MAT_BLACK || br.depth >= depth_limit) continue;
-        push_specular(mat, mi, &br, &f, min_weight, stack, &top, PATH_STACK, &next_id);
+                                               f.gf, materials[mi].color);
     }
     return radiance;
 }
