@@ -139,8 +139,7 @@ def test_progressive_caustic_pass_converges_to_the_reference(engine):
     -0.66 for p = 3.5 (asymptotically -(1 - alpha) p). Measured slope -0.67; bound: the
     predicted slope +-0.15. No floor: passes 8 -> 16 still lower the error by > 25%
     (measured 44%), and the final error is below half the fixed radius's."""
-    if not REF.is_file():
-        pytest.skip("reference missing: tools/bench_progressive.py --make-test-reference")
+    assert REF.is_file(), "committed reference missing (tools/bench_progressive.py --make-test-reference)"
     ref = np.load(REF)
     d = CAUSTIC_SCENES["caustic_sphere"]()
     d["camera"]["resolution"] = [24, 18]
@@ -173,8 +172,7 @@ def test_auto_end_to_end_against_an_independent_reference(engine):
     normalised MSE measured 0.043 (the focus under the ball dominates it), bound 0.15,
     while leaving the caustic out would give 62 (bound: > 100x the error); caustic
     energy within 3% of (1) (measured -1.2%) and within 5% of (2) (measured +1.2%)."""
-    if not REF.is_file():
-        pytest.skip("reference missing: tools/bench_progressive.py --make-test-reference")
+    assert REF.is_file(), "committed reference missing (tools/bench_progressive.py --make-test-reference)"
     ref = np.load(REF)
     d = CAUSTIC_SCENES["caustic_sphere"]()
     d["camera"]["resolution"] = [24, 18]
