@@ -275,10 +275,8 @@ def _cmd_relight(args: argparse.Namespace) -> int:
         with RenderSession.from_source(spec, args.overrides, method=args.method,
                                        device=args.device) as session, \
                 progress(len(frames), "frames", not args.no_progress) as bar:
-            base = list(args.overrides)
             for i, sets in enumerate(frames):
-                session._overrides = list(base)
-                session.set(sets)
+                session.set(sets, replace=True)
                 res = session.render(show_progress=False)
                 save(i, res.image, res.stats)
                 record["frames"].append({

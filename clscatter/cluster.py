@@ -133,8 +133,7 @@ def _render_frame(payload: dict, method: str | None, overrides: list[str]) -> di
     """Task: one whole frame (the worker's session moves to the frame's overrides)."""
     t = time.perf_counter()
     s = _worker_session(payload, method)
-    s._overrides = list(payload["overrides"])          # frames are absolute, not cumulative
-    s.set(overrides)
+    s.set(overrides, replace=True)                       # frames are absolute, not cumulative
     res = s.render(show_progress=False)
     return {"image": res.image, "stats": res.stats, "seconds": time.perf_counter() - t}
 

@@ -84,6 +84,7 @@ class RenderSession:
         self._base_dir = Path.cwd()
         self._source = scene.source
         self._overrides: list[str] = []
+        self._base_overrides: list[str] = []
 
     # ---- sources and changes ---------------------------------------------------------------
     @classmethod
@@ -100,21 +101,37 @@ class RenderSession:
         s = cls(scene, **kw)
         s._data, s._base_dir, s._source = data, Path(base_dir), source
         s._overrides = list(overrides)
+        s._base_overrides = list(overrides)
         return s
 
-    def set(self, overrides: Sequence[str]) -> None:
-        """Apply ``--set key=value`` overrides on top of the current ones. Validation is the
-        loader's; on error (:class:`SceneError`) nothing changes."""
+    def validate(self, overrides: Sequence[str], replace: bool = False) -> tuple[Scene, list[str]]:
+        """The scene ``overrides`` would give, checked exactly as the command line checks
+        it (loader, method names and parameters), without changing the session; and the
+        override list it would hold. ``replace``: the overrides replace every earlier
+        change (they apply to the source with the session's original overrides only: an
+        animation frame), else they add to the current ones. Raises the CLI's one-line
+        :class:`~clscatter.errors.ClscatterError`."""
+        from .render import check
         if self._data is None:
-            raise TypeError("set() needs a session made by RenderSession.from_source")
-        merged = self._overrides + list(overrides)
+            raise TypeError("needs a session made by RenderSession.from_source")
+        merged = (self._base_overrides if replace else self._overrides) + list(overrides)
         scene = scene_from_dict(apply_overrides(self._data, merged), self._base_dir, self._source)
-        self._overrides = merged
+        check(scene, self.method)
+        return scene, merged
+
+    def set(self, overrides: Sequence[str], replace: bool = False) -> None:
+        """Apply ``--set key=value`` overrides (see :meth:`validate`); on error nothing
+        changes."""
+        scene, self._overrides = self.validate(overrides, replace)
         self.update(scene)
 
     def update(self, scene: Scene) -> None:
         """Move the session to ``scene``; the next :meth:`render` re-runs what changed."""
         self.scene = scene
+
+    def current_overrides(self) -> list[str]:
+        """Every ``--set`` override applied to the source so far, in order."""
+        return list(self._overrides)
 
     def current_data(self) -> dict:
         """The scene's raw data with every override applied (what :meth:`to_toml` writes)."""

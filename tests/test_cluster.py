@@ -61,8 +61,7 @@ def test_animation_frames_equal_single_process(cluster, engine):
     assert sorted(got) == [0, 1, 2, 3] and [f["frame"] for f in rec["frames"]] == [0, 1, 2, 3]
     with RenderSession.from_source("builtin:occluder", SMALL, engine=engine) as s:
         for i, sets in enumerate(frames):
-            s._overrides = list(SMALL)
-            s.set(sets)
+            s.set(sets, replace=True)
             ref = s.render(show_progress=False).image
             np.testing.assert_allclose(got[i], ref, rtol=1e-5, atol=1e-7)
     assert not np.allclose(got[0], got[2])               # the light really moved

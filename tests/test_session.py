@@ -39,7 +39,7 @@ def test_warm_render_reruns_only_what_changed(session, engine, change, runs, kep
     assert runs <= ran, (ran, runs)
     assert not (ran & {"prepare_scene"}) or "prepare_scene" in runs
     assert kept <= set(warm.stats["reused"]), warm.stats["reused"]
-    fresh = render(load_scene("builtin:occluder", SMALL + session._overrides[len(SMALL):]),
+    fresh = render(load_scene("builtin:occluder", SMALL + session.current_overrides()[len(SMALL):]),
                    engine=engine, show_progress=False)
     np.testing.assert_allclose(warm.image, fresh.image, rtol=1e-5, atol=1e-7)
 

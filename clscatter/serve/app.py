@@ -293,12 +293,7 @@ class PageWorker:
 
     def _validate(self, changes: Sequence[str]) -> None:
         """Raise the command line's error for ``changes`` on top of the current settings."""
-        from ..render import check
-        from ..scene.loader import apply_overrides, scene_from_dict
-
-        data = self.session.current_data()
-        scene = scene_from_dict(apply_overrides(data, list(changes)), Path.cwd(), self.spec)
-        check(scene, None)
+        self.session.validate(list(changes))
 
     def _apply(self, request: int, changes: list[str]) -> bool:
         """Apply the changes the loader and the method check accept; one ``error`` message
