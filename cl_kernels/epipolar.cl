@@ -545,3 +545,161 @@ __kernel void epi_rectify_image(__global const EpiFrame *fr, __global const EpiS
     }
     grid[gid] = r;
 }
+
+/* ---- the segment lookup's per-sample tables, on the device (pipeline.py) ----
+ * Sample i is view segment i (all segments of the image, sorted by camera sample);
+ * live[j] (j < L) lists the samples the sweep integrates, in increasing order. */
+
+/* Ring weight of every view segment (pipeline.ring_weights): 1 within the ring around
+ * the epipole (the anti-epipole when the light is behind the camera: front = 0),
+ * smoothstep to 0 across the band out to `outer`, 0 beyond; only primary segments
+ * (depth 0) take part (deeper ones are ray marched whole: weight 0, not live).
+ * live_flag = primary and w < 1 (the sweep), counts = (primary samples with w > 0,
+ * those with 0 < w < 1). */
+__kernel void epi_ring(__global const ViewSegment *segs, __global const float4 *geo, int n,
+                       int front, float radius, float outer, __global float *wr,
+                       __global int *live_flag, volatile __global int *counts) {
+    int i = get_global_id(0);
+    if (i >= n) return;
+    int primary = segs[i].depth == 0;
+    float beta = geo[i].x;
+    float ang = front ? beta : PI_F - beta;
+    float w = 0.0f;
+    if (radius > 0.0f) {
+        if (ang < radius) w = 1.0f;
+        else if (ang < outer) {
+            float x = clamp((outer - ang) / fmax(outer - radius, 1e-12f), 0.0f, 1.0f);
+            w = x * x * (3.0f - 2.0f * x);
+        }
+    }
+    if (!primary) w = 0.0f;
+    wr[i] = w;
+    live_flag[i] = primary && w < 1.0f;
+    if (primary && w > 0.0f) {
+        atomic_inc(&counts[0]);
+        if (w < 1.0f) atomic_inc(&counts[1]);
+    }
+}
+
+/* Scale of each segment for the ray-marched parts: primary[i] = 1 for depth 0, deeper[i]
+ * = 1 for the segments behind mirrors and glass (counts[0] counts them). */
+__kernel void epi_split(__global const ViewSegment *segs, int n, __global float *primary,
+                        __global float *deeper, volatile __global int *counts) {
+    int i = get_global_id(0);
+    if (i >= n) return;
+    int d = segs[i].depth > 0;
+    primary[i] = d ? 0.0f : 1.0f;
+    deeper[i] = d ? 1.0f : 0.0f;
+    if (d) atomic_inc(&counts[0]);
+}
+
+/* group of slice k when the S slices are cut into G contiguous arcs */
+int epi_group_of(int k, int S, int G) { return (int)(((long)k * G) / S); }
+
+/* The beta range of the live samples touching each group of slices (through either of
+ * their two slices): bmin/bmax hold float bits (beta >= 0, so int order is float order). */
+__kernel void epi_view_ranges(__global const float4 *geo, __global const int4 *idx,
+                              __global const int *live, int L, int S, int G,
+                              volatile __global int *bmin, volatile __global int *bmax) {
+    int j = get_global_id(0);
+    if (j >= L) return;
+    int i = live[j];
+    int b = as_int(fmax(geo[i].x, 0.0f));
+    int g0 = epi_group_of(idx[i].x, S, G), g1 = epi_group_of(idx[i].y, S, G);
+    atomic_min(&bmin[g0], b);
+    atomic_max(&bmax[g0], b);
+    if (g1 != g0) {
+        atomic_min(&bmin[g1], b);
+        atomic_max(&bmax[g1], b);
+    }
+}
+
+/* The least t_a of those samples at each of `nodes` uniform nodes over the group's
+ * range (svd.node_extremes): tmin [G][nodes] as float bits (t_a >= 0), +inf where none. */
+__kernel void epi_view_nodes(__global const float4 *geo, __global const int4 *idx,
+                             __global const int *live, int L, int S, int G,
+                             __global const float2 *range, int nodes,
+                             volatile __global int *tmin) {
+    int j = get_global_id(0);
+    if (j >= L) return;
+    int i = live[j];
+    float4 gi = geo[i];
+    int ta = as_int(fmax(gi.w, 0.0f));
+    int g[2] = {epi_group_of(idx[i].x, S, G), epi_group_of(idx[i].y, S, G)};
+    for (int q = 0; q < 2; ++q) {
+        if (q == 1 && g[1] == g[0]) break;
+        float2 r = range[g[q]];
+        float x = (gi.x - r.x) / fmax(r.y - r.x, 1e-30f) * (float)(nodes - 1);
+        int node = clamp((int)rint(x), 0, nodes - 1);
+        atomic_min(&tmin[g[q] * nodes + node], ta);
+    }
+}
+
+/* Event keys: event e = which * L + j of live sample i = live[j] lies in slice k0
+ * (which = 0, weight 1 - f) or k1 (which = 1, weight f); a weight-0 event goes to the
+ * dummy bucket nslices, after every slice. beta orders the events within a slice. */
+__kernel void epi_event_keys(__global const float4 *geo, __global const int4 *idx,
+                             __global const int *live, int L, int nslices,
+                             __global int *keys, __global float *beta) {
+    int e = get_global_id(0);
+    if (e >= 2 * L) return;
+    int which = e >= L, j = which ? e - L : e;
+    int i = live[j];
+    int4 x = idx[i];
+    float f = as_float(x.z);
+    float w = which ? f : 1.0f - f;
+    keys[e] = w > 0.0f ? (which ? x.y : x.x) : nslices;
+    beta[e] = geo[i].x;
+}
+
+/* The sweep's events in sorted order (perm from the bucket sort): event p = (beta,
+ * gamma_a, gamma_b, t_a) of its sample; inv[e] = p (inv is -1 for dummy events). */
+__kernel void epi_events(__global const float4 *geo, __global const int *live, int L,
+                         __global const int *perm, int n_ev, __global float4 *events,
+                         __global int *inv) {
+    int p = get_global_id(0);
+    if (p >= n_ev) return;
+    int e = perm[p];
+    int j = e >= L ? e - L : e;
+    events[p] = geo[live[j]];
+    inv[e] = p;
+}
+
+/* Back to the samples: the blend of a live sample's two event results (weights 1 - f
+ * and f), times the light's colour (sigma_s x power) and the sweep's share 1 - w_ring,
+ * into values[i] (the caller zeroes values: samples not live stay 0). With one channel
+ * in the sweep (grey extinction), its result serves all three. `acc` given per live
+ * sample instead (grid lookup: use_acc = 1) skips the event blend. */
+__kernel void epi_sample_values(__global const float4 *res, __global const int *inv,
+                                __global const int4 *idx, __global const int *live, int L,
+                                __global const float4 *acc, int use_acc,
+                                __global const float *wr, float4 colour,
+                                __global float4 *values) {
+    int j = get_global_id(0);
+    if (j >= L) return;
+    int i = live[j];
+    float4 s;
+    if (use_acc) {
+        s = acc[j];
+    } else {
+        float f = as_float(idx[i].z);
+        s = (float4)(0.0f);
+        int p0 = inv[j], p1 = inv[L + j];
+        if (p0 >= 0) s += (1.0f - f) * res[p0];
+        if (p1 >= 0) s += f * res[p1];
+    }
+#if EPI_NCH == 1
+    s = (float4)(s.x, s.x, s.x, 0.0f);
+#endif
+    values[i] = s * colour * (1.0f - wr[i]);
+}
+
+/* weighted[i] = values[i] * segment i's weight (its throughput and transmittance to the eye) */
+__kernel void epi_weighted(__global const float4 *values, __global const ViewSegment *segs,
+                           int n, __global float4 *weighted) {
+    int i = get_global_id(0);
+    if (i >= n) return;
+    float4 w = segs[i].weight;
+    w.w = 0.0f;
+    weighted[i] = values[i] * w;
+}

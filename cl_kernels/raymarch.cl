@@ -1,6 +1,8 @@
 /* raymarch.cl: the reference for single scattering of direct light.
  *
- * One work-item per view segment (ViewSegment, from view_paths.cl). For every light, STEPS
+ * One work-item per view segment (ViewSegment, from view_paths.cl; segment si =
+ * seg_offset + the work-item, its result in out[si], times scale[si] when use_scale: a
+ * segment of scale 0 is skipped, how a caller marches part of the segments). For every light, STEPS
  * jittered, stratified samples along the segment; at each, a shadow ray to the light
  * (any-hit through the BVH) and the medium transmittance on the way, the HG phase
  * function and sigma_s:
@@ -25,6 +27,7 @@ __kernel void raymarch(__global const BVHNode *nodes, __global const float4 *tri
                        __global const Light *lights, int num_lights,
                        __global const Medium *medium,
                        __global const ViewSegment *segs, int seg_offset, int num_segs,
+                       __global const float *scale, int use_scale,
                        int steps, uint seed, __global float4 *out) {
     int gid = get_global_id(0);
     if (gid >= num_segs) return;
@@ -34,7 +37,8 @@ __kernel void raymarch(__global const BVHNode *nodes, __global const float4 *tri
     ab.w = 0.0f;
     float len = length3(ab);
     float4 result = (float4)(0.0f);
-    if (len <= 0.0f) { out[gid] = result; return; }
+    float sc = use_scale ? scale[si] : 1.0f;
+    if (len <= 0.0f || sc == 0.0f) { out[si] = result; return; }
     float4 w = ab / len;
     Rng rng = rng_seed(seed, (uint)sg.sample, (uint)sg.branch ^ 0x5ca77e3u);
 
@@ -77,5 +81,5 @@ __kernel void raymarch(__global const BVHNode *nodes, __global const float4 *tri
         }
         result += acc;
     }
-    out[gid] = result * medium->sigma_s * sg.weight;
+    out[si] = result * medium->sigma_s * sg.weight * sc;
 }

@@ -6,7 +6,8 @@
  * so images of glass are noise-free and energy bookkeeping is exact. Branches whose
  * throughput falls below MIN_THROUGHPUT are dropped.
  *
- * Outputs, per sample (already divided by spp, so a pixel is the sum of its samples):
+ * Outputs, per sample (already divided by spp, so a pixel is the sum of its samples),
+ * at out_offset + the sample's index in the launch:
  *   surface[s]  radiance of diffuse surfaces lit directly (shadow rays, medium attenuation)
  *   escaped[s]  throughput of branches that left the scene (for energy tests; no sky)
  * and the shared segment buffer: every straight piece of a path inside the medium, with
@@ -114,7 +115,7 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
                          __global const Light *lights, int num_lights,
                          __global const Medium *medium, __global const Camera *cam,
                          int max_depth, uint seed, int sample_offset, int num_samples,
-                         __global float4 *surface, __global float4 *escaped,
+                         int out_offset, __global float4 *surface, __global float4 *escaped,
                          __global ViewSegment *segs, int max_segs,
                          volatile __global int *seg_count) {
     int gid = get_global_id(0);
@@ -151,8 +152,19 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
             radiance += br.thr * shade_diffuse(nodes, tris, lights, num_lights, medium, f.p, f.nf,
                                                f.gf, materials[mi].color);
     }
-    surface[gid] = radiance;
-    escaped[gid] = escape;
+    surface[out_offset + gid] = radiance;
+    escaped[out_offset + gid] = escape;
+}
+
+/* Sort keys of n appended view segments: the camera sample relative to base, and the
+ * branch (exact as a float below 2^24), so that a bucket sort orders them by (sample,
+ * branch) whatever order the atomic appends ran in. */
+__kernel void view_segment_keys(__global const ViewSegment *segs, int n, int base,
+                                __global int *keys, __global float *branch) {
+    int i = get_global_id(0);
+    if (i >= n) return;
+    keys[i] = segs[i].sample - base;
+    branch[i] = (float)segs[i].branch;
 }
 
 /* The diffuse hits of the same camera paths as trace_view (same seeds, same branching),

@@ -22,6 +22,7 @@ import difflib
 import hashlib
 import os
 import re
+import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -305,6 +306,9 @@ class Engine:
         self.bytes_live = 0
         self.bytes_peak = 0
         self.builds = {"source": 0, "cache": 0}   # how programs were obtained
+        # seconds the host spent blocked on the device (kernel completion, transfers):
+        # a render's time minus this is its host time (``--stats``: host_seconds)
+        self.wait_seconds = 0.0
 
     @property
     def name(self) -> str:
@@ -444,7 +448,10 @@ class Engine:
         if arr.nbytes == 0:
             arr = np.zeros(1, np.int32) if arr.dtype.itemsize < 4 else np.zeros(1, arr.dtype)
         flags = (mf.READ_WRITE if writable else mf.READ_ONLY) | mf.COPY_HOST_PTR
-        return self._track(self.cl.Buffer(self.ctx, flags, hostbuf=arr), arr.nbytes)
+        t = time.perf_counter()
+        buf = self.cl.Buffer(self.ctx, flags, hostbuf=arr)
+        self.wait_seconds += time.perf_counter() - t
+        return self._track(buf, arr.nbytes)
 
     def empty(self, nbytes: int):
         """A new uninitialised read-write device buffer."""
@@ -457,13 +464,22 @@ class Engine:
         self.cl.enqueue_fill_buffer(self.queue, buf, np.zeros(1, np.uint32), 0, max(int(nbytes), 4))
         return buf
 
-    def read(self, buf, shape, dtype) -> np.ndarray:
-        """Copy a device buffer back into a new host array of ``shape`` and ``dtype``."""
+    def read(self, buf, shape, dtype, offset: int = 0) -> np.ndarray:
+        """Copy a device buffer (from byte ``offset``) back into a new host array of
+        ``shape`` and ``dtype``."""
         out = np.empty(shape, dtype)
         if out.nbytes:
-            self.cl.enqueue_copy(self.queue, out, buf)
+            t = time.perf_counter()
+            self.cl.enqueue_copy(self.queue, out, buf, src_offset=int(offset))
             self.queue.finish()
+            self.wait_seconds += time.perf_counter() - t
         return out
+
+    def finish(self) -> None:
+        """Wait for every enqueued command (counted in :attr:`wait_seconds`)."""
+        t = time.perf_counter()
+        self.queue.finish()
+        self.wait_seconds += time.perf_counter() - t
 
     def free(self, *bufs) -> None:
         """Release device buffers now (and stop counting them as live)."""
@@ -522,22 +538,28 @@ class AppendBuffer:
              defines: dict[str, object] | None = None, **args) -> np.ndarray:
         """Keyword launch (see :meth:`Engine.call`) of a kernel whose last three parameters
         are the records, capacity and counter; return the records appended."""
+        got = self.call_on_device(program, kernel, global_size, defines, **args)
+        return self.eng.read(self.buf, got, self.dtype) if got else np.zeros(0, self.dtype)
+
+    def call_on_device(self, program: str, kernel: str, global_size: int,
+                       defines: dict[str, object] | None = None, **args) -> int:
+        """As :meth:`call`, but the records stay in :attr:`buf`: returns their count."""
         eng = self.eng
         params = eng.signature(program, kernel)
         rec, cap, cnt = (p.name for p in params[-3:])
-        return self.launch(eng.kernel(program, kernel, defines), global_size,
-                           *eng.bind(program, kernel, {**args, rec: self.buf, cap: 0,
-                                                       cnt: self.counter})[:-3])
+        return self._run(eng.kernel(program, kernel, defines), global_size,
+                         *eng.bind(program, kernel, {**args, rec: self.buf, cap: 0,
+                                                     cnt: self.counter})[:-3])
 
-    def launch(self, kernel, global_size: int, *args) -> np.ndarray:
-        """Run ``kernel(*args, records, capacity, counter)``; return the records appended."""
+    def _run(self, kernel, global_size: int, *args) -> int:
+        """Launch until every record fits (growing :attr:`buf`); the record count."""
         eng = self.eng
         while True:
             eng.cl.enqueue_fill_buffer(eng.queue, self.counter, np.zeros(1, np.int32), 0, 4)
             eng.launch(kernel, global_size, *args, self.buf, np.int32(self.capacity), self.counter)
             got = int(eng.read(self.counter, 1, np.int32)[0])
             if got <= self.capacity:
-                return eng.read(self.buf, got, self.dtype) if got else np.zeros(0, self.dtype)
+                return got
             eng.free(self.buf)                  # too small: grow and run again
             self.capacity = int(got * 1.25) + 16
             self.buf = eng.empty(self.capacity * self.dtype.itemsize)

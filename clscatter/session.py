@@ -28,6 +28,7 @@ was) and the current scene can be saved as TOML (:meth:`to_toml`).
 from __future__ import annotations
 
 import copy
+import time
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -182,6 +183,7 @@ class RenderSession:
             req = check(scene, self.method)
         with stats.stage("device"):
             engine = self.engine
+        clock = (time.perf_counter(), engine.wait_seconds)
         with stats.stage("configure"):
             limit, source = budget.memory_budget(engine, self.max_memory)
             budget.check_budget(req.estimates, limit, source)
@@ -216,21 +218,23 @@ class RenderSession:
         # ---- view paths ----
         key = (_view_key(scene), samples)
         if self._paths is None or self._pending or key != self._paths_key:
+            if self._paths is not None:
+                self._paths.release()
             self._paths = trace_view_paths(ps, stats, show_progress, sample_range=samples)
             self._paths_key = key
             self._pending = []
             ran.append("view_paths")
         else:
             reused.append("view_paths")
-            stats.set(view_segments=int(len(self._paths.segments)))
+            stats.set(view_segments=int(len(self._paths)))
         paths = self._paths
 
         # ---- passes ----
         return self._run_passes(scene, req, ps, paths, stats, show_progress, stop_if_asked,
-                                ran, reused, preview, only, pass_params or {})
+                                ran, reused, preview, only, pass_params or {}, clock)
 
     def _run_passes(self, scene, req, ps, paths, stats, show_progress, stop_if_asked, ran,
-                    reused, preview, only, pass_params):
+                    reused, preview, only, pass_params, clock):
         from .render import RenderResult
         engine = ps.engine
         cam = scene.camera
@@ -259,6 +263,11 @@ class RenderSession:
                 stats.set(nonfinite_pixels_zeroed=int(bad.any(axis=-1).sum()))
                 image = np.where(bad, 0.0, image)
         chosen = "+".join(p.method for p in req.passes) or "none"
+        # host time: the render (after device choice) minus the waits on the device
+        render_s = time.perf_counter() - clock[0]
+        wait_s = engine.wait_seconds - clock[1]
+        stats.set(render_seconds=render_s, device_wait_seconds=wait_s,
+                  host_seconds=max(render_s - wait_s, 0.0))
         stats.set(method=chosen, requested_method=req.requested, plan=req.notes,
                   passes=[{"method": p.method, "role": p.role} for p in req.passes],
                   device=engine.name, width=cam.width, height=cam.height, spp=cam.spp,
@@ -274,6 +283,8 @@ class RenderSession:
 
     def release(self) -> None:
         """Free the device buffers (the session can render again; it prepares anew)."""
+        if self._paths is not None:
+            self._paths.release()
         if self._ps is not None:
             self._ps.release()
         self._ps = None

@@ -275,7 +275,9 @@ def test_svd_fourth_singular_value_claim():
             cone = (tab["cone_lo"][k].astype(float), tab["cone_hi"][k].astype(float)) if axis.spot else None
             refs = svd.references(axis, box, tab["w"][:, :3].astype(float),
                                   (tab["cone_lo"].astype(float), tab["cone_hi"].astype(float))
-                                  if axis.spot else None, gr, br, b, b * 0, zero=True)
+                                  if axis.spot else None, gr, br,
+                                  svd.node_extremes(b, b * 0, *br, svd.REF_NODES, False),
+                                  zero=True)
             T = svd.decompose(axis, np.array([kap]), g, gr, br, 4, 64, 512, 512, refs)
             err = svd.heldout_error(axis, box, [kap], g, T, refs, w, b, ga, gb, cone)
             fails.append((kind, round(ratio, 3), err["rms"], err["samples"], len(b),

@@ -158,9 +158,10 @@ def test_scalars_are_converted_to_the_declared_type(engine):
     args = engine.bind("raymarch", "raymarch", {
         "nodes": engine.empty(4), "tris": engine.empty(4), "lights": engine.empty(4),
         "num_lights": 1, "medium": engine.empty(4), "segs": engine.empty(4), "seg_offset": 0,
-        "num_segs": 5, "steps": 3, "seed": 7, "out": engine.empty(4)})
+        "num_segs": 5, "scale": engine.empty(4), "use_scale": 0, "steps": 3, "seed": 7,
+        "out": engine.empty(4)})
     assert [type(a) for a in args[3:4]] == [np.int32]
-    assert isinstance(args[8], np.int32) and isinstance(args[9], np.uint32)
+    assert isinstance(args[10], np.int32) and isinstance(args[11], np.uint32)
 
 
 def test_preview_parameters_scale_the_costly_ones():

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..prepared import PreparedScene
-from ..view_paths import ViewPaths, accumulate_segments
+from ..view_paths import DeviceSegments, ViewPaths
 from ..stats import Stats, progress
 from .base import AutoRole, Method, Param
 from . import register
@@ -49,24 +49,37 @@ class RayMarch(Method):
                       show_progress: bool = True) -> np.ndarray:
         """Single-scattered radiance (H, W, 3) for all view segments of ``paths``."""
         cam = ps.scene.camera
-        segs = paths.segments
-        n = len(segs)
-        if n == 0 or ps.num_lights == 0:
+        if len(paths) == 0 or ps.num_lights == 0:
             return np.zeros((cam.height, cam.width, 3), np.float32)
-        eng = ps.engine
-        seg_buf = eng.to_device(segs)
-        chunk = min(self.params["segments_per_launch"], n)
-        out_buf = eng.empty(chunk * 16)
-        values = np.zeros((n, 4), np.float32)
-        seed = np.uint32((ps.scene.render.seed * 7919 + 17) & 0xFFFFFFFF)
+        segs = paths.on_device(ps.engine, cam.width, cam.height)
+        img = march_segments(ps, segs, self.steps, stats, show_progress,
+                             self.params["segments_per_launch"])
+        stats.set(raymarch_steps=self.steps,
+                  shadow_rays=int(len(paths)) * self.steps * int(ps.num_lights))
+        return img
+
+
+def march_segments(ps: PreparedScene, segs: DeviceSegments, steps: int, stats: Stats,
+                   show_progress: bool = True, per_launch: int = 65536,
+                   scale=None) -> np.ndarray:
+    """``raymarch.cl`` over device segments, accumulated into an (H, W, 3) image on the
+    device. ``scale``: a device buffer of one float per segment multiplying its result
+    (0 skips it): how another method ray-marches part of the segments (epipolar's ring
+    and fallbacks) without compacting them."""
+    eng = ps.engine
+    n = segs.count
+    chunk = max(1, min(int(per_launch), n))
+    out_buf = eng.empty(16 * max(n, 1))
+    seed = np.uint32((ps.scene.render.seed * 7919 + 17) & 0xFFFFFFFF)
+    try:
         with stats.stage("raymarch"), progress(n, "raymarch", show_progress) as bar:
             for start in range(0, n, chunk):
                 m = min(chunk, n - start)
-                ps.call("raymarch", "raymarch", m, segs=seg_buf, seg_offset=start, num_segs=m,
-                        steps=self.steps, seed=seed, out=out_buf)
-                values[start:start + m] = eng.read(out_buf, (chunk, 4), np.float32)[:m]
+                ps.call("raymarch", "raymarch", m, segs=segs.buf, seg_offset=start, num_segs=m,
+                        scale=scale if scale is not None else out_buf,
+                        use_scale=int(scale is not None), steps=steps, seed=seed, out=out_buf)
+                eng.finish()                # progress that means something
                 bar.update(m)
-        eng.free(seg_buf, out_buf)
-        stats.set(raymarch_steps=self.steps,
-                  shadow_rays=int(n) * self.steps * int(ps.num_lights))
-        return accumulate_segments(values, segs["pixel"], cam.width, cam.height)
+            return segs.accumulate(out_buf)
+    finally:
+        eng.free(out_buf)

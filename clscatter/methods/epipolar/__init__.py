@@ -8,11 +8,11 @@ import numpy as np
 from ... import structs
 from .pipeline import LOOKUPS, Settings, render_light
 from ...prepared import PreparedScene
-from ...view_paths import ViewPaths, accumulate_segments
+from ...view_paths import ViewPaths
 from ...stats import Stats
 from .. import AutoRole, Method, Param, register
 from ...errors import SceneError
-from ..raymarch import RayMarch
+from ..raymarch import march_segments
 
 
 @register
@@ -153,78 +153,94 @@ class Epipolar(Method):
         self.raymarch_steps = max(1, int(p["raymarch_steps"]))
 
     # ---- the fallback: raymarch on some segments with some lights ----
-    def _raymarch(self, ps: PreparedScene, paths: ViewPaths, segs: np.ndarray, lights,
-                  stats: Stats, show_progress: bool, steps: int | None = None) -> np.ndarray:
-        cam = ps.scene.camera
-        if len(segs) == 0 or len(lights) == 0:
-            return np.zeros((cam.height, cam.width, 3), np.float32)
-        sub = ViewPaths(paths.surface, paths.escaped, segs)
-        lights = np.asarray(lights, np.int64)
+    def _raymarch(self, ps: PreparedScene, segs, scale, lights, stats: Stats,
+                  show_progress: bool, steps: int | None = None) -> np.ndarray:
+        """``raymarch`` over the segments of ``segs`` (device) times ``scale`` (one float
+        per segment, 0 skips it), with the lights ``lights`` only."""
+        lights = np.asarray(list(lights), np.int64)
         if len(lights) == ps.num_lights:
-            sub_ps = ps
-            buf = None
+            sub_ps, buf = ps, None
         else:
             buf = ps.engine.to_device(ps.lights[lights])
             sub_ps = dataclasses.replace(ps, lights=ps.lights[lights],
                                          dev=dataclasses.replace(ps.dev, lights=buf))
         try:
-            return RayMarch({"steps": steps or self.raymarch_steps}).render(sub_ps, sub, stats,
-                                                                   show_progress)
+            return march_segments(sub_ps, segs, steps or self.raymarch_steps, stats,
+                                  show_progress, scale=scale)
         finally:
             if buf is not None:
                 ps.engine.free(buf)
 
     def render(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
                show_progress: bool = True) -> np.ndarray:
-        """Single-scattered radiance (H, W, 3) for all view segments of ``paths``."""
+        """Single-scattered radiance (H, W, 3) for all view segments of ``paths``.
+
+        Everything per segment stays on the device (:func:`pipeline.render_light`); the
+        ray-marched parts (segments behind mirrors and glass, point lights, the epipole
+        ring, lights that fall back) run ``raymarch`` over the same device segments with a
+        per-segment scale, and each part is summed into pixels there."""
         cam = ps.scene.camera
         img = np.zeros((cam.height, cam.width, 3), np.float32)
-        segs = paths.segments
-        if len(segs) == 0 or ps.num_lights == 0 or not ps.has_medium:
+        if len(paths) == 0 or ps.num_lights == 0 or not ps.has_medium:
             return img
+        eng = ps.engine
+        segs = paths.on_device(eng, cam.width, cam.height)
+        n = segs.count
         fallback: list[str] = []
-        primary = segs["depth"] == 0
         types = ps.lights["type"]
         handled = [i for i in range(ps.num_lights)
                    if types[i] in (structs.LIGHT_DIRECTIONAL, structs.LIGHT_SPOT)]
         others = [i for i in range(ps.num_lights) if i not in handled]
-        with stats.stage("epipolar_fallback"):
-            if (~primary).any():
-                img += self._raymarch(ps, paths, segs[~primary], range(ps.num_lights), stats,
-                                      show_progress)
-                fallback.append(f"raymarch: {int((~primary).sum())} view segments behind "
-                                "mirrors/glass (depth > 0)")
-            if others:
-                img += self._raymarch(ps, paths, segs[primary], others, stats, show_progress)
-                fallback.append(f"raymarch: point lights {others} (no epipolar slices for "
-                                "a point light's full sphere)")
-        prim = segs[primary]
-        per_light = []
-        for li in handled:
-            try:
-                out = render_light(ps, li, prim, self.settings, stats, show_progress)
-            except ValueError as e:        # degenerate axis, or the SVD's error too large
-                with stats.stage("epipolar_fallback"):
-                    # the accurate path for a whole light: 4 x the ring's steps (a thick
-                    # medium is what sends lights here; 64 steps are not enough there)
-                    img += self._raymarch(ps, paths, prim, [li], stats, show_progress,
-                                          steps=4 * self.raymarch_steps)
-                fallback.append(f"raymarch: light {li}: {e}")
-                per_light.append({"light": li, "fallback": "raymarch", "reason": str(e),
-                                  **getattr(e, "info", {})})
-                continue
-            w = prim["weight"][:, :3].astype(np.float64)
-            img += accumulate_segments(out.values * w, prim["pixel"], cam.width, cam.height)
-            if out.ring.any():
-                # the ring and its blended band: ray marched with weight ring_weight
-                rm = prim[out.ring].copy()
-                rm["weight"][:, :3] *= out.ring_weight[out.ring][:, None].astype(np.float32)
-                with stats.stage("epipolar_ring"):
-                    img += self._raymarch(ps, paths, rm, [li], stats, show_progress)
-                fallback.append(f"raymarch: light {li}: {int(out.ring.sum())} samples in the "
-                                f"epipole ring ({out.info['ring_degrees']:.3g} degrees, "
-                                f"{out.info['ring_band_samples']} of them in its blended band)")
-            per_light.append({"light": li, **out.info})
+        primary, deeper, cnt = eng.empty(4 * n), eng.empty(4 * n), eng.zeros(4)
+        weighted = eng.empty(16 * n)
+        try:
+            with stats.stage("epipolar_rectify"):
+                eng.call("epipolar", "epi_split", n, segs=segs.buf, n=n, primary=primary,
+                         deeper=deeper, counts=cnt)
+                n_deep = int(eng.read(cnt, 1, np.int32)[0])
+            with stats.stage("epipolar_fallback"):
+                if n_deep:
+                    img += self._raymarch(ps, segs, deeper, range(ps.num_lights), stats,
+                                          show_progress)
+                    fallback.append(f"raymarch: {n_deep} view segments behind "
+                                    "mirrors/glass (depth > 0)")
+                if others:
+                    img += self._raymarch(ps, segs, primary, others, stats, show_progress)
+                    fallback.append(f"raymarch: point lights {others} (no epipolar slices "
+                                    "for a point light's full sphere)")
+            per_light = []
+            for li in handled:
+                try:
+                    out = render_light(ps, li, segs, self.settings, stats, show_progress)
+                except ValueError as e:        # degenerate axis, or the SVD's error too large
+                    with stats.stage("epipolar_fallback"):
+                        # the accurate path for a whole light: 4 x the ring's steps (a thick
+                        # medium is what sends lights here; 64 steps are not enough there)
+                        img += self._raymarch(ps, segs, primary, [li], stats, show_progress,
+                                              steps=4 * self.raymarch_steps)
+                    fallback.append(f"raymarch: light {li}: {e}")
+                    per_light.append({"light": li, "fallback": "raymarch", "reason": str(e),
+                                      **getattr(e, "info", {})})
+                    continue
+                try:
+                    with stats.stage("epipolar_unrectify"):
+                        eng.call("epipolar", "epi_weighted", n, values=out.values_buf,
+                                 segs=segs.buf, n=n, weighted=weighted)
+                        img += segs.accumulate(weighted)
+                    if out.ring_samples:
+                        # the ring and its blended band: ray marched with weight ring_weight
+                        with stats.stage("epipolar_ring"):
+                            img += self._raymarch(ps, segs, out.ring_buf, [li], stats,
+                                                  show_progress)
+                        fallback.append(
+                            f"raymarch: light {li}: {out.ring_samples} samples in the "
+                            f"epipole ring ({out.info['ring_degrees']:.3g} degrees, "
+                            f"{out.info['ring_band_samples']} of them in its blended band)")
+                finally:
+                    out.release()
+                per_light.append({"light": li, **out.info})
+        finally:
+            eng.free(primary, deeper, cnt, weighted)
         stats.set(epipolar_fallback=fallback, epipolar_lights=per_light,
                   epipolar_ring_steps=self.raymarch_steps)
         swept = [x for x in per_light if "fallback" not in x]

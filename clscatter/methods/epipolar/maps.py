@@ -151,7 +151,7 @@ def trace_shadow_map(ps: PreparedScene, frame_buf, res: int, defines: dict | Non
                  fr=frame_buf, faces=fb, ntex=n, out=out)
     finally:
         if own:
-            eng.queue.finish()
+            eng.finish()
             eng.free(fb)
     return out
 

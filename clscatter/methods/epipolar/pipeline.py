@@ -39,12 +39,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ... import primitives as prim
+from ... import structs
 from ...prepared import PreparedScene
 from ...stats import Stats, progress
 from . import geometry as geo
 from .maps import setup_shadow_map, trace_depth_map, trace_shadow_map
-from .svd import (accepts, decompose, float32_error, heldout_error, references, riemann_error,
-                  slice_error, summarize, view_entry)
+from .svd import (REF_NODES, accepts, decompose, float32_error, heldout_error, node_extremes,
+                  references, riemann_error, slice_error, summarize, view_entry)
 
 LOOKUPS = ("segment", "grid")
 
@@ -80,12 +82,31 @@ class SVDFallback(ValueError):
         self.info = info
 
 
-@dataclass
 class LightOutput:
-    values: np.ndarray                 # (n, 3) float64, the swept part (x 1 - ring_weight)
-    ring: np.ndarray                   # (n,) bool: samples the caller ray-marches
-    info: dict = field(default_factory=dict)
-    ring_weight: np.ndarray | None = None   # (n,) weight of the ray-marched part
+    """One light's result on the device: ``values_buf`` (n float4) the swept radiance of
+    each view segment towards its start (times 1 - ring weight; the caller multiplies by
+    the segment weight), ``ring_buf`` (n float) the ring weight of each segment (the share
+    the caller ray-marches), ``ring_samples`` how many have one > 0. :attr:`values`,
+    :attr:`ring` and :attr:`ring_weight` read them back (tests, tools)."""
+
+    def __init__(self, engine, n: int, values_buf, ring_buf, info: dict, ring_samples: int):
+        self.engine, self.n, self.info = engine, int(n), info
+        self.values_buf, self.ring_buf, self.ring_samples = values_buf, ring_buf, int(ring_samples)
+
+    @property
+    def values(self) -> np.ndarray:
+        return self.engine.read(self.values_buf, (self.n, 4), np.float32)[:, :3].astype(np.float64)
+
+    @property
+    def ring_weight(self) -> np.ndarray:
+        return self.engine.read(self.ring_buf, self.n, np.float32).astype(np.float64)
+
+    @property
+    def ring(self) -> np.ndarray:
+        return self.ring_weight > 0.0
+
+    def release(self) -> None:
+        self.engine.free(self.values_buf, self.ring_buf)
 
 
 def ring_weights(beta: np.ndarray, front: bool, radius: float, band: float) -> np.ndarray:
@@ -135,37 +156,35 @@ def _spacing(st: Settings, axis: geo.Axis, cam: geo.CameraGeom) -> float:
     return max(n1 / st.slices, 1e-3)
 
 
-def _segment_events(geo: np.ndarray, idx: np.ndarray, nslices: int):
-    """Events of the segment lookup, two per sample (its two neighbouring slices, weights
-    1 - f and f), sorted by (slice, beta); ``geo``/``idx`` from ``epi_samples``.
-    Returns the events, the slice offsets, each event's weight and its sample."""
-    n = len(geo)
-    f = idx[:, 2].view(np.float32)
-    k = np.concatenate([idx[:, 0], idx[:, 1]])
-    wgt = np.concatenate([1.0 - f, f])
-    order = np.argsort(k + np.tile(geo[:, 0], 2).astype(np.float64) * 0.25)   # beta / 4 < 1
-    order = order[wgt[order] > 0.0]
-    src = order % n
-    off = np.zeros(nslices + 1, np.int32)
-    off[1:] = np.cumsum(np.bincount(k[order], minlength=nslices))
-    return geo[src], off, wgt[order].astype(np.float64), src
-
-
-def render_light(ps: PreparedScene, li: int, segs: np.ndarray, st: Settings, stats: Stats,
+def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
                  show_progress: bool = True) -> LightOutput:
-    """Radiance from light ``li`` scattered towards the start of each primary segment."""
+    """Radiance from light ``li`` scattered towards the start of each primary view segment
+    of ``segs`` (:class:`~clscatter.view_paths.DeviceSegments`, or a host segment array,
+    uploaded; deeper segments get 0).
+
+    Per-sample work stays on the device: the samples' slice coordinates (``epi_samples``),
+    ring weights and the live list (``epi_ring``, compaction), the views' beta ranges and
+    t_a envelopes for the SVD's references (``epi_view_ranges``/``epi_view_nodes``), the
+    sweep's events (keys, bucket sort by slice then beta, ``epi_events``) and the blend
+    back to the samples (``epi_sample_values``). The host reads back: a few hundred
+    held-out rows for the error estimate, the slices' event offsets (S + 1 ints: batch
+    sizes), per-group ranges and envelope nodes, and counters. The grid lookup (not the
+    default) reads the live segments back to trace its direction table on the host."""
     eng = ps.engine
     cam = geo.CameraGeom.from_struct(ps.camera)
+    if isinstance(segs, np.ndarray):
+        from ...view_paths import ViewPaths
+        segs = ViewPaths(None, None, segs).on_device(eng, cam.width, cam.height)
     axis = geo.make_axis(ps.lights[li], cam.origin)
     st = _auto(st, cam)
-    n = len(segs)
+    n = segs.count
     box = geo.medium_box(ps.medium)
     if box is None and not axis.spot:
         raise ValueError("a directional light needs a bounded medium")
     kappa = np.asarray(ps.medium["kappa"][:3], np.float64)
     nch = 1 if np.all(kappa == kappa[0]) else 3
+    g_hg = float(ps.medium["g"])
     defines = {"EPI_NT": int(st.svd_terms), "EPI_NCH": nch}
-    values = np.zeros((n, 3), np.float64)
     d = int(st.light_rays)
     bufs = []
 
@@ -179,6 +198,8 @@ def render_light(ps: PreparedScene, li: int, segs: np.ndarray, st: Settings, sta
         bufs.append(b)
         return b
 
+    values_buf, wr_buf = eng.zeros(16 * max(n, 1)), eng.zeros(4 * max(n, 1))
+    ok = False
     try:
         # ---- slices, and every sample's coordinates (rectification of the view rays) ----
         # The slice spacing is halved (twice at most) while reading the samples in their
@@ -188,6 +209,8 @@ def render_light(ps: PreparedScene, li: int, segs: np.ndarray, st: Settings, sta
         ring_rad = math.radians(st.ring_degrees) if st.ring_degrees > 0 else \
             st.epipole_ring * cam.pixel_angle()
         ring_px = ring_rad / cam.pixel_angle()          # for the slices' beta ranges
+        geo_buf, idx_buf = scratch(16 * max(n, 1)), scratch(16 * max(n, 1))
+        live = None
         for attempt in range(3):
             with stats.stage("epipolar_rectify"):
                 slices = geo.make_slices(axis, cam, box, spacing, ring_px)
@@ -205,34 +228,33 @@ def render_light(ps: PreparedScene, li: int, segs: np.ndarray, st: Settings, sta
                 frame_buf = up(frame.reshape(1))
                 slice_buf = up(slices.table)
                 phi_buf = up(slices.phi.astype(np.float32))
-                geo_buf, idx_buf = scratch(16 * max(n, 1)), scratch(16 * max(n, 1))
-                # the ring is decided on the host, in angle (the kernel's pixel disc is off)
+                # the ring is decided below, in angle (the kernel's pixel disc is off)
                 no_ring = np.array([slices.P[0], slices.P[1], -1.0, 0.0], np.float32)
                 eng.call("epipolar", "epi_samples", n, defines, fr=frame_buf, phis=phi_buf,
                          nslices=S, full=slices.full, cam=ps.dev.camera, ring=no_ring,
-                         segs=up(segs), n=n, geo=geo_buf, idx=idx_buf)
-                sgeo = eng.read(geo_buf, (n, 4), np.float32)
-                sidx = eng.read(idx_buf, (n, 4), np.int32)
-                w_ring = ring_weights(sgeo[:, 0], slices.front, ring_rad, st.ring_band)
-                ring = w_ring > 0.0
-                live = np.flatnonzero(w_ring < 1.0)
-            if st.lookup != "segment" or len(live) == 0:
+                         segs=segs.buf, n=n, geo=geo_buf, idx=idx_buf)
+                if live is None:            # beta, hence the ring, does not depend on slices
+                    live = _live_samples(eng, segs, geo_buf, idx_buf, wr_buf, slices.front,
+                                         ring_rad, st.ring_band, defines, bufs)
+                views = DeviceViews(eng, geo_buf, idx_buf, live.buf, live.count, S, defines)
+            if st.lookup != "segment" or live.count == 0:
                 slice_err = summarize(np.zeros(0))
                 break
             with stats.stage("epipolar_svd"):
-                slice_err = _slice_check(axis, box, kappa[:nch], float(ps.medium["g"]), slices,
-                                         segs, cam.origin, sgeo, sidx, live)
+                slice_err = _slice_check(axis, box, kappa[:nch], g_hg, slices, cam.origin,
+                                         live.rows(segs, np.random.default_rng(54321), 200))
             if slice_err["rms"] <= 0.25 * st.svd_tolerance or attempt == 2:
                 break
             spacing *= 0.5
         info: dict = {"epipole_px": [float(slices.P[0]), float(slices.P[1])],
-                      "epipole_in_front": bool(slices.front), "ring_samples": int(ring.sum()),
+                      "epipole_in_front": bool(slices.front), "ring_samples": live.ring,
                       "ring_degrees": math.degrees(ring_rad),
-                      "ring_band_samples": int(((w_ring > 0) & (w_ring < 1)).sum()),
+                      "ring_band_samples": live.band,
                       "slice_spacing_px": float(spacing),
                       "slice_error": {k: v for k, v in slice_err.items() if k != "errors"}}
-        if len(live) == 0:
-            return LightOutput(values, ring, info, w_ring)
+        if live.count == 0:
+            ok = True
+            return LightOutput(eng, n, values_buf, wr_buf, info, live.ring)
 
         # ---- maps ----
         with stats.stage("epipolar_maps"):
@@ -244,25 +266,25 @@ def render_light(ps: PreparedScene, li: int, segs: np.ndarray, st: Settings, sta
             faces_buf = up(faces)
             smap = trace_shadow_map(ps, frame_buf, int(st.shadow_map), defines, faces, faces_buf)
             bufs.append(smap)
-            eng.queue.finish()
+            eng.finish()
 
         # ---- the view rays of the sweep (events) and the SVD ----
         with stats.stage("epipolar_rectify"):
             if st.lookup == "segment":
-                ev, off, ev_w, ev_src = _segment_events(sgeo[live], sidx[live], S)
-                ev_buf = up(ev)
-                n_ev = len(ev)
-                b_range = (float(sgeo[live, 0].min()), float(sgeo[live, 0].max()))
+                ev_buf, off_buf, inv_buf, off = _segment_events(eng, geo_buf, idx_buf, live, S,
+                                                                defines, bufs)
+                n_ev = int(off[S])
+                b_range = views.ranges(1)[0] or (0.0, 0.0)
             else:
                 off = (np.arange(S + 1) * R).astype(np.int32)
                 n_ev = S * R
                 ev_buf = scratch(16 * n_ev)
+                off_buf = up(off)
                 tab = slices.table
                 b_range = (float(tab["beta_lo"].min()), float(tab["beta_hi"].max()))
-            off_buf = up(off)
             g_range = (float(slices.table["gamma_lo"].min()), float(slices.table["gamma_hi"].max()))
         with stats.stage("epipolar_svd"):
-            sv, tried = _svd(axis, box, ps, kappa[:nch], slices, sgeo, sidx, live, st, R,
+            sv, tried = _svd(axis, box, ps, kappa[:nch], slices, views, live, segs, st, R,
                              extra=slice_err["rms"])
             err = {k: v for k, v in sv.error.items() if k != "errors"}
             info.update(svd_error=err, svd_tried=tried, svd_terms=sv.terms,
@@ -309,7 +331,7 @@ def render_light(ps: PreparedScene, li: int, segs: np.ndarray, st: Settings, sta
                         eng.call("epipolar", "epi_rectify_depth", nb * R, defines, fr=frame_buf,
                                  slices=slice_buf, slice0=s0, nbatch=nb, medium=ps.dev.medium,
                                  cam=ps.dev.camera, depth=depth, dw=dw, dh=dh, events=ev_buf)
-                    eng.queue.finish()
+                    eng.finish()
                 with stats.stage("epipolar_integrate"):
                     _launch_slices(eng, "epi_integrate", nb, defines, fr=frame_buf,
                                    slices=slice_buf, slice0=s0, nbatch=nb, term=term,
@@ -318,30 +340,37 @@ def render_light(ps: PreparedScene, li: int, segs: np.ndarray, st: Settings, sta
                                    gref_all=gref_buf, bref_all=bref_buf, groups=grp_buf,
                                    tree=tree, leaf=leaf, cnt_all=cnt, sorted_all=srt, out=out,
                                    work=work)
-                    eng.queue.finish()
+                    eng.finish()
                 bar.update(nb)
 
         # ---- back to the samples ----
         with stats.stage("epipolar_unrectify"):
-            if st.lookup == "segment":
-                res = eng.read(out, (n_ev, 4), np.float32)[:, :nch].astype(np.float64)
-                acc = np.zeros((len(live), nch))
-                for c in range(nch):
-                    acc[:, c] = np.bincount(ev_src, weights=res[:, c] * ev_w, minlength=len(live))
-            else:
-                dbuf = up(segment_dirs(segs[live], cam.origin))
-                ubuf = scratch(16 * len(live))
-                eng.call("epipolar", "epi_unrectify", len(live), defines, fr=frame_buf,
+            colour = np.zeros(4, np.float32)
+            colour[:3] = (np.asarray(ps.medium["sigma_s"][:3], np.float64)
+                          * np.asarray(ps.lights[li]["power"][:3], np.float64))
+            acc = out
+            if st.lookup == "grid":
+                # the grid's lookup needs each live sample's direction: read back (not the
+                # default lookup; the host computes the directions as geometry.py does)
+                rows = prim.gather(eng, segs.buf, live.buf, live.count, SEGMENT_BYTES)
+                bufs.append(rows)
+                live_segs = eng.read(rows, live.count, structs.VIEW_SEGMENT)
+                dbuf = up(segment_dirs(live_segs, cam.origin))
+                acc = scratch(16 * live.count)
+                eng.call("epipolar", "epi_unrectify", live.count, defines, fr=frame_buf,
                          slices=slice_buf, phis=phi_buf, nslices=S, full=slices.full, R=R,
-                         grid=out, dirs=dbuf, n=len(live), out=ubuf)
-                acc = eng.read(ubuf, (len(live), 4), np.float32)[:, :nch].astype(np.float64)
-            colour = (np.asarray(ps.medium["sigma_s"][:3], np.float64)
-                      * np.asarray(ps.lights[li]["power"][:3], np.float64))
-            values[live] = acc * colour * (1.0 - w_ring[live])[:, None]
-        counts = eng.read(work, (S, 2), np.int32)
-        eng.note_host(int(values.nbytes) * 4)
+                         grid=out, dirs=dbuf, n=live.count, out=acc)
+                inv_buf = acc                       # unused with use_acc
+            eng.call("epipolar", "epi_sample_values", live.count, defines, res=out,
+                     inv=inv_buf, idx=idx_buf, live=live.buf, L=live.count, acc=acc,
+                     use_acc=int(st.lookup == "grid"), wr=wr_buf, colour=colour,
+                     values=values_buf)
+            counts = eng.read(work, (S, 2), np.int32)
+        ok = True
     finally:
         eng.free(*bufs)
+        if not ok:
+            eng.free(values_buf, wr_buf)
     info.update(slices=S, light_rays=d, shadow_map=int(st.shadow_map), lookup=st.lookup,
                 shadow_map_faces=[[int(f["c"][3]), int(f["e1"][3])] for f in faces]
                 if axis.spot else [[int(st.shadow_map)] * 2],
@@ -353,7 +382,160 @@ def render_light(ps: PreparedScene, li: int, segs: np.ndarray, st: Settings, sta
         info.update(rays_per_slice=R, depth_map=[dw, dh])
     else:
         info.update(rays_per_slice=float(n_ev) / max(S, 1))
-    return LightOutput(values, ring, info, w_ring)
+    return LightOutput(eng, n, values_buf, wr_buf, info, live.ring)
+
+
+SEGMENT_BYTES = structs.VIEW_SEGMENT.itemsize
+
+
+@dataclass
+class LiveSamples:
+    """The samples the sweep integrates (primary, ring weight < 1), on the device:
+    ``buf`` their ``count`` indices in increasing order; ``ring`` / ``band`` how many
+    primary samples have a ring weight > 0 / strictly between 0 and 1."""
+
+    engine: object
+    buf: object
+    count: int
+    ring: int
+    band: int
+    geo: object
+    idx: object
+
+    def rows(self, segs, rng: np.random.Generator, n_max: int):
+        """``min(count, n_max)`` live samples drawn without replacement by ``rng`` (the
+        draw NumPy makes from ``range(count)``): their segment, geo and idx rows, read back
+        (a few hundred rows: the held-out set of the error estimates)."""
+        eng = self.engine
+        m = min(self.count, int(n_max))
+        pos = rng.choice(self.count, m, replace=False).astype(np.int32)
+        if m == 0:
+            return (np.zeros(0, structs.VIEW_SEGMENT), np.zeros((0, 4), np.float32),
+                    np.zeros((0, 4), np.int32))
+        tmp = [eng.to_device(pos)]
+        try:
+            tmp.append(prim.gather(eng, self.buf, tmp[0], m, 4))
+            ids = tmp[1]
+            out = []
+            for src, size, dt, shape in ((segs.buf, SEGMENT_BYTES, structs.VIEW_SEGMENT, m),
+                                         (self.geo, 16, np.float32, (m, 4)),
+                                         (self.idx, 16, np.int32, (m, 4))):
+                tmp.append(prim.gather(eng, src, ids, m, size))
+                out.append(eng.read(tmp[-1], shape, dt))
+            return tuple(out)
+        finally:
+            eng.free(*tmp)
+
+
+def _live_samples(eng, segs, geo_buf, idx_buf, wr_buf, front: bool, radius: float,
+                  band: float, defines: dict, bufs: list) -> LiveSamples:
+    """Ring weights into ``wr_buf`` (:func:`ring_weights`, on the device) and the live
+    list (a compaction)."""
+    n = segs.count
+    flags, counts = eng.empty(4 * max(n, 1)), eng.zeros(8)
+    try:
+        outer = radius * (1.0 + max(band, 0.0))
+        eng.call("epipolar", "epi_ring", n, defines, segs=segs.buf, geo=geo_buf, n=n,
+                 front=int(bool(front)), radius=radius, outer=outer, wr=wr_buf,
+                 live_flag=flags, counts=counts)
+        live, count = prim.compact(eng, flags, n)
+        bufs.append(live)
+        ring, in_band = (int(x) for x in eng.read(counts, 2, np.int32))
+    finally:
+        eng.free(flags, counts)
+    return LiveSamples(eng, live, count, ring, in_band, geo_buf, idx_buf)
+
+
+class HostViews:
+    """The view rays of the SVD's references given on the host (the grid lookup's rays):
+    slices ``k0``, ``k1`` (a ray touches the groups of both), ``beta`` and ``t_a``."""
+
+    def __init__(self, k0, k1, beta, ta, S: int):
+        self.k0, self.k1, self.beta, self.ta, self.S = k0, k1, beta, ta, S
+
+    def _touch(self, G: int, j: int) -> np.ndarray:
+        group = (np.arange(self.S) * G) // self.S
+        return (group[self.k0] == j) | (group[self.k1] == j)
+
+    def ranges(self, G: int) -> list:
+        out = []
+        for j in range(G):
+            vs = self._touch(G, j)
+            out.append((float(self.beta[vs].min()), float(self.beta[vs].max()))
+                       if vs.any() else None)
+        return out
+
+    def nodes(self, G: int, brs) -> np.ndarray:
+        return np.stack([node_extremes(self.beta[vs], self.ta[vs], lo, hi, REF_NODES, False)
+                         for j, (lo, hi) in enumerate(brs)
+                         for vs in [self._touch(G, j)]])
+
+
+class DeviceViews:
+    """The same for the camera samples of the segment lookup, reduced on the device
+    (``epi_view_ranges``, ``epi_view_nodes``): only per-group ranges and envelope nodes
+    come back."""
+
+    def __init__(self, eng, geo, idx, live, L: int, S: int, defines: dict):
+        self.eng, self.geo, self.idx, self.live, self.L, self.S = eng, geo, idx, live, L, S
+        self.defines = defines
+        self._ranges: dict[int, list] = {}
+
+    def ranges(self, G: int) -> list:
+        if G not in self._ranges:
+            eng = self.eng
+            lo = eng.to_device(np.full(G, np.iinfo(np.int32).max, np.int32), writable=True)
+            hi = eng.to_device(np.zeros(G, np.int32), writable=True)
+            try:
+                eng.call("epipolar", "epi_view_ranges", self.L, self.defines, geo=self.geo,
+                         idx=self.idx, live=self.live, L=self.L, S=self.S, G=G, bmin=lo, bmax=hi)
+                a, b = eng.read(lo, G, np.int32), eng.read(hi, G, np.int32)
+            finally:
+                eng.free(lo, hi)
+            self._ranges[G] = [(float(x), float(y)) if i <= k else None
+                               for i, k, x, y in zip(a, b, a.view(np.float32), b.view(np.float32))]
+        return self._ranges[G]
+
+    def nodes(self, G: int, brs) -> np.ndarray:
+        eng = self.eng
+        rng = eng.to_device(np.asarray(brs, np.float32).reshape(G, 2))
+        inf = np.array(np.inf, np.float32).view(np.int32)
+        tmin = eng.to_device(np.full(G * REF_NODES, inf, np.int32), writable=True)
+        try:
+            eng.call("epipolar", "epi_view_nodes", self.L, self.defines, geo=self.geo,
+                     idx=self.idx, live=self.live, L=self.L, S=self.S, G=G, range=rng,
+                     nodes=REF_NODES, tmin=tmin)
+            out = eng.read(tmin, (G, REF_NODES), np.int32)
+        finally:
+            eng.free(rng, tmin)
+        return out.view(np.float32).astype(np.float64)
+
+
+def _segment_events(eng, geo_buf, idx_buf, live: LiveSamples, S: int, defines: dict,
+                    bufs: list):
+    """The sweep's events, two per live sample (its two neighbouring slices, weights
+    1 - f and f; weight-0 ones dropped), bucket-sorted on the device by slice and then
+    beta. Returns the events, the slice offsets (device, and the S + 1 of them on the
+    host for the batch sizes) and ``inv`` (event of each (which, sample) pair, -1 when
+    dropped)."""
+    L = live.count
+    keys, beta = eng.empty(8 * max(L, 1)), eng.empty(8 * max(L, 1))
+    try:
+        eng.call("epipolar", "epi_event_keys", 2 * L, defines, geo=geo_buf, idx=idx_buf,
+                 live=live.buf, L=L, nslices=S, keys=keys, beta=beta)
+        perm, offs = prim.bucket_sort(eng, keys, 2 * L, S + 1, fkey=beta)
+    finally:
+        eng.free(keys, beta)
+    bufs += [perm, offs]
+    off = eng.read(offs, S + 1, np.int32)
+    n_ev = int(off[S])
+    ev = eng.empty(16 * max(n_ev, 1))
+    inv = eng.empty(8 * max(L, 1))
+    bufs += [ev, inv]
+    prim.fill_int(eng, inv, 2 * L, -1)
+    eng.call("epipolar", "epi_events", n_ev, defines, geo=geo_buf, live=live.buf, L=L,
+             perm=perm, n_ev=n_ev, events=ev, inv=inv)
+    return ev, offs, inv, off
 
 
 def _views(axis: geo.Axis, box, ps: PreparedScene, slices: geo.Slices, idx: np.ndarray,
@@ -402,17 +584,17 @@ HELD_RIEMANN = 80         # ... of its light-ray part (a sum over light rays eac
 HELD_F32 = 40             # ... of its float32 part (the tree's sums emulated)
 
 
-def _slice_check(axis, box, kappas, g, slices, segs, eye, sgeo, sidx, live, n_max: int = 200):
+def _slice_check(axis, box, kappas, g, slices, eye, rows):
     """Held-out estimate of the error of reading samples in their neighbouring slices
-    (svd.slice_error) on at most ``n_max`` live samples."""
-    rng = np.random.default_rng(54321)
-    pick = live[rng.choice(len(live), min(len(live), n_max), replace=False)]
-    v = segs["b"][pick, :3].astype(np.float64) - eye
+    (svd.slice_error) on ``rows`` = (segments, geo, idx) of a few hundred live samples
+    (:meth:`LiveSamples.rows`)."""
+    segs, sgeo, sidx = rows
+    v = segs["b"][:, :3].astype(np.float64) - eye
     perp = v - (v @ axis.u)[:, None] * axis.u
     w = perp / np.maximum(np.linalg.norm(perp, axis=1), 1e-30)[:, None]
     tab = slices.table
-    k0, k1 = sidx[pick, 0], sidx[pick, 1]
-    f = sidx[pick, 2].view(np.float32).astype(np.float64)
+    k0, k1 = sidx[:, 0], sidx[:, 1]
+    f = sidx[:, 2].view(np.float32).astype(np.float64)
     w0, w1 = tab["w"][k0, :3].astype(np.float64), tab["w"][k1, :3].astype(np.float64)
     cones = None
     if axis.spot:
@@ -421,9 +603,9 @@ def _slice_check(axis, box, kappas, g, slices, segs, eye, sgeo, sidx, live, n_ma
         # medium's transmittance does across them
         own = geo._cone_interval(axis, w)
         cones = [own, own, own]
-    e = slice_error(axis, box, kappas, g, w, w0, w1, f, sgeo[pick, 0].astype(np.float64),
-                    sgeo[pick, 1].astype(np.float64), sgeo[pick, 2].astype(np.float64), cones)
-    ok = sgeo[pick, 2] > sgeo[pick, 1]
+    e = slice_error(axis, box, kappas, g, w, w0, w1, f, sgeo[:, 0].astype(np.float64),
+                    sgeo[:, 1].astype(np.float64), sgeo[:, 2].astype(np.float64), cones)
+    ok = sgeo[:, 2] > sgeo[:, 1]
     return summarize(e[ok])
 
 
@@ -446,7 +628,6 @@ def _svd_groups(axis, box, ps, kappas, slices, views, held, st: Settings, G: int
         if axis.spot else None
     w_all = tab["w"][:, :3].astype(np.float64)
     g = float(ps.medium["g"])
-    vk0, vk1, vb, vta = views
     hk, hw, hb, hga, hgb = held
     nch = len(kappas)
     tmax = max(terms_list)
@@ -454,16 +635,18 @@ def _svd_groups(axis, box, ps, kappas, slices, views, held, st: Settings, G: int
     errs = {T: [] for T in terms_list}
     disc = {m: [] for m in RAY_MULTS}
     singular = None
+    # each group's beta range: its view rays' (the slices' own where none touches it)
+    brs = [r if r is not None else
+           (float(tab["beta_lo"][group == j].min()), float(tab["beta_hi"][group == j].max()))
+           for j, r in enumerate(views.ranges(G))]
+    nodes = None if zero else views.nodes(G, brs)
     for j in range(G):
         sel = group == j
         gr = (float(tab["gamma_lo"][sel].min()), float(tab["gamma_hi"][sel].max()))
-        vs = (group[vk0] == j) | (group[vk1] == j)
-        if vs.any():
-            br = (float(vb[vs].min()), float(vb[vs].max()))
-        else:
-            br = (float(tab["beta_lo"][sel].min()), float(tab["beta_hi"][sel].max()))
+        br = brs[j]
         cone = (cone_all[0][sel], cone_all[1][sel]) if cone_all is not None else None
-        refs = references(axis, box, w_all[sel], cone, gr, br, vb[vs], vta[vs], zero=zero)
+        refs = references(axis, box, w_all[sel], cone, gr, br,
+                          None if nodes is None else nodes[j], zero=zero)
         full = decompose(axis, kappas, g, gr, br, tmax, int(st.svd_samples), n_tab, n_tab, refs)
         if singular is None or j == G // 2:
             singular = full.singular
@@ -520,7 +703,8 @@ def _svd_groups(axis, box, ps, kappas, slices, views, held, st: Settings, G: int
     return out
 
 
-def _svd(axis, box, ps, kappas, slices, sgeo, sidx, live, st: Settings, R, extra: float = 0.0):
+def _svd(axis, box, ps, kappas, slices, views, live: LiveSamples, segs, st: Settings, R,
+         extra: float = 0.0):
     """The SVD set of one light with the fewest terms (device time) whose held-out error's
     RMS is within ``svd_tolerance``: terms ``svd_terms`` doubling up to ``svd_max_terms``,
     tried in the plain formulation, then referenced with the slices in 1 group, then 16
@@ -532,12 +716,10 @@ def _svd(axis, box, ps, kappas, slices, sgeo, sidx, live, st: Settings, R, extra
     S = len(tab)
     rng = np.random.default_rng(12345)
     if st.lookup == "segment":
-        views = (sidx[live, 0], sidx[live, 1], sgeo[live, 0].astype(np.float64),
-                 sgeo[live, 3].astype(np.float64))
-        pick = live[rng.choice(len(live), min(len(live), HELD_OUT), replace=False)]
-        hk = sidx[pick, 0]
-        held = (hk, tab["w"][hk, :3].astype(np.float64), sgeo[pick, 0].astype(np.float64),
-                sgeo[pick, 1].astype(np.float64), sgeo[pick, 2].astype(np.float64))
+        _, sgeo, sidx = live.rows(segs, rng, HELD_OUT)
+        hk = sidx[:, 0]
+        held = (hk, tab["w"][hk, :3].astype(np.float64), sgeo[:, 0].astype(np.float64),
+                sgeo[:, 1].astype(np.float64), sgeo[:, 2].astype(np.float64))
     else:
         # the grid's view rays: R per slice, uniform in beta over the slice's range
         m = min(R, 64)
@@ -545,7 +727,7 @@ def _svd(axis, box, ps, kappas, slices, sgeo, sidx, live, st: Settings, R, extra
         kk = np.repeat(np.arange(S), m)
         bb = (tab["beta_lo"][kk] + np.tile(j, S) * (tab["beta_hi"][kk] - tab["beta_lo"][kk]))
         _, vb, vta, _, _, vk = _views(axis, box, ps, slices, kk, bb.astype(np.float64))
-        views = (vk, vk, vb, vta)
+        views = HostViews(vk, vk, vb, vta, S)
         kh = rng.integers(0, S, HELD_OUT)
         bh = rng.uniform(tab["beta_lo"][kh], tab["beta_hi"][kh])
         hw, hb, _, hga, hgb, hk = _views(axis, box, ps, slices, kh, bh)

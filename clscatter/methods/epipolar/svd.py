@@ -182,16 +182,25 @@ def view_entry(axis: Axis, box, dirs: np.ndarray):
     return np.maximum(t0, 0.0), t1
 
 
-def _envelope(x, v, lo, hi, n, upper: bool) -> np.ndarray:
-    """Envelope of samples ``v`` at positions ``x`` on ``n`` uniform nodes over [lo, hi]:
-    each node takes the extreme of the samples nearest to it and to its neighbours, so the
-    linear interpolation between two nodes bounds every sample between them. Nodes with
-    no sample are interpolated."""
+def node_extremes(x, v, lo, hi, n, upper: bool) -> np.ndarray:
+    """The extreme (max if ``upper``, else min) of samples ``v`` nearest to each of ``n``
+    uniform nodes over [lo, hi] (node ``rint((x - lo) / (hi - lo) (n - 1))``); -inf / inf
+    where no sample falls. The reduction the device does for the camera samples
+    (``epi_view_nodes``); :func:`envelope_from_nodes` finishes it."""
     out = np.full(n, -np.inf if upper else np.inf)
     if len(x) == 0:
-        return np.zeros(n)
+        return out
     j = np.clip(np.rint((np.asarray(x) - lo) / max(hi - lo, 1e-30) * (n - 1)), 0, n - 1).astype(int)
     (np.maximum if upper else np.minimum).at(out, j, v)
+    return out
+
+
+def envelope_from_nodes(out: np.ndarray, upper: bool) -> np.ndarray:
+    """The envelope from :func:`node_extremes`: each node takes the extreme of its own
+    and its neighbours' samples, so the linear interpolation between two nodes bounds
+    every sample between them; nodes with no sample are interpolated (all zero when
+    there is none at all)."""
+    n = len(out)
     dil = out.copy()
     f = np.maximum if upper else np.minimum
     dil[1:] = f(dil[1:], out[:-1])
@@ -203,16 +212,24 @@ def _envelope(x, v, lo, hi, n, upper: bool) -> np.ndarray:
     return np.interp(idx, idx[ok], dil[ok])
 
 
+def _envelope(x, v, lo, hi, n, upper: bool) -> np.ndarray:
+    """Envelope of samples ``v`` at positions ``x`` on ``n`` uniform nodes over [lo, hi]
+    (:func:`node_extremes` then :func:`envelope_from_nodes`)."""
+    return envelope_from_nodes(node_extremes(x, v, lo, hi, n, upper), upper)
+
+
 def references(axis: Axis, box, w: np.ndarray, cone: tuple[np.ndarray, np.ndarray] | None,
-               g_range, b_range, view_b: np.ndarray, view_ta: np.ndarray,
+               g_range, b_range, view_nodes: np.ndarray,
                n: int = REF_NODES, max_slices: int = 192, zero: bool = False) -> Refs:
     """The envelopes of the module docstring. ``w`` (S, 3): the slices; ``cone``: their
-    gamma intervals inside a spot cone; ``view_b, view_ta``: beta and segment start of
-    the view rays that will be integrated (camera samples, or grid rays). ``zero``: no
+    gamma intervals inside a spot cone; ``view_nodes``: the least segment start of the
+    view rays that will be integrated (camera samples, or grid rays) at each of ``n``
+    nodes over ``b_range`` (:func:`node_extremes`, ``upper=False``). ``zero``: no
     references (:meth:`Refs.zero`), with the span of the light entries for the kernel."""
     g_lo, g_hi = (float(x) for x in g_range)
     b_lo, b_hi = (float(x) for x in b_range)
-    tref = np.zeros(2) if zero else _envelope(view_b, view_ta, b_lo, b_hi, n, upper=False)
+    tref = np.zeros(2) if zero else envelope_from_nodes(np.asarray(view_nodes, np.float64),
+                                                        upper=False)
     if box is None and axis.spot:
         return Refs(tref, np.zeros(2), b_lo, b_hi, g_lo, g_hi, 0.0, not zero)
     # a subset of the slices (neighbours differ by a pixel: the envelope moves little

@@ -139,16 +139,16 @@ def direct_outside(ps, box, segs: np.ndarray, steps: int, per_launch: int = 6553
     med_buf, seg_buf = eng.to_device(med2), eng.to_device(segs)
     n = len(segs)
     chunk = min(per_launch, n)
-    out = eng.empty(16 * chunk)
-    values = np.zeros((n, 4), np.float32)
+    out = eng.empty(16 * max(n, 1))
     seed = np.uint32((ps.scene.render.seed * 7919 + 17) & 0xFFFFFFFF)   # as raymarch
     try:
         scene = ps.scene_args("voxel_direct", "raymarch", medium=med_buf)   # box rides in medium
         for start in range(0, n, chunk):
             m = min(chunk, n - start)
             eng.call("voxel_direct", "raymarch", m, **scene, medium=med_buf, segs=seg_buf,
-                     seg_offset=start, num_segs=m, steps=steps, seed=seed, out=out)
-            values[start:start + m] = eng.read(out, (chunk, 4), np.float32)[:m]
+                     seg_offset=start, num_segs=m, scale=out, use_scale=0, steps=steps,
+                     seed=seed, out=out)
+        values = eng.read(out, (n, 4), np.float32)
     finally:
         eng.free(med_buf, seg_buf, out)
     return accumulate_segments(values, segs["pixel"], cam.width, cam.height)
