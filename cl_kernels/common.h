@@ -131,6 +131,7 @@ typedef struct {
 typedef struct {
     float4 p;          /* hit point */
     float4 n;          /* shading normal, turned towards the viewer */
+    float4 g;          /* geometric normal, turned towards the viewer (shadow rays leave along it) */
     float4 weight;     /* rgb */
     int pixel;         /* y * width + x */
     int sample;        /* camera sample index */

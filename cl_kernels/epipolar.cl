@@ -486,7 +486,7 @@ __kernel void epi_samples(__global const EpiFrame *fr, __global const float *phi
     float f;
     float beta = epi_locate(fr, phis, nslices, full, v, &k0, &k1, &f);
     float px, py;
-    int in_ring = epi_project(cam, v, cam->width, cam->height, &px, &py)
+    int in_ring = ring.z > 0.0f && epi_project(cam, v, cam->width, cam->height, &px, &py)
                   && hypot(px - ring.x, py - ring.y) < ring.z;
     geo[gid] = (float4)(beta, epi_gamma(fr, t_a, beta), epi_gamma(fr, t_b, beta), t_a);
     idx[gid] = (int4)(k0, k1, as_int(f), in_ring);

@@ -91,11 +91,11 @@ void append_view_segment(__global ViewSegment *segs, int max_segs, volatile __gl
     }
 }
 
-/* Direct light at a diffuse point p, every light: n is the shading normal and gn the
- * geometric normal, both facing the viewer (shadow rays leave along gn). */
-float4 shade_diffuse(__global const BVHNode *nodes, __global const float4 *tris,
-                     __global const Light *lights, int num_lights, __global const Medium *medium,
-                     float4 p, float4 n, float4 gn, float4 albedo) {
+/* Irradiance from every light at a diffuse point p (sum of E cos T): n is the shading
+ * normal and gn the geometric normal, both facing the viewer (shadow rays leave along gn). */
+float4 direct_irradiance(__global const BVHNode *nodes, __global const float4 *tris,
+                         __global const Light *lights, int num_lights,
+                         __global const Medium *medium, float4 p, float4 n, float4 gn) {
     float4 sum = (float4)(0.0f);
     float4 origin = p + gn * RAY_EPS;
     for (int i = 0; i < num_lights; ++i) {
@@ -106,7 +106,15 @@ float4 shade_diffuse(__global const BVHNode *nodes, __global const float4 *tris,
         if (c <= 0.0f || dot3(gn, wi) <= 0.0f || (E.x == 0.0f && E.y == 0.0f && E.z == 0.0f)) continue;
         sum += E * c * light_transmission(nodes, tris, medium, origin, wi, dist, 0.0f);
     }
-    return sum * albedo * (1.0f / PI_F);
+    return sum;
+}
+
+/* Radiance a diffuse point of colour albedo sends towards the viewer under direct light. */
+float4 shade_diffuse(__global const BVHNode *nodes, __global const float4 *tris,
+                     __global const Light *lights, int num_lights, __global const Medium *medium,
+                     float4 p, float4 n, float4 gn, float4 albedo) {
+    return direct_irradiance(nodes, tris, lights, num_lights, medium, p, n, gn) * albedo
+           * (1.0f / PI_F);
 }
 
 __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *tris,
@@ -156,15 +164,30 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
     escaped[out_offset + gid] = escape;
 }
 
-/* Sort keys of n appended view segments: the camera sample relative to base, and the
- * branch (exact as a float below 2^24), so that a bucket sort orders them by (sample,
- * branch) whatever order the atomic appends ran in. */
-__kernel void view_segment_keys(__global const ViewSegment *segs, int n, int base,
-                                __global int *keys, __global float *branch) {
+/* Sort keys of n appended records (view segments or diffuse hits: `stride` int words
+ * each, the camera sample and the branch at the given words): the sample relative to
+ * base, and the branch (exact as a float below 2^24), so that a bucket sort orders them
+ * by (sample, branch) whatever order the atomic appends ran in. */
+__kernel void record_keys(__global const int *records, int stride, int sample_word,
+                          int branch_word, int n, int base, __global int *keys,
+                          __global float *branch) {
     int i = get_global_id(0);
     if (i >= n) return;
-    keys[i] = segs[i].sample - base;
-    branch[i] = (float)segs[i].branch;
+    __global const int *r = records + (size_t)i * stride;
+    keys[i] = r[sample_word] - base;
+    branch[i] = (float)r[branch_word];
+}
+
+/* The surface shading of trace_view again, at recorded diffuse hits (a light change:
+ * no camera path is traced again): out[i] = weight * direct irradiance. */
+__kernel void shade_hits(__global const BVHNode *nodes, __global const float4 *tris,
+                         __global const Light *lights, int num_lights,
+                         __global const Medium *medium, __global const DiffuseHit *hits,
+                         int n, __global float4 *out) {
+    int i = get_global_id(0);
+    if (i >= n) return;
+    DiffuseHit h = hits[i];
+    out[i] = h.weight * direct_irradiance(nodes, tris, lights, num_lights, medium, h.p, h.n, h.g);
 }
 
 /* The diffuse hits of the same camera paths as trace_view (same seeds, same branching),
@@ -199,6 +222,7 @@ __kernel void trace_diffuse_hits(__global const BVHNode *nodes, __global const f
                 DiffuseHit h;
                 h.p = f.p;
                 h.n = f.nf;
+                h.g = f.gf;
                 h.weight = br.thr * materials[mi].color * (1.0f / PI_F);
                 h.weight.w = 0.0f;
                 h.pixel = pixel;

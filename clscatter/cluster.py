@@ -83,7 +83,7 @@ def _worker_session(payload: dict, method: str | None):
     if key not in plugin.sessions:
         plugin.sessions[key] = RenderSession.from_data(
             payload["data"], payload["base_dir"], payload["source"], payload["overrides"],
-            method=method, engine=plugin.engine)
+            method=method, engine=plugin.engine, keep_hits=False)
     return plugin.sessions[key]
 
 

@@ -55,7 +55,7 @@ def render(scene: Scene, method: str | None = None, engine: Engine | None = None
     from .session import RenderSession
 
     with RenderSession(scene, method, engine=engine, device=device,
-                       max_memory=max_memory) as session:
+                       max_memory=max_memory, keep_hits=False) as session:
         return session.render(show_progress=show_progress, on_note=on_note, stats=stats)
 
 

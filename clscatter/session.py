@@ -9,7 +9,8 @@ what changed                what runs again
 ==========================  ==============================================================
 objects or volumes          everything (a new BVH; the normalised frame may move)
 materials                   the material buffer, view paths, passes
-lights                      the light buffer, view paths (surface shading), passes
+lights                      the light buffer, the surface shading (re-shading the recorded
+                            diffuse hits, no camera path traced), passes
 camera                      the camera buffer, view paths, passes
 medium                      the medium buffer, view paths (segment weights), passes
 render.max_depth / seed     view paths, passes
@@ -41,7 +42,7 @@ from .prepared import PreparedScene, prepare_scene, refresh, same_frame
 from .scene.loader import apply_overrides, scene_from_dict, scene_source
 from .scene.model import Scene
 from .stats import Stats
-from .view_paths import ViewPaths, trace_view_paths
+from .view_paths import ViewPaths, shade_hits, trace_diffuse_hits_on_device, trace_view_paths
 
 
 class Cancelled(Exception):
@@ -70,8 +71,14 @@ class RenderSession:
     """A scene prepared on one device, rendered again and again (see the module docstring)."""
 
     def __init__(self, scene: Scene, method: str | None = None, engine: Engine | None = None,
-                 device: str | None = None, max_memory: float | None = None):
+                 device: str | None = None, max_memory: float | None = None,
+                 keep_hits: bool = True):
         self.scene = scene
+        # record the view paths' diffuse hits on the device with them, so that a light
+        # change re-shades those instead of tracing the camera paths again (80 bytes per
+        # hit; a one-off render does not keep them)
+        self.keep_hits = keep_hits
+        self._hits = None
         self.method = method
         self.max_memory = max_memory
         self._engine = engine
@@ -217,10 +224,23 @@ class RenderSession:
 
         # ---- view paths ----
         key = (_view_key(scene), samples)
-        if self._paths is None or self._pending or key != self._paths_key:
-            if self._paths is not None:
-                self._paths.release()
+        relight = (self._paths is not None and key == self._paths_key and self._hits is not None
+                   and set(self._pending) == {"lights"})
+        if relight:
+            # only lights changed: the segments (their weights hold no light) stay; the
+            # surface is re-shaded at the recorded diffuse hits
+            with stats.stage("shade_hits"):
+                self._paths.surface = shade_hits(ps, self._hits)
+            self._pending = []
+            ran.append("shade_hits")
+            reused.append("view_paths")
+            stats.set(view_segments=int(len(self._paths)))
+        elif self._paths is None or self._pending or key != self._paths_key:
+            self._release_paths()
             self._paths = trace_view_paths(ps, stats, show_progress, sample_range=samples)
+            if self.keep_hits:
+                with stats.stage("view_paths"):
+                    self._hits = trace_diffuse_hits_on_device(ps, sample_range=samples)
             self._paths_key = key
             self._pending = []
             ran.append("view_paths")
@@ -283,15 +303,20 @@ class RenderSession:
 
     def release(self) -> None:
         """Free the device buffers (the session can render again; it prepares anew)."""
-        if self._paths is not None:
-            self._paths.release()
+        self._release_paths()
         if self._ps is not None:
             self._ps.release()
         self._ps = None
-        self._paths = None
         self._geometry = None
 
     close = release
+
+    def _release_paths(self) -> None:
+        if self._paths is not None:
+            self._paths.release()
+        if self._hits is not None:
+            self._hits.release()
+        self._paths = self._hits = None
 
     def __enter__(self) -> "RenderSession":
         return self

@@ -69,7 +69,7 @@ RAY_PIECE = np.dtype([
 ], align=True)
 
 DIFFUSE_HIT = np.dtype([
-    ("p", *F4), ("n", *F4), ("weight", *F4),
+    ("p", *F4), ("n", *F4), ("g", *F4), ("weight", *F4),
     ("pixel", np.int32), ("sample", np.int32), ("depth", np.int32), ("branch", np.int32),
 ], align=True)
 

@@ -22,9 +22,10 @@ SAMPLES_PER_LAUNCH = 1 << 17
 
 
 class DeviceSegments:
-    """View segments on the device, sorted by (camera sample, branch), with the offsets of
-    each pixel's run: ``buf`` holds ``count`` :data:`~clscatter.structs.VIEW_SEGMENT`
-    records, the segments of pixel ``p`` are ``[pix_off[p], pix_off[p + 1])``. A method
+    """Records of camera paths on the device (view segments, or diffuse hits), sorted by
+    (camera sample, branch), with the offsets of each pixel's run: ``buf`` holds ``count``
+    :data:`~clscatter.structs.VIEW_SEGMENT` (or :data:`~clscatter.structs.DIFFUSE_HIT`)
+    records, those of pixel ``p`` are ``[pix_off[p], pix_off[p + 1])``. A method
     that writes one float4 per segment turns it into an image with :meth:`accumulate`
     (summed on the device in segment order: deterministic), so nothing per segment comes
     back to the host. The buffers are freed with :meth:`release` or when this object is
@@ -112,6 +113,71 @@ class ViewPaths:
                 self._host = np.zeros(0, structs.VIEW_SEGMENT)
 
 
+def _sample_span(ps: PreparedScene, sample_range, per_launch: int) -> tuple[int, int, int, int]:
+    """The camera samples to trace: (lo, hi) clipped to the image, their count and the
+    samples per launch."""
+    cam = ps.scene.camera
+    n = cam.width * cam.height * cam.spp
+    lo, hi = sample_range if sample_range is not None else (0, n)
+    lo, hi = max(0, int(lo)), min(n, int(hi))
+    total = max(hi - lo, 0)
+    return lo, hi, total, int(max(1, min(per_launch, total)))
+
+
+class _Store:
+    """Records appended launch after launch (an :class:`AppendBuffer` per launch), kept
+    on the device in one buffer that grows by doubling."""
+
+    def __init__(self, eng: Engine, dtype: np.dtype):
+        self.eng, self.dtype = eng, np.dtype(dtype)
+        self.rec = self.dtype.itemsize
+        self.buf, self.cap, self.count = eng.empty(self.rec), 1, 0
+
+    def take(self, app: AppendBuffer, got: int) -> None:
+        eng, rec = self.eng, self.rec
+        if self.count + got > self.cap:
+            self.cap = max(2 * self.cap, self.count + got, 1)
+            bigger = eng.empty(rec * self.cap)
+            if self.count:
+                eng.cl.enqueue_copy(eng.queue, bigger, self.buf, byte_count=rec * self.count)
+            eng.free(self.buf)
+            self.buf = bigger
+        if got:
+            eng.cl.enqueue_copy(eng.queue, self.buf, app.buf, byte_count=rec * got,
+                                dst_offset=rec * self.count)
+        self.count += got
+
+    def sorted(self, lo: int, total: int, first, w: int, h: int) -> DeviceSegments:
+        """The records bucket-sorted by (sample - lo, branch) on the device (appends run
+        in no fixed order; the sort makes runs reproducible), with pixel offsets: the
+        sample offsets at each pixel's first sample (``first``)."""
+        eng, n = self.eng, self.count
+        keys, branch = eng.empty(4 * max(n, 1)), eng.empty(4 * max(n, 1))
+        perm = samp_off = None
+        words = self.rec // 4
+        try:
+            eng.call("view_paths", "record_keys", n, records=self.buf, stride=words,
+                     sample_word=self.dtype.fields["sample"][1] // 4,
+                     branch_word=self.dtype.fields["branch"][1] // 4, n=n, base=lo,
+                     keys=keys, branch=branch)
+            perm, samp_off = prim.bucket_sort(eng, keys, n, max(total, 1), fkey=branch)
+            buf = prim.gather(eng, self.buf, perm, n, self.rec)
+            pix_off = prim.gather(eng, samp_off, first, w * h + 1, 4)
+        finally:
+            eng.free(keys, branch, *(b for b in (perm, samp_off) if b is not None))
+        return DeviceSegments(eng, buf, n, pix_off, w, h)
+
+    def release(self) -> None:
+        self.eng.free(self.buf)
+
+
+def _first_samples(eng: Engine, lo: int, total: int, w: int, h: int, spp: int):
+    """Device int32 (H W + 1): pixel p's samples are [p spp, (p + 1) spp), clipped to the
+    range traced and relative to its start."""
+    first = np.clip(np.arange(w * h + 1, dtype=np.int64) * spp - lo, 0, total)
+    return eng.to_device(first.astype(np.int32))
+
+
 def trace_view_paths(ps: PreparedScene, stats: Stats | None = None, show_progress: bool = True,
                      samples_per_launch: int = SAMPLES_PER_LAUNCH,
                      sample_range: tuple[int, int] | None = None) -> ViewPaths:
@@ -121,57 +187,39 @@ def trace_view_paths(ps: PreparedScene, stats: Stats | None = None, show_progres
     is split across workers, :mod:`clscatter.cluster`).
 
     Everything per sample stays on the device: the segments are appended per launch into
-    one buffer, bucket-sorted by (sample, branch) (the appends run in no fixed order; the
-    sort makes runs reproducible), and the per-sample surface and escaped radiance are
-    summed into pixels there. Read back: the two images and the segment count.
+    one buffer, bucket-sorted by (sample, branch), and the per-sample surface and escaped
+    radiance are summed into pixels there. Read back: the two images and the segment count.
     """
     stats = stats or Stats()
     eng = ps.engine
     cam = ps.scene.camera
     w, h, spp = cam.width, cam.height, cam.spp
-    lo, hi = sample_range if sample_range is not None else (0, w * h * spp)
-    lo, hi = max(0, int(lo)), min(w * h * spp, int(hi))
-    total = max(hi - lo, 0)
-    chunk = int(max(1, min(samples_per_launch, total)))
-    rec = structs.VIEW_SEGMENT.itemsize
+    lo, hi, total, chunk = _sample_span(ps, sample_range, samples_per_launch)
     out_surf = eng.empty(16 * max(total, 1))
     out_esc = eng.empty(16 * max(total, 1))
     segs = AppendBuffer(eng, structs.VIEW_SEGMENT, chunk * 2 if ps.has_medium else 1)
-    store, cap, count = eng.empty(rec), 1, 0
+    store = _Store(eng, structs.VIEW_SEGMENT)
     seed = np.uint32(ps.scene.render.seed & 0xFFFFFFFF)
-    scratch = []
+    first = None
     try:
         with stats.stage("view_paths"), progress(total, "view paths", show_progress) as bar:
             for start in range(0, total, chunk):
                 n = min(chunk, total - start)
-                got = segs.call_on_device(
+                store.take(segs, segs.call_on_device(
                     "view_paths", "trace_view", n,
                     **ps.scene_args("view_paths", "trace_view"), cam=ps.dev.camera,
                     max_depth=ps.scene.render.max_depth, seed=seed, sample_offset=lo + start,
-                    num_samples=n, out_offset=start, surface=out_surf, escaped=out_esc)
-                if count + got > cap:               # grow the store (amortised doubling)
-                    cap = max(2 * cap, count + got, 1)
-                    bigger = eng.empty(rec * cap)
-                    if count:
-                        eng.cl.enqueue_copy(eng.queue, bigger, store, byte_count=rec * count)
-                    eng.free(store)
-                    store = bigger
-                if got:
-                    eng.cl.enqueue_copy(eng.queue, store, segs.buf, byte_count=rec * got,
-                                        dst_offset=rec * count)
-                count += got
+                    num_samples=n, out_offset=start, surface=out_surf, escaped=out_esc))
                 bar.update(n)
-            # pixel p's samples are [p * spp, (p + 1) * spp) clipped to the range traced
-            first = np.clip(np.arange(w * h + 1, dtype=np.int64) * spp - lo, 0, total)
-            first_buf = eng.to_device(first.astype(np.int32))
-            scratch.append(first_buf)
-            surf_img = _pixel_image(eng, out_surf, first_buf, w, h)
-            esc_img = _pixel_image(eng, out_esc, first_buf, w, h)
-            device = _sort_segments(eng, store, count, lo, total, first_buf, w, h)
+            first = _first_samples(eng, lo, total, w, h, spp)
+            surf_img = _pixel_image(eng, out_surf, first, w, h)
+            esc_img = _pixel_image(eng, out_esc, first, w, h)
+            device = store.sorted(lo, total, first, w, h)
     finally:
         segs.release()
-        eng.free(out_surf, out_esc, store, *scratch)
-    stats.set(view_segments=int(count), camera_samples=int(total))
+        store.release()
+        eng.free(out_surf, out_esc, *([first] if first is not None else []))
+    stats.set(view_segments=int(device.count), camera_samples=int(total))
     return ViewPaths(surf_img, esc_img, None, sample_range if sample_range is None else (lo, hi),
                      device)
 
@@ -185,53 +233,69 @@ def _pixel_image(eng: Engine, per_sample, first, w: int, h: int) -> np.ndarray:
         eng.free(img)
 
 
-def _sort_segments(eng: Engine, store, count: int, lo: int, total: int, first, w: int,
-                   h: int) -> DeviceSegments:
-    """Bucket-sort ``count`` view segments in ``store`` by (sample - lo, branch) on the
-    device; the pixel offsets are the sample offsets at each pixel's first sample."""
-    rec = structs.VIEW_SEGMENT.itemsize
-    keys, branch = eng.empty(4 * max(count, 1)), eng.empty(4 * max(count, 1))
-    perm = samp_off = None
+def trace_diffuse_hits_on_device(ps: PreparedScene, samples_per_launch: int = SAMPLES_PER_LAUNCH,
+                                 sample_range: tuple[int, int] | None = None) -> DeviceSegments:
+    """The diffuse hits of :func:`trace_diffuse_hits`, left on the device, sorted by
+    (sample, branch), with pixel offsets (a :class:`DeviceSegments` of
+    :data:`~clscatter.structs.DIFFUSE_HIT` records): what :func:`shade_hits` relights."""
+    eng = ps.engine
+    cam = ps.scene.camera
+    w, h, spp = cam.width, cam.height, cam.spp
+    lo, hi, total, chunk = _sample_span(ps, sample_range, samples_per_launch)
+    app = AppendBuffer(eng, structs.DIFFUSE_HIT, chunk)
+    store = _Store(eng, structs.DIFFUSE_HIT)
+    seed = np.uint32(ps.scene.render.seed & 0xFFFFFFFF)
+    first = None
     try:
-        eng.call("view_paths", "view_segment_keys", count, segs=store, n=count, base=lo,
-                 keys=keys, branch=branch)
-        perm, samp_off = prim.bucket_sort(eng, keys, count, max(total, 1), fkey=branch)
-        buf = prim.gather(eng, store, perm, count, rec)
-        pix_off = prim.gather(eng, samp_off, first, w * h + 1, 4)
+        for start in range(0, total, chunk):
+            n = min(chunk, total - start)
+            store.take(app, app.call_on_device(
+                "view_paths", "trace_diffuse_hits", n,
+                **ps.scene_args("view_paths", "trace_diffuse_hits"), cam=ps.dev.camera,
+                max_depth=ps.scene.render.max_depth, seed=seed, sample_offset=lo + start,
+                num_samples=n))
+        first = _first_samples(eng, lo, total, w, h, spp)
+        return store.sorted(lo, total, first, w, h)
     finally:
-        eng.free(keys, branch, *(b for b in (perm, samp_off) if b is not None))
-    return DeviceSegments(eng, buf, count, pix_off, w, h)
+        app.release()
+        store.release()
+        if first is not None:
+            eng.free(first)
+
+
+def shade_hits(ps: PreparedScene, hits: DeviceSegments) -> np.ndarray:
+    """Direct light of every light at the diffuse hits ``hits`` (shadow rays, medium
+    attenuation: the shading ``trace_view`` does inline), summed into an (H, W, 3) image
+    on the device: the view paths' ``surface`` after a light change, without tracing the
+    camera paths again."""
+    eng = ps.engine
+    out = eng.empty(16 * max(hits.count, 1))
+    try:
+        ps.call("view_paths", "shade_hits", hits.count, hits=hits.buf, n=hits.count, out=out)
+        return hits.accumulate(out)
+    finally:
+        eng.free(out)
 
 
 def trace_diffuse_hits(ps: PreparedScene, samples_per_launch: int = SAMPLES_PER_LAUNCH,
                        sample_range: tuple[int, int] | None = None) -> np.ndarray:
-    """Where the camera paths of :func:`trace_view_paths` meet diffuse surfaces.
+    """Where the camera paths of :func:`trace_view_paths` meet diffuse surfaces, as a host
+    array (the ray map and photon map build host structures from them).
 
     The same samples and branches (same seeds), one :data:`~clscatter.structs.DIFFUSE_HIT`
     per branch ending on a diffuse surface, with weight = throughput * albedo / pi: a
     method that knows the irradiance E arriving at a hit adds ``weight * E`` to its pixel
-    (surface caustics). Sorted by (sample, branch), so runs are reproducible.
-    ``sample_range`` (lo, hi) restricts it to those camera samples, as for the view paths.
+    (surface caustics). Sorted by (sample, branch) on the device, so runs are
+    reproducible. ``sample_range`` (lo, hi) restricts it to those camera samples, as for
+    the view paths.
     """
-    eng = ps.engine
-    cam = ps.scene.camera
-    lo, hi = sample_range if sample_range is not None else (0, cam.width * cam.height * cam.spp)
-    total = max(int(hi) - int(lo), 0)
-    chunk = int(max(1, min(samples_per_launch, total)))
-    hits = AppendBuffer(eng, structs.DIFFUSE_HIT, chunk)
-    seed = np.uint32(ps.scene.render.seed & 0xFFFFFFFF)
-    parts: list[np.ndarray] = []
-    for start in range(0, total, chunk):
-        n = min(chunk, total - start)
-        parts.append(hits.call(
-            "view_paths", "trace_diffuse_hits", n, **ps.scene_args("view_paths", "trace_diffuse_hits"),
-            cam=ps.dev.camera, max_depth=ps.scene.render.max_depth, seed=seed,
-            sample_offset=int(lo) + start, num_samples=n))
-    hits.release()
-    out = np.concatenate(parts) if parts else np.zeros(0, structs.DIFFUSE_HIT)
-    # host sort: the hits feed host-built structures (ray map, photon map) on the host
-    out = out[np.lexsort((out["branch"], out["sample"]))]
-    eng.note_host(out.nbytes)
+    hits = trace_diffuse_hits_on_device(ps, samples_per_launch, sample_range)
+    try:
+        out = hits.engine.read(hits.buf, hits.count, structs.DIFFUSE_HIT) if hits.count else \
+            np.zeros(0, structs.DIFFUSE_HIT)
+    finally:
+        hits.release()
+    ps.engine.note_host(out.nbytes)
     return out
 
 

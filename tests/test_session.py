@@ -14,7 +14,9 @@ SMALL = ["camera.resolution=[40,30]", "camera.spp=1"]
 
 # (change, stages that must run, stages that must be reused)
 CHANGES = [
-    (["lights[0].position=[0.5,2.5,0.3]"], {"upload_lights", "view_paths", "raymarch"}, {"bvh"}),
+    # a light change re-shades the recorded diffuse hits: no camera path is traced
+    (["lights[0].position=[0.5,2.5,0.3]"], {"upload_lights", "shade_hits", "raymarch"},
+     {"bvh", "view_paths"}),
     (["camera.origin=[0.3,1.2,5.5]"], {"upload_camera", "view_paths", "raymarch"}, {"bvh"}),
     (["medium.sigma_s=0.3"], {"upload_medium", "view_paths", "raymarch"}, {"bvh"}),
     (["materials.floor.albedo=0.9"], {"upload_materials", "view_paths", "raymarch"}, {"bvh"}),
@@ -38,6 +40,7 @@ def test_warm_render_reruns_only_what_changed(session, engine, change, runs, kep
     ran = set(warm.stats["stages_run"])
     assert runs <= ran, (ran, runs)
     assert not (ran & {"prepare_scene"}) or "prepare_scene" in runs
+    assert not (ran & {"view_paths"}) or "view_paths" in runs
     assert kept <= set(warm.stats["reused"]), warm.stats["reused"]
     fresh = render(load_scene("builtin:occluder", SMALL + session.current_overrides()[len(SMALL):]),
                    engine=engine, show_progress=False)
@@ -73,3 +76,27 @@ def test_saved_toml_reproduces_the_image(session, engine, tmp_path):
     a = session.render(show_progress=False).image
     b = render(load_scene(p), engine=engine, show_progress=False).image
     np.testing.assert_allclose(a, b, rtol=1e-6, atol=0)
+
+
+@pytest.mark.parametrize("spec,moves", [
+    ("builtin:glass", ["lights[0].position=[0.8,3.0,0.5]", "lights[0].intensity=12"]),
+    ("builtin:shafts", ["lights[0].direction=[0.45,-0.85,0.3]",
+                        "lights[0].direction=[0.3,-0.9,0.2]"]),
+])
+def test_light_moves_reshade_hits_like_a_fresh_render(engine, spec, moves):
+    """Light changes one after another (behind glass and a mirror too: diffuse hits at the
+    end of specular chains) re-shade the recorded hits; each image equals a fresh render
+    of the changed scene, and no camera path is traced again."""
+    sets = ["camera.resolution=[32,24]", "camera.spp=2"]
+    with RenderSession.from_source(spec, sets, engine=engine) as s:
+        s.render(show_progress=False)
+        for m in moves:
+            s.set([m])
+            warm = s.render(show_progress=False)
+            assert "shade_hits" in warm.stats["stages_run"]
+            assert "view_paths" not in warm.stats["stages_run"]
+            fresh = render(load_scene(spec, sets + s.current_overrides()[len(sets):]),
+                           engine=engine, show_progress=False)
+            assert fresh.surface.max() > 0.0
+            np.testing.assert_allclose(warm.surface, fresh.surface, rtol=1e-5, atol=1e-7)
+            np.testing.assert_allclose(warm.image, fresh.image, rtol=1e-5, atol=1e-7)

@@ -6,6 +6,8 @@ scene's own settings (or ``--set`` overrides, e.g. 640x480 and 4 spp):
 * **whole process**: ``clscatter render`` in a fresh Python process, wall time measured
   outside it (imports, device choice, scene loading, rendering, writing the image);
 * **stages**: the ``--stats`` breakdown of that run, and the share outside every stage;
+* **host share**: of the render's seconds (after device choice), those the host spent
+  outside waits on the device (``host_seconds / render_seconds`` of ``--stats``);
 * **warm re-render after a light move**: a :class:`~clscatter.session.RenderSession` renders,
   the first light moves by 5% of the scene size, and the second render is timed;
 * **error** against a converged reference (``raymarch`` with many steps and 4x the samples
@@ -68,10 +70,10 @@ def whole_process(spec: str, method: str, sets: list[str]) -> tuple[float, dict,
         return wall, json.loads(st.read_text()), read_image(out)
 
 
-def warm_light_move(spec: str, method: str, sets: list[str]) -> tuple[float, list[str]]:
+def warm_light_move(spec: str, method: str, sets: list[str]) -> tuple[float, list[str], dict]:
     scene = load_scene(spec, sets)
     if not scene.lights:
-        return float("nan"), []
+        return float("nan"), [], {}
     bb = scene.bbox()
     size = float(np.max(bb[1] - bb[0])) if bb is not None else 1.0
     light = scene.lights[0]
@@ -85,7 +87,7 @@ def warm_light_move(spec: str, method: str, sets: list[str]) -> tuple[float, lis
             s.set([f"lights[0].position=[{p[0]:.6g}, {p[1]:.6g}, {p[2]:.6g}]"])
         t = time.perf_counter()
         res = s.render(show_progress=False)
-        return time.perf_counter() - t, res.stats["stages_run"]
+        return time.perf_counter() - t, res.stats["stages_run"], res.stats
 
 
 def reference(spec: str, sets: list[str], caustic: bool) -> np.ndarray:
@@ -116,20 +118,35 @@ def main() -> None:
             if args.methods and method not in args.methods:
                 continue
             wall, st, img = whole_process(spec, method, args.overrides)
-            warm, ran = warm_light_move(spec, method, args.overrides)
+            warm, ran, wst = warm_light_move(spec, method, args.overrides)
             covered = sum(st["stages"].values())
             row = {"scene": name, "method": method, "ran": st["method"], "wall": wall,
                    "seconds_total": st["seconds_total"], "stages": st["stages"],
                    "outside_stages": st["seconds_total"] - covered,
                    "process_overhead": wall - st["seconds_total"], "warm_light_move": warm,
                    "warm_stages_run": ran,
+                   # host time outside device waits, as a share of the render (--stats)
+                   "render_seconds": st.get("render_seconds"),
+                   "host_seconds": st.get("host_seconds"),
+                   "host_fraction": st["host_seconds"] / max(st["render_seconds"], 1e-9)
+                   if "host_seconds" in st else None,
+                   "warm_stages": wst.get("stages", {}),
+                   "warm_host_fraction": wst["host_seconds"] / max(wst["render_seconds"], 1e-9)
+                   if "host_seconds" in wst else None,
                    "relmse": None if ref is None else float(relmse(img, ref))}
             rows.append(row)
             print(f"{name:>16} {method:>9} ({st['method']}): whole {wall:6.2f} s, in-process "
-                  f"{st['seconds_total']:6.2f} s, warm light move {warm:6.3f} s"
+                  f"{st['seconds_total']:6.2f} s (host {row['host_fraction'] or 0:.0%}), warm "
+                  f"light move {warm:6.3f} s (host {row['warm_host_fraction'] or 0:.0%})"
                   + ("" if ref is None else f", relMSE {row['relmse']:.2e}"), flush=True)
     (out / "defaults.json").write_text(json.dumps({"overrides": args.overrides, "rows": rows},
                                                   indent=2))
+    print("\n| scene | method | whole process s | host share | warm light move s | "
+          "warm host share | relMSE |\n|---|---|---|---|---|---|---|")
+    for r in rows:
+        rel = "" if r["relmse"] is None else f"{r['relmse']:.1e}"
+        print(f"| {r['scene']} | {r['method']} | {r['wall']:.2f} | {r['host_fraction'] or 0:.0%} "
+              f"| {r['warm_light_move']:.2f} | {r['warm_host_fraction'] or 0:.0%} | {rel} |")
     try:
         import matplotlib
         matplotlib.use("Agg")
