@@ -20,11 +20,12 @@ from dataclasses import dataclass
 
 from .errors import ClscatterError
 
-# bytes per camera sample kept by the view-path stage: surface + escaped (2 x float4),
-# the image sums, and the medium segments (~1 per sample plus specular branches, 64 bytes
-# each, held up to three times while being appended, concatenated and sorted)
-BYTES_PER_SAMPLE = 48
-BYTES_PER_SAMPLE_MEDIUM = 48 + 3 * 64 * 2
+# bytes per camera sample kept by the view-path stage on the device: surface + escaped
+# (2 x float4), the diffuse hits a warm session keeps for re-shading (80 bytes, about one
+# per sample), and the medium segments (~1 per sample plus specular branches, 64 bytes each,
+# held up to three times while being appended, stored and sorted)
+BYTES_PER_SAMPLE = 32 + 80
+BYTES_PER_SAMPLE_MEDIUM = BYTES_PER_SAMPLE + 3 * 64 * 2
 # elementary operations above which a render is announced as long (~a minute on a CPU)
 LONG_WORK = 2e10
 

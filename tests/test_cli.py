@@ -158,3 +158,24 @@ def test_error_in_a_fresh_process_is_one_line(tmp_path):
                        cwd=tmp_path, capture_output=True, text=True, timeout=300,
                        env={**__import__("os").environ, "PYTHONPATH": str(REPO)})
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "nope.toml" in r.stderr
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["render", "--help"], ["devices"]])
+def test_start_up_imports_only_what_the_command_uses(argv):
+    """``--help`` and ``devices`` load no method, no scene builder and no NumPy-heavy
+    helpers (scipy, trimesh); ``--help`` does not even import pyopencl (issue 16)."""
+    import subprocess
+    import sys
+    code = ("import sys\nfrom clscatter.cli import main\n"
+            f"try:\n    main({argv!r})\nexcept SystemExit:\n    pass\n"
+            "mods = sorted(m for m in sys.modules if m.startswith(('clscatter.methods', "
+            "'scipy', 'trimesh', 'pyopencl', 'clscatter.scene.builtin')))\n"
+            "print('MODULES', ','.join(mods))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120).stdout
+    line = [x for x in out.splitlines() if x.startswith("MODULES")][-1]
+    mods = [m for m in line.split(" ", 1)[1].split(",") if m]
+    assert not [m for m in mods if m.startswith(("clscatter.methods", "scipy", "trimesh",
+                                                 "clscatter.scene.builtin"))], mods
+    if "--help" in argv:
+        assert not [m for m in mods if m.startswith("pyopencl")], mods
