@@ -597,21 +597,32 @@ __kernel void epi_split(__global const ViewSegment *segs, int n, __global float 
 int epi_group_of(int k, int S, int G) { return (int)(((long)k * G) / S); }
 
 /* The beta range of the live samples touching each group of slices (through either of
- * their two slices): bmin/bmax hold float bits (beta >= 0, so int order is float order). */
+ * their two slices): bmin/bmax hold float bits (beta >= 0, so int order is float order).
+ * One work-item per block of EPI_RANGE_BLOCK samples reduces them privately, then one
+ * atomic per group it saw (not one per sample: all samples share G <= 16 addresses). */
+#define EPI_RANGE_BLOCK 256
+#define EPI_MAX_GROUPS 16
 __kernel void epi_view_ranges(__global const float4 *geo, __global const int4 *idx,
                               __global const int *live, int L, int S, int G,
                               volatile __global int *bmin, volatile __global int *bmax) {
-    int j = get_global_id(0);
-    if (j >= L) return;
-    int i = live[j];
-    int b = as_int(fmax(geo[i].x, 0.0f));
-    int g0 = epi_group_of(idx[i].x, S, G), g1 = epi_group_of(idx[i].y, S, G);
-    atomic_min(&bmin[g0], b);
-    atomic_max(&bmax[g0], b);
-    if (g1 != g0) {
-        atomic_min(&bmin[g1], b);
-        atomic_max(&bmax[g1], b);
+    int j0 = get_global_id(0) * EPI_RANGE_BLOCK;
+    if (j0 >= L || G > EPI_MAX_GROUPS) return;
+    int lo[EPI_MAX_GROUPS], hi[EPI_MAX_GROUPS];
+    for (int g = 0; g < G; ++g) { lo[g] = INT_MAX; hi[g] = -1; }
+    for (int j = j0; j < min(L, j0 + EPI_RANGE_BLOCK); ++j) {
+        int i = live[j];
+        int b = as_int(fmax(geo[i].x, 0.0f));
+        int g0 = epi_group_of(idx[i].x, S, G), g1 = epi_group_of(idx[i].y, S, G);
+        lo[g0] = min(lo[g0], b);
+        hi[g0] = max(hi[g0], b);
+        lo[g1] = min(lo[g1], b);
+        hi[g1] = max(hi[g1], b);
     }
+    for (int g = 0; g < G; ++g)
+        if (hi[g] >= 0) {
+            atomic_min(&bmin[g], lo[g]);
+            atomic_max(&bmax[g], hi[g]);
+        }
 }
 
 /* The least t_a of those samples at each of `nodes` uniform nodes over the group's

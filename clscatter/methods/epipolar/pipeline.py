@@ -471,6 +471,9 @@ class HostViews:
                          for vs in [self._touch(G, j)]])
 
 
+RANGE_BLOCK, RANGE_MAX_GROUPS = 256, 16     # EPI_RANGE_BLOCK, EPI_MAX_GROUPS in epipolar.cl
+
+
 class DeviceViews:
     """The same for the camera samples of the segment lookup, reduced on the device
     (``epi_view_ranges``, ``epi_view_nodes``): only per-group ranges and envelope nodes
@@ -487,8 +490,11 @@ class DeviceViews:
             lo = eng.to_device(np.full(G, np.iinfo(np.int32).max, np.int32), writable=True)
             hi = eng.to_device(np.zeros(G, np.int32), writable=True)
             try:
-                eng.call("epipolar", "epi_view_ranges", self.L, self.defines, geo=self.geo,
-                         idx=self.idx, live=self.live, L=self.L, S=self.S, G=G, bmin=lo, bmax=hi)
+                if G > RANGE_MAX_GROUPS:
+                    raise ValueError(f"at most {RANGE_MAX_GROUPS} groups of slices")
+                eng.call("epipolar", "epi_view_ranges", -(-self.L // RANGE_BLOCK), self.defines,
+                         geo=self.geo, idx=self.idx, live=self.live, L=self.L, S=self.S, G=G,
+                         bmin=lo, bmax=hi)
                 a, b = eng.read(lo, G, np.int32), eng.read(hi, G, np.int32)
             finally:
                 eng.free(lo, hi)
