@@ -117,15 +117,43 @@ float4 shade_diffuse(__global const BVHNode *nodes, __global const float4 *tris,
            * (1.0f / PI_F);
 }
 
+/* Append diffuse hit f (material mi) of branch br of camera sample s to the hit buffer. */
+void append_diffuse_hit(__global DiffuseHit *hits, int max_hits, volatile __global int *count,
+                        const SurfaceFrame *f, float4 albedo, const Branch *br, int pixel, int s) {
+    int idx = atomic_inc(count);
+    if (idx < max_hits) {
+        DiffuseHit h;
+        h.p = f->p;
+        h.n = f->nf;
+        h.g = f->gf;
+        h.weight = br->thr * albedo * (1.0f / PI_F);
+        h.weight.w = 0.0f;
+        h.pixel = pixel;
+        h.sample = s;
+        h.depth = br->depth;
+        h.branch = br->id;
+        hits[idx] = h;
+    }
+}
+
+/* Every camera path's outputs, each wanted or not (one tracer, so the same seeds and
+ * branching everywhere): with shade, surface[s] (diffuse surfaces lit directly) and
+ * escaped[s]; with want_segs, the straight medium pieces appended to segs; with
+ * want_hits, one DiffuseHit per branch ending on a diffuse surface (weight = throughput *
+ * albedo / pi: what shade_hits relights, what the ray and photon maps add surface
+ * caustics to). */
 __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *tris,
                          __global const float4 *normals, __global const int *tri_mat,
                          __global const Material *materials,
                          __global const Light *lights, int num_lights,
                          __global const Medium *medium, __global const Camera *cam,
                          int max_depth, uint seed, int sample_offset, int num_samples,
+                         int shade, int want_segs, int want_hits,
                          int out_offset, __global float4 *surface, __global float4 *escaped,
                          __global ViewSegment *segs, int max_segs,
-                         volatile __global int *seg_count) {
+                         volatile __global int *seg_count,
+                         __global DiffuseHit *hits, int max_hits,
+                         volatile __global int *hit_count) {
     int gid = get_global_id(0);
     if (gid >= num_samples) return;
     int s = sample_offset + gid, pixel;
@@ -144,7 +172,7 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
 
         /* ---- the straight piece in the medium (the medium lies outside all objects) ---- */
         float4 a, b;
-        if (medium_piece(medium, &br, t_hit, &a, &b))
+        if (want_segs && medium_piece(medium, &br, t_hit, &a, &b))
             append_view_segment(segs, max_segs, seg_count, a, b, &br, pixel, s);
         if (found) br.thr *= branch_attenuation(medium, materials, &br, t_hit);
         if (!found) {
@@ -156,12 +184,19 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
         SurfaceFrame f;
         int mi;
         if (surface_hit(tris, normals, tri_mat, materials, &hit, &br, max_depth,
-                        MIN_THROUGHPUT * inv_spp, stack, &top, &next_id, &f, &mi))
-            radiance += br.thr * shade_diffuse(nodes, tris, lights, num_lights, medium, f.p, f.nf,
-                                               f.gf, materials[mi].color);
+                        MIN_THROUGHPUT * inv_spp, stack, &top, &next_id, &f, &mi)) {
+            if (want_hits)
+                append_diffuse_hit(hits, max_hits, hit_count, &f, materials[mi].color, &br,
+                                   pixel, s);
+            if (shade)
+                radiance += br.thr * shade_diffuse(nodes, tris, lights, num_lights, medium,
+                                                   f.p, f.nf, f.gf, materials[mi].color);
+        }
     }
-    surface[out_offset + gid] = radiance;
-    escaped[out_offset + gid] = escape;
+    if (shade) {
+        surface[out_offset + gid] = radiance;
+        escaped[out_offset + gid] = escape;
+    }
 }
 
 /* Sort keys of n appended records (view segments or diffuse hits: `stride` int words
@@ -188,51 +223,6 @@ __kernel void shade_hits(__global const BVHNode *nodes, __global const float4 *t
     if (i >= n) return;
     DiffuseHit h = hits[i];
     out[i] = h.weight * direct_irradiance(nodes, tris, lights, num_lights, medium, h.p, h.n, h.g);
-}
-
-/* The diffuse hits of the same camera paths as trace_view (same seeds, same branching),
- * without shading: one DiffuseHit per branch that ends on a diffuse surface, for methods
- * that add light arriving there by other routes (surface caustics: clscatter/methods/
- * raymap, photonmap). weight = throughput * albedo / pi. */
-__kernel void trace_diffuse_hits(__global const BVHNode *nodes, __global const float4 *tris,
-                                 __global const float4 *normals, __global const int *tri_mat,
-                                 __global const Material *materials,
-                                 __global const Medium *medium, __global const Camera *cam,
-                                 int max_depth, uint seed, int sample_offset, int num_samples,
-                                 __global DiffuseHit *hits, int max_hits,
-                                 volatile __global int *hit_count) {
-    int gid = get_global_id(0);
-    if (gid >= num_samples) return;
-    int s = sample_offset + gid, pixel;
-    float inv_spp = 1.0f / cam->spp;
-    Branch stack[PATH_STACK];
-    stack[0] = camera_branch(cam, seed, s, &pixel);
-    int top = 1, next_id = 1;
-    while (top > 0) {
-        Branch br = stack[--top];
-        Hit hit;
-        if (!bvh_closest(nodes, tris, br.o, br.d, 0.0f, T_INF, &hit)) continue;
-        br.thr *= branch_attenuation(medium, materials, &br, hit.t);
-        SurfaceFrame f;
-        int mi;
-        if (surface_hit(tris, normals, tri_mat, materials, &hit, &br, max_depth,
-                        MIN_THROUGHPUT * inv_spp, stack, &top, &next_id, &f, &mi)) {
-            int idx = atomic_inc(hit_count);
-            if (idx < max_hits) {
-                DiffuseHit h;
-                h.p = f.p;
-                h.n = f.nf;
-                h.g = f.gf;
-                h.weight = br.thr * materials[mi].color * (1.0f / PI_F);
-                h.weight.w = 0.0f;
-                h.pixel = pixel;
-                h.sample = s;
-                h.depth = br.depth;
-                h.branch = br.id;
-                hits[idx] = h;
-            }
-        }
-    }
 }
 
 /* Test hook: fresnel_dielectric over an array of cosines (tests/test_render.py). */

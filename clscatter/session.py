@@ -42,7 +42,7 @@ from .prepared import PreparedScene, prepare_scene, refresh, same_frame
 from .scene.loader import apply_overrides, scene_from_dict, scene_source
 from .scene.model import Scene
 from .stats import Stats
-from .view_paths import ViewPaths, shade_hits, trace_diffuse_hits_on_device, trace_view_paths
+from .view_paths import ViewPaths, shade_hits, trace_view_paths
 
 
 class Cancelled(Exception):
@@ -78,7 +78,6 @@ class RenderSession:
         # change re-shades those instead of tracing the camera paths again (80 bytes per
         # hit; a one-off render does not keep them)
         self.keep_hits = keep_hits
-        self._hits = None
         self.method = method
         self.max_memory = max_memory
         self._engine = engine
@@ -224,23 +223,22 @@ class RenderSession:
 
         # ---- view paths ----
         key = (_view_key(scene), samples)
-        relight = (self._paths is not None and key == self._paths_key and self._hits is not None
+        relight = (self._paths is not None and key == self._paths_key
+                   and self._paths.hits is not None
                    and set(self._pending) == {"lights"})
         if relight:
             # only lights changed: the segments (their weights hold no light) stay; the
             # surface is re-shaded at the recorded diffuse hits
             with stats.stage("shade_hits"):
-                self._paths.surface = shade_hits(ps, self._hits)
+                self._paths.surface = shade_hits(ps, self._paths.hits)
             self._pending = []
             ran.append("shade_hits")
             reused.append("view_paths")
             stats.set(view_segments=int(len(self._paths)))
         elif self._paths is None or self._pending or key != self._paths_key:
             self._release_paths()
-            self._paths = trace_view_paths(ps, stats, show_progress, sample_range=samples)
-            if self.keep_hits:
-                with stats.stage("view_paths"):
-                    self._hits = trace_diffuse_hits_on_device(ps, sample_range=samples)
+            self._paths = trace_view_paths(ps, stats, show_progress, sample_range=samples,
+                                           keep_hits=self.keep_hits)
             self._paths_key = key
             self._pending = []
             ran.append("view_paths")
@@ -314,9 +312,7 @@ class RenderSession:
     def _release_paths(self) -> None:
         if self._paths is not None:
             self._paths.release()
-        if self._hits is not None:
-            self._hits.release()
-        self._paths = self._hits = None
+        self._paths = None
 
     def __enter__(self) -> "RenderSession":
         return self

@@ -13,7 +13,7 @@ import numpy as np
 
 from . import primitives as prim
 from . import structs
-from .device import AppendBuffer, Engine
+from .device import AppendBuffer, Engine, launch_appending
 from .prepared import PreparedScene
 from .stats import Stats, progress
 
@@ -60,7 +60,9 @@ class ViewPaths:
     sorted by (sample, branch), either on the device (:attr:`device`, how the tracer leaves
     them) or as a host array. :attr:`segments` reads a device copy back once, for the
     methods that work on the host; :meth:`on_device` uploads a host array once, for those
-    that work on the device.
+    that work on the device. ``hits``: the diffuse hits of the same paths
+    (:data:`~clscatter.structs.DIFFUSE_HIT`, a :class:`DeviceSegments`) when the tracer was
+    asked to keep them, else None.
     """
 
     def __init__(self, surface: np.ndarray, escaped: np.ndarray,
@@ -71,6 +73,7 @@ class ViewPaths:
         self.escaped = escaped
         self.sample_range = sample_range    # the camera samples traced (None: all)
         self.device = device
+        self.hits: DeviceSegments | None = None
         self._host = segments
         if segments is None and device is None:
             self._host = np.zeros(0, structs.VIEW_SEGMENT)
@@ -105,7 +108,11 @@ class ViewPaths:
         return self.device
 
     def release(self) -> None:
-        """Free the device copy of the segments (the host copy, if read, stays)."""
+        """Free the device copy of the segments and the hits (the host copy of the
+        segments, if read, stays)."""
+        if self.hits is not None:
+            self.hits.release()
+            self.hits = None
         if self.device is not None:
             self.device.release()
             self.device = None
@@ -180,48 +187,75 @@ def _first_samples(eng: Engine, lo: int, total: int, w: int, h: int, spp: int):
 
 def trace_view_paths(ps: PreparedScene, stats: Stats | None = None, show_progress: bool = True,
                      samples_per_launch: int = SAMPLES_PER_LAUNCH,
-                     sample_range: tuple[int, int] | None = None) -> ViewPaths:
+                     sample_range: tuple[int, int] | None = None,
+                     keep_hits: bool = False) -> ViewPaths:
     """Run ``view_paths.cl`` over every camera sample of ``ps`` (see the module docstring),
     or over the samples ``[lo, hi)`` of ``sample_range`` only: each sample's paths depend on
     its index alone, so disjoint ranges rendered apart sum to the whole image (how a render
-    is split across workers, :mod:`clscatter.cluster`).
+    is split across workers, :mod:`clscatter.cluster`). With ``keep_hits`` the same launch
+    also records the diffuse hits (:attr:`ViewPaths.hits`, on the device; what
+    :func:`shade_hits` relights after a light change).
 
     Everything per sample stays on the device: the segments are appended per launch into
     one buffer, bucket-sorted by (sample, branch), and the per-sample surface and escaped
-    radiance are summed into pixels there. Read back: the two images and the segment count.
+    radiance are summed into pixels there. Read back: the two images and the counts.
     """
     stats = stats or Stats()
+    with stats.stage("view_paths"), progress(_sample_span(ps, sample_range, 1)[2], "view paths",
+                                             show_progress) as bar:
+        images, segs, hits = _trace(ps, sample_range, samples_per_launch, shade=True,
+                                    want_segs=True, want_hits=keep_hits, bar=bar)
+    lo, hi, total, _ = _sample_span(ps, sample_range, samples_per_launch)
+    stats.set(view_segments=int(segs.count), camera_samples=int(total))
+    paths = ViewPaths(images[0], images[1], None, sample_range if sample_range is None else (lo, hi),
+                      segs)
+    paths.hits = hits
+    return paths
+
+
+def _trace(ps: PreparedScene, sample_range, per_launch: int, shade: bool, want_segs: bool,
+           want_hits: bool, bar=None):
+    """The ``trace_view`` launches over the samples of ``sample_range``: the (surface,
+    escaped) images when ``shade`` (else None), and the segments and diffuse hits, each
+    sorted by (sample, branch) as a :class:`DeviceSegments` when wanted (else None)."""
     eng = ps.engine
     cam = ps.scene.camera
     w, h, spp = cam.width, cam.height, cam.spp
-    lo, hi, total, chunk = _sample_span(ps, sample_range, samples_per_launch)
-    out_surf = eng.empty(16 * max(total, 1))
-    out_esc = eng.empty(16 * max(total, 1))
-    segs = AppendBuffer(eng, structs.VIEW_SEGMENT, chunk * 2 if ps.has_medium else 1)
-    store = _Store(eng, structs.VIEW_SEGMENT)
+    lo, hi, total, chunk = _sample_span(ps, sample_range, per_launch)
+    per_sample = 16 * max(total, 1) if shade else 16
+    out_surf, out_esc = eng.empty(per_sample), eng.empty(per_sample)
+    want_segs = want_segs and ps.has_medium
+    wanted = {"segs": (want_segs, structs.VIEW_SEGMENT, 2 * chunk),
+              "hits": (want_hits, structs.DIFFUSE_HIT, chunk)}
+    apps = {k: AppendBuffer(eng, dt, cap if on else 1) for k, (on, dt, cap) in wanted.items()}
+    stores = {k: _Store(eng, wanted[k][1]) for k in apps}
     seed = np.uint32(ps.scene.render.seed & 0xFFFFFFFF)
     first = None
     try:
-        with stats.stage("view_paths"), progress(total, "view paths", show_progress) as bar:
-            for start in range(0, total, chunk):
-                n = min(chunk, total - start)
-                store.take(segs, segs.call_on_device(
-                    "view_paths", "trace_view", n,
-                    **ps.scene_args("view_paths", "trace_view"), cam=ps.dev.camera,
-                    max_depth=ps.scene.render.max_depth, seed=seed, sample_offset=lo + start,
-                    num_samples=n, out_offset=start, surface=out_surf, escaped=out_esc))
+        for start in range(0, total, chunk):
+            n = min(chunk, total - start)
+            got = launch_appending(
+                eng, "view_paths", "trace_view", n, apps,
+                **ps.scene_args("view_paths", "trace_view"), cam=ps.dev.camera,
+                max_depth=ps.scene.render.max_depth, seed=seed, sample_offset=lo + start,
+                num_samples=n, shade=int(shade), want_segs=int(want_segs),
+                want_hits=int(want_hits), out_offset=start if shade else 0, surface=out_surf,
+                escaped=out_esc)
+            for k in apps:
+                stores[k].take(apps[k], got[k])
+            if bar is not None:
                 bar.update(n)
-            first = _first_samples(eng, lo, total, w, h, spp)
-            surf_img = _pixel_image(eng, out_surf, first, w, h)
-            esc_img = _pixel_image(eng, out_esc, first, w, h)
-            device = store.sorted(lo, total, first, w, h)
+        first = _first_samples(eng, lo, total, w, h, spp)
+        images = (_pixel_image(eng, out_surf, first, w, h),
+                  _pixel_image(eng, out_esc, first, w, h)) if shade else None
+        segs = stores["segs"].sorted(lo, total, first, w, h) if want_segs or shade else None
+        hits = stores["hits"].sorted(lo, total, first, w, h) if want_hits else None
+        return images, segs, hits
     finally:
-        segs.release()
-        store.release()
+        for k in apps:
+            apps[k].release()
+            stores[k].release()
         eng.free(out_surf, out_esc, *([first] if first is not None else []))
-    stats.set(view_segments=int(device.count), camera_samples=int(total))
-    return ViewPaths(surf_img, esc_img, None, sample_range if sample_range is None else (lo, hi),
-                     device)
 
 
 def _pixel_image(eng: Engine, per_sample, first, w: int, h: int) -> np.ndarray:
@@ -237,30 +271,11 @@ def trace_diffuse_hits_on_device(ps: PreparedScene, samples_per_launch: int = SA
                                  sample_range: tuple[int, int] | None = None) -> DeviceSegments:
     """The diffuse hits of :func:`trace_diffuse_hits`, left on the device, sorted by
     (sample, branch), with pixel offsets (a :class:`DeviceSegments` of
-    :data:`~clscatter.structs.DIFFUSE_HIT` records): what :func:`shade_hits` relights."""
-    eng = ps.engine
-    cam = ps.scene.camera
-    w, h, spp = cam.width, cam.height, cam.spp
-    lo, hi, total, chunk = _sample_span(ps, sample_range, samples_per_launch)
-    app = AppendBuffer(eng, structs.DIFFUSE_HIT, chunk)
-    store = _Store(eng, structs.DIFFUSE_HIT)
-    seed = np.uint32(ps.scene.render.seed & 0xFFFFFFFF)
-    first = None
-    try:
-        for start in range(0, total, chunk):
-            n = min(chunk, total - start)
-            store.take(app, app.call_on_device(
-                "view_paths", "trace_diffuse_hits", n,
-                **ps.scene_args("view_paths", "trace_diffuse_hits"), cam=ps.dev.camera,
-                max_depth=ps.scene.render.max_depth, seed=seed, sample_offset=lo + start,
-                num_samples=n))
-        first = _first_samples(eng, lo, total, w, h, spp)
-        return store.sorted(lo, total, first, w, h)
-    finally:
-        app.release()
-        store.release()
-        if first is not None:
-            eng.free(first)
+    :data:`~clscatter.structs.DIFFUSE_HIT` records): what :func:`shade_hits` relights.
+    (A render that traces the view paths anyway records them in the same launch:
+    ``trace_view_paths(..., keep_hits=True)``.)"""
+    return _trace(ps, sample_range, samples_per_launch, shade=False, want_segs=False,
+                  want_hits=True)[2]
 
 
 def shade_hits(ps: PreparedScene, hits: DeviceSegments) -> np.ndarray:

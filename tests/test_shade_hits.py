@@ -65,3 +65,40 @@ def test_shade_hits_matches_numpy_and_the_view_paths(engine):
     assert (E[:, 0] > 0).all() and want.max() > 0
     np.testing.assert_allclose(got[:, :3], want, rtol=2e-5, atol=1e-9)
     np.testing.assert_allclose(image, surface, rtol=1e-5, atol=1e-8)
+
+
+GLASS = {**SCENE, "medium": {**SCENE["medium"], "sigma_s": 0.3},
+         "objects": SCENE["objects"] + [
+             {"shape": "sphere", "center": [0.3, 0.6, 0.2], "radius": 0.5,
+              "material": {"type": "dielectric", "ior": 1.5}}]}
+
+
+def test_hits_recorded_with_the_view_paths_equal_a_hits_only_trace(engine):
+    """One launch gives segments, surface and hits (a session's first render): the hits
+    equal those of the hits-only trace record for record (sorted by (sample, branch)),
+    and recording them changes neither the segments nor the surface image. Glass splits
+    paths into branches, so several hits per sample occur."""
+    ps = prepare_scene(scene_from_dict(GLASS), engine)
+    both = trace_view_paths(ps, show_progress=False, keep_hits=True,
+                            samples_per_launch=300)        # several launches, 4 stores
+    plain = trace_view_paths(ps, show_progress=False)
+    alone = trace_diffuse_hits_on_device(ps, samples_per_launch=500)
+    try:
+        h_both = engine.read(both.hits.buf, both.hits.count, structs.DIFFUSE_HIT)
+        h_alone = engine.read(alone.buf, alone.count, structs.DIFFUSE_HIT)
+        off_both = engine.read(both.hits.pix_off, 23 * 17 + 1, np.int32)
+        off_alone = engine.read(alone.pix_off, 23 * 17 + 1, np.int32)
+        segs_both, segs_plain = both.segments, plain.segments
+        surf_both, surf_plain = both.surface, plain.surface
+    finally:
+        both.release()
+        plain.release()
+        alone.release()
+        ps.release()
+    assert len(h_both) > 23 * 17 * 3                  # the glass's extra branches
+    assert plain.hits is None and both.hits is None   # released with the paths
+    np.testing.assert_array_equal(h_both.view(np.uint8), h_alone.view(np.uint8))
+    np.testing.assert_array_equal(off_both, off_alone)
+    assert len(segs_both) == len(segs_plain) > 0
+    np.testing.assert_array_equal(segs_both.view(np.uint8), segs_plain.view(np.uint8))
+    np.testing.assert_array_equal(surf_both, surf_plain)
