@@ -11,10 +11,10 @@
  * exhaustive = 1: the same per-pair code for every (view, light) pair, no culling: the
  * reference the tree must reproduce exactly (tests/test_lsg.py).
  *
- * The kernel adds its estimate into out[view] (so chunks of lighting rays sum), writes
- * (exact tests, valid pairs, points in the visited leaves, 0) to counts[view -
- * view_offset] (one launch's views; the third is what the hierarchy alone leaves,
- * the paper's "line intersection tests" after culling) and,
+ * The kernel adds its estimate into out[view] (so chunks of lighting rays sum), adds
+ * (exact tests, valid pairs, points in the visited leaves, 0) to counts[view] (summed
+ * the same way; the third is what the hierarchy alone leaves, the paper's "line
+ * intersection tests" after culling) and,
  * when max_pairs > 0, appends every valid (view, light id) pair to pairs (tests compare
  * the sets).
  */
@@ -126,5 +126,5 @@ __kernel void lsg_gather(__global const LineNode *nodes, __global const int2 *le
         acc *= medium->sigma_s * views[vi].weight;
     }
     out[vi] += acc;
-    counts[gid] = cnt;          /* per launch */
+    counts[vi] += cnt;
 }

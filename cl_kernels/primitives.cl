@@ -194,3 +194,19 @@ __kernel void gather_words(__global const uint *src, int nsrc, __global const in
     int j = index[i];
     dst[gid] = (j >= 0 && j < nsrc) ? src[(size_t)j * (size_t)words + w] : 0u;
 }
+
+/* ---- totals of int32 counters: lanes interleaved ints per record, n records; work-item
+ * g sums records [g*per, (g+1)*per) of lane l into a 64-bit partial[g*lanes + l]
+ * (64-bit integer arithmetic is core OpenCL C, atomics on it are not: no atomics). */
+
+__kernel void int_totals(__global const int *values, int n, int lanes, int per,
+                         int groups, __global long *partial) {
+    int g = get_global_id(0);
+    if (g >= groups) return;
+    int lo = g * per, hi = min(n, lo + per);
+    for (int l = 0; l < lanes; ++l) {
+        long acc = 0;
+        for (int i = lo; i < hi; ++i) acc += values[(size_t)i * lanes + l];
+        partial[(size_t)g * lanes + l] = acc;
+    }
+}

@@ -12,7 +12,8 @@
  * with T(t) = exp(-kappa t) from the segment start (the weight carries the rest of the
  * way to the eye) and V(r) = 4/3 pi r^3, or in a bounded medium the part of that ball
  * inside the medium box. out.w returns the number of samples taken, work_out the boxes and
- * photons the kNN queries tested (statistics).
+ * photons the kNN queries tested (statistics); both are indexed by segment (seg_offset +
+ * work-item), so launches over chunks fill one buffer.
  */
 #include "common.h"
 #include "vpm.h"
@@ -28,8 +29,8 @@ __kernel void vpm_gather(__global const ViewSegment *segs, int seg_offset, int n
     float4 ab = sg.b - sg.a;
     ab.w = 0.0f;
     float len = length3(ab);
-    out[gid] = (float4)(0.0f);
-    work_out[gid] = (int2)(0, 0);
+    out[seg_offset + gid] = (float4)(0.0f);
+    work_out[seg_offset + gid] = (int2)(0, 0);
     if (len <= 0.0f || num_photons <= 0) return;
     float4 w = ab / len;
 
@@ -80,8 +81,8 @@ __kernel void vpm_gather(__global const ViewSegment *segs, int seg_offset, int n
     }
     float4 res = acc * dx * medium->sigma_s * sg.weight;
     res.w = (float)steps;
-    out[gid] = res;
-    work_out[gid] = (int2)(work[0], work[1]);
+    out[seg_offset + gid] = res;
+    work_out[seg_offset + gid] = (int2)(work[0], work[1]);
 }
 
 /* Kernel-level test hook: the kNN query and estimate at given points. For each query q:

@@ -1,4 +1,4 @@
-"""Device primitives: scan, bucket sort, compaction, segmented sums and gather.
+"""Device primitives: scan, bucket sort, compaction, segmented sums, gather, int totals.
 
 Thin host wrappers over ``cl_kernels/primitives.cl`` so that the renderer's hot path can
 sort, bucket, compact and accumulate per-sample arrays without reading them back into
@@ -184,3 +184,26 @@ def gather(eng: Engine, src, index, n: int, itemsize: int):
     eng.call(PROGRAM, "gather_words", _padded(n * words), src=src, nsrc=nsrc, index=index,
              n=n, words=words, dst=dst)
     return dst
+
+
+INT_TOTAL_GROUPS = 256      # partial sums read back by int_totals
+
+
+def int_totals(eng: Engine, values, n: int, lanes: int = 1) -> np.ndarray:
+    """Totals of int32 counters on the device: ``values`` holds ``n`` records of
+    ``lanes`` interleaved int32 (e.g. per-segment (boxes, photons) statistics); returns the
+    ``lanes`` totals as int64, exact (64-bit partial sums, so no int32 overflow). Reads back
+    at most 256 partials per lane instead of the ``n`` records."""
+    n, lanes = int(n), max(1, int(lanes))
+    if n <= 0:
+        return np.zeros(lanes, np.int64)
+    groups = min(INT_TOTAL_GROUPS, n)
+    per = -(-n // groups)
+    groups = -(-n // per)
+    partial = eng.empty(8 * groups * lanes)
+    try:
+        eng.call(PROGRAM, "int_totals", _padded(groups), values=values, n=n, lanes=lanes,
+                 per=per, groups=groups, partial=partial)
+        return eng.read(partial, (groups, lanes), np.int64).sum(axis=0)
+    finally:
+        eng.free(partial)

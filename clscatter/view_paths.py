@@ -39,14 +39,19 @@ class DeviceSegments:
     def accumulate(self, values) -> np.ndarray:
         """Sum a device buffer of ``count`` float4 (one per segment) into an (H, W, 3)
         float32 image, on the device; only the image is read back."""
+        return self.pixel_sums(values)[:, :3].reshape(self.height, self.width, 3)
+
+    def pixel_sums(self, values) -> np.ndarray:
+        """The per-pixel sums of all four lanes of ``values`` (``count`` float4), (H W, 4)
+        float32: :meth:`accumulate` with the fourth lane too (a method's per-segment
+        count, e.g. march steps, comes back summed per pixel)."""
         eng = self.engine
         npix = self.width * self.height
         img = prim.segment_sums(eng, values, self.pix_off, npix)
         try:
-            out = eng.read(img, (npix, 4), np.float32)
+            return eng.read(img, (npix, 4), np.float32)
         finally:
             eng.free(img)
-        return out[:, :3].reshape(self.height, self.width, 3)
 
     def release(self) -> None:
         self._free()

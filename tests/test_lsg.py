@@ -515,3 +515,35 @@ def test_leaf_point_counts_match_a_numpy_walk_of_the_tree(engine):
     # random lines fill the 6-D box: the hierarchy alone culls little here (measured 41%),
     # the per-point plane test the rest (exact tests: 8.5% of all pairs)
     assert res.pair_tests <= res.leaf_points < 0.8 * res_all.leaf_points
+
+
+def test_gatherer_image_and_counters_stay_on_the_device(engine):
+    """The per-view estimate summed into pixels on the device (Gatherer.image, what renders
+    use) equals the host sum of Gatherer.values by pixel, and the per-add counters
+    (totals of the device's per-view counts) equal a pair-by-pair count: several adds,
+    several launches per add, views given as an existing device buffer."""
+    from clscatter.view_paths import ViewPaths, accumulate_segments
+    rng = np.random.default_rng(11)
+    lights, views = _random_set("random", rng, nl=2000, nv=300)
+    views["pixel"] = rng.integers(0, 7 * 5, len(views))
+    paths = ViewPaths(None, None, views)
+    dev = paths.on_device(engine, 7, 5)                # sorted by pixel, stably
+    views = paths.segments
+    gat = Gatherer(engine, views, _medium(), 0.04, per_launch=64, views_buf=dev.buf,
+                   record_pairs=len(views) * len(lights))
+    try:
+        first = gat.add(lights[:1200])
+        second = gat.add(lights[1200:])
+        img = gat.image(dev, 0.5)
+        host = accumulate_segments(gat.values(), views["pixel"], 7, 5) * 0.5
+        per_view = gat.valid_per_view
+    finally:
+        gat.release()
+        paths.release()
+    assert first.valid_pairs > 0 and second.valid_pairs > 0
+    assert len(first.pairs) == first.valid_pairs and len(second.pairs) == second.valid_pairs
+    counted = np.bincount(np.concatenate([first.pairs[:, 0], second.pairs[:, 0]]),
+                          minlength=len(views))
+    np.testing.assert_array_equal(per_view, counted)
+    np.testing.assert_allclose(img, host, rtol=2e-6, atol=1e-7 * float(np.abs(host).max()))
+    assert np.abs(host).max() > 0

@@ -298,3 +298,19 @@ def test_no_scratch_left_behind(dev):
     kept, _ = P.compact(eng, flags, 5000)
     eng.free(perm, off, scan, kept)
     assert eng.bytes_live == before
+
+
+@pytest.mark.parametrize("n,lanes", [(0, 1), (1, 1), (3, 2), (255, 2), (256, 1), (257, 3),
+                                     (100003, 2)])
+def test_int_totals_match_int64_sums(dev, n, lanes):
+    """Totals of interleaved int32 counters equal NumPy's int64 sums, including totals
+    past 2**31 (large values) and negative entries; empty input gives zeros."""
+    rng = np.random.default_rng(n + lanes)
+    vals = rng.integers(-1000, 2**30, size=(max(n, 1), lanes), dtype=np.int64).astype(np.int32)
+    buf = dev.up(vals)
+    got = P.int_totals(dev.eng, buf, n, lanes)
+    want = vals[:n].astype(np.int64).sum(axis=0) if n else np.zeros(lanes, np.int64)
+    assert got.dtype == np.int64 and got.shape == (lanes,)
+    np.testing.assert_array_equal(got, want)
+    if n >= 255:
+        assert want.max() > 2**31          # the test reaches past int32

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ... import primitives as prim
 from ... import structs
 from .linetree import (LINE_NODE, LineTree, PluckerFrame, build_linetree, canonical_signs,
                               plucker)
@@ -15,7 +16,7 @@ from ...geometry import slab_interval
 from ...emission import targeted_fraction
 from ...light_paths import ray_counts, trace_light_paths
 from ...prepared import PreparedScene
-from ...view_paths import ViewPaths, accumulate_segments
+from ...view_paths import DeviceSegments, ViewPaths
 from ...stats import Stats, Timer, progress
 from .. import AutoRole, Method, Param, register
 
@@ -121,12 +122,20 @@ class Gatherer:
     ``record_pairs > 0`` also returns up to that many valid (view, light) pairs per chunk.
     ``clip = False`` keeps lighting segments whole (otherwise they are cut to the view
     segments' box grown by the radius); ``frame`` fixes the Plücker frame (tests).
+    ``views_buf``: the same view segments already on the device (a render's
+    :class:`~clscatter.view_paths.DeviceSegments` buffer; not freed here), else uploaded.
+
+    Per view segment, the estimate and the work counters (tests, valid pairs, leaf points)
+    accumulate on the device; an :meth:`add` reads back the counters' totals only, and
+    :meth:`image` sums the estimate into pixels there. The host needs the view segments
+    for the box that clips the lighting segments, and :attr:`valid_per_view` (the
+    automatic radius's pilot) reads one count per view.
     """
 
     def __init__(self, engine: Engine, views: np.ndarray, medium: np.ndarray, radius: float,
                  min_sin: float = 1e-6, leaf_size: int = 4, per_launch: int = 65536,
                  record_pairs: int = 0, show_progress: bool = False, clip: bool = True,
-                 frame: PluckerFrame | None = None):
+                 frame: PluckerFrame | None = None, views_buf=None):
         self.eng = engine
         self.views = views
         self.n = len(views)
@@ -143,14 +152,15 @@ class Gatherer:
         if not clip:   # (tests) keep the lighting segments whole
             self.lo, self.hi = np.full(3, -np.inf), np.full(3, np.inf)
         self.frame = frame
-        self.views_buf = engine.to_device(views)
+        self._own_views = views_buf is None
+        self.views_buf = engine.to_device(views) if views_buf is None else views_buf
         self.medium_buf = engine.to_device(self.medium)
         self.out_buf = engine.zeros(max(self.n, 1) * 16)
-        self.counts_buf = engine.empty(min(self.per_launch, max(self.n, 1)) * 16)
+        # per view: (tests, valid pairs, leaf points, 0) summed over add() calls
+        self.counts_buf = engine.zeros(max(self.n, 1) * 16)
+        self._totals = np.zeros(4, np.int64)     # their totals after the last add()
         self.pairs_buf = engine.empty(max(self.record, 1) * 8)
         self.pair_count = engine.empty(4)
-        # valid pairs per view segment, summed over add() calls (automatic radius)
-        self.valid_per_view = np.zeros(self.n, np.int64)
 
     # ---- one chunk ----
     def add(self, segs: np.ndarray, bruteforce: bool = False) -> ChunkResult:
@@ -176,7 +186,7 @@ class Gatherer:
             fr = prep.frame
             centre = structs.vec4(fr.centre)
             tests = valid = leaf = 0
-            if len(prep.lines):
+            if len(prep.lines) and self.n:
                 with progress(self.n, "lsg gather", self.show_progress) as bar:
                     for start in range(0, self.n, self.per_launch):
                         m = min(self.per_launch, self.n - start)
@@ -189,12 +199,11 @@ class Gatherer:
                                  exhaustive=int(bruteforce), out=self.out_buf,
                                  counts=self.counts_buf, pairs=self.pairs_buf,
                                  pair_count=self.pair_count, max_pairs=self.record)
-                        c = eng.read(self.counts_buf, (m, 4), np.int32)  # (also waits for the launch)
-                        tests += int(c[:, 0].sum(dtype=np.int64))
-                        leaf += int(c[:, 2].sum(dtype=np.int64))
-                        valid += int(c[:, 1].sum(dtype=np.int64))
-                        self.valid_per_view[start:start + m] += c[:, 1]
+                        eng.finish()
                         bar.update(m)
+                totals = prim.int_totals(eng, self.counts_buf, self.n, 4)
+                tests, valid, leaf = (int(x) for x in (totals - self._totals)[:3])
+                self._totals = totals
             pairs = None
             if self.record:
                 got = int(eng.read(self.pair_count, 1, np.int32)[0])
@@ -206,18 +215,32 @@ class Gatherer:
                            t_build.seconds, t_gather.seconds, pairs, leaf)
 
     def reset(self) -> None:
-        """Zero the accumulator and the per-view pair counts."""
-        self.eng.cl.enqueue_fill_buffer(self.eng.queue, self.out_buf, np.zeros(1, np.float32), 0,
-                                        max(self.n, 1) * 16)
-        self.valid_per_view[:] = 0
+        """Zero the accumulator and the per-view counters."""
+        q = self.eng.queue
+        for buf in (self.out_buf, self.counts_buf):
+            self.eng.cl.enqueue_fill_buffer(q, buf, np.zeros(1, np.float32), 0, max(self.n, 1) * 16)
+        self._totals[:] = 0
+
+    @property
+    def valid_per_view(self) -> np.ndarray:
+        """Valid pairs per view segment, summed over the add() calls since the last
+        reset(), (n_views,) int64 (read from the device)."""
+        c = self.eng.read(self.counts_buf, (max(self.n, 1), 4), np.int32)[:self.n]
+        return c[:, 1].astype(np.int64)
 
     def values(self) -> np.ndarray:
         """The accumulated estimate per view segment, ``(n_views, 4)`` float32."""
         return self.eng.read(self.out_buf, (max(self.n, 1), 4), np.float32)[:self.n]
 
+    def image(self, segs: DeviceSegments, scale: float = 1.0) -> np.ndarray:
+        """The accumulated estimate summed into an (H, W, 3) image on the device, times
+        ``scale``; ``segs`` holds the same view segments in the same order (its pixel
+        offsets)."""
+        return segs.accumulate(self.out_buf) * np.float32(scale)
+
     def release(self) -> None:
-        self.eng.free(self.views_buf, self.medium_buf, self.out_buf, self.counts_buf,
-                      self.pairs_buf, self.pair_count)
+        self.eng.free(*([self.views_buf] if self._own_views else []), self.medium_buf,
+                      self.out_buf, self.counts_buf, self.pairs_buf, self.pair_count)
 
 
 def _chunk_rays(counts: np.ndarray, k: int, n: int) -> int:
@@ -429,8 +452,9 @@ class LineSpaceGathering(Method):
             return np.zeros((cam.height, cam.width, 3), np.float32)
         eng = ps.engine
         r_fixed = p["radius"] * ps.scene.scene_extent() / ps.frame.scale
+        dev = paths.on_device(eng, cam.width, cam.height)     # the same segments, in order
         gat = Gatherer(eng, views, ps.medium, r_fixed or 1.0, p["min_sin"], p["leaf_size"],
-                       p["segments_per_launch"], show_progress=False)
+                       p["segments_per_launch"], show_progress=False, views_buf=dev.buf)
         try:
             if r_fixed > 0:
                 r1 = r_fixed
@@ -440,7 +464,8 @@ class LineSpaceGathering(Method):
                 r1 = auto.radius
                 stats.set(lsg_auto_radius=auto.__dict__)
             totals, passes, pass_seconds = self._progressive(ps, gat, r1, stats, show_progress)
-            values = gat.values() / max(passes, 1)
+            with stats.stage("lsg_gather"):
+                image = gat.image(dev, 1.0 / max(passes, 1))
         finally:
             gat.release()
         radii = ppb_radii(r1, p["alpha"], p["first_pass"] + passes)
@@ -456,7 +481,7 @@ class LineSpaceGathering(Method):
                   lsg_radius_world=float(r1) * ps.frame.scale,
                   lsg_pass_seconds=pass_seconds, lsg_time_budget=p["time_budget"],
                   light_rays_specular_fraction=spec / max(rays, 1))
-        return accumulate_segments(values, views["pixel"], cam.width, cam.height)
+        return image
 
     # ---- automatic radius ----
     def auto_radius(self, ps: PreparedScene, gat: Gatherer, views: np.ndarray) -> AutoRadius:

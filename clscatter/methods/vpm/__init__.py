@@ -7,9 +7,10 @@ import numpy as np
 
 from .photontree import (BUILD_BYTES_PER_PHOTON, PHOTON, PhotonTree, build_tree,
                                 encode_direction, encode_rgb9e5)
+from ... import primitives as prim
 from ...light_paths import trace_light_paths
 from ...prepared import PreparedScene
-from ...view_paths import ViewPaths, accumulate_segments
+from ...view_paths import ViewPaths
 from ...stats import Stats, progress
 from .. import Method, Param, register
 
@@ -114,37 +115,50 @@ class DevicePhotonMap:
         engine.free(self.photons, self.nodes)
 
 
+def gather_on_device(engine, medium: np.ndarray, pmap: DevicePhotonMap, seg_buf, n: int,
+                     knn: int, dx: float, max_radius: float, seed: int,
+                     per_launch: int = 16384, show_progress: bool = False):
+    """Run ``vpm_gather`` over the ``n`` VIEW_SEGMENT records of the device buffer
+    ``seg_buf``. Returns two new device buffers (the caller frees them): ``n`` float4,
+    the rgb radiance of each segment with its number of march samples in the last lane,
+    and ``n`` int2, the boxes and photons its kNN queries tested. ``dx`` and
+    ``max_radius`` in the photons' (normalised) units."""
+    med = engine.to_device(np.asarray(medium).reshape(1))
+    out_buf, work_buf = engine.empty(16 * max(n, 1)), engine.empty(8 * max(n, 1))
+    chunk = max(1, min(int(per_launch), n))
+    try:
+        with progress(n, "vpm gather", show_progress) as bar:
+            for start in range(0, n, chunk):
+                m = min(chunk, n - start)
+                engine.call("vpm", "vpm_gather", m, {"KNN": int(knn)}, segs=seg_buf,
+                            seg_offset=start, num_segs=m, photons=pmap.photons,
+                            num_photons=pmap.count, nodes=pmap.nodes, levels=pmap.levels,
+                            power_scale=pmap.power_scale, medium=med, dx=dx,
+                            max_r2=max_radius * max_radius, seed=seed & 0xFFFFFFFF,
+                            out=out_buf, work_out=work_buf)
+                bar.update(m)
+    finally:
+        engine.free(med)
+    return out_buf, work_buf
+
+
 def gather(engine, medium: np.ndarray, pmap: DevicePhotonMap, segments: np.ndarray, knn: int,
            dx: float, max_radius: float, seed: int, per_launch: int = 16384,
            show_progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Run ``vpm_gather`` over ``segments`` (VIEW_SEGMENT). Returns (N, 4) float32, the
-    rgb radiance of each segment and its number of march samples in the last lane, and
-    (N, 2) int32, the boxes and photons its kNN queries tested. ``dx`` and
-    ``max_radius`` in the photons' (normalised) units."""
+    """:func:`gather_on_device` over a host array of ``segments``, its results read back:
+    (N, 4) float32 and (N, 2) int32 (tests and inspection; renders keep them on the
+    device)."""
     n = len(segments)
-    out = np.zeros((n, 4), np.float32)
-    work = np.zeros((n, 2), np.int32)
     if n == 0:
-        return out, work
-    med = engine.to_device(np.asarray(medium).reshape(1))
+        return np.zeros((0, 4), np.float32), np.zeros((0, 2), np.int32)
     seg_buf = engine.to_device(segments)
-    chunk = max(1, min(int(per_launch), n))
-    out_buf = engine.empty(chunk * 16)
-    work_buf = engine.empty(chunk * 8)
-    with progress(n, "vpm gather", show_progress) as bar:
-        for start in range(0, n, chunk):
-            m = min(chunk, n - start)
-            engine.call("vpm", "vpm_gather", m, {"KNN": int(knn)}, segs=seg_buf,
-                        seg_offset=start, num_segs=m, photons=pmap.photons,
-                        num_photons=pmap.count, nodes=pmap.nodes, levels=pmap.levels,
-                        power_scale=pmap.power_scale, medium=med, dx=dx,
-                        max_r2=max_radius * max_radius, seed=seed & 0xFFFFFFFF, out=out_buf,
-                        work_out=work_buf)
-            out[start:start + m] = engine.read(out_buf, (chunk, 4), np.float32)[:m]
-            work[start:start + m] = engine.read(work_buf, (chunk, 2), np.int32)[:m]
-            bar.update(m)
-    engine.free(med, seg_buf, out_buf, work_buf)
-    return out, work
+    bufs = (seg_buf,)
+    try:
+        bufs += gather_on_device(engine, medium, pmap, seg_buf, n, knn, dx, max_radius, seed,
+                                 per_launch, show_progress)
+        return engine.read(bufs[1], (n, 4), np.float32), engine.read(bufs[2], (n, 2), np.int32)
+    finally:
+        engine.free(*bufs)
 
 
 def knn_points(engine, pmap: DevicePhotonMap, points: np.ndarray, wo: np.ndarray, knn: int,
@@ -309,8 +323,7 @@ class VolumetricPhotonMapping(Method):
                show_progress: bool = True) -> np.ndarray:
         """Single-scattered radiance (H, W, 3) for all view segments of ``paths``."""
         cam = ps.scene.camera
-        segs = paths.segments
-        if len(segs) == 0 or ps.num_lights == 0:
+        if len(paths) == 0 or ps.num_lights == 0:
             return np.zeros((cam.height, cam.width, 3), np.float32)
         eng = ps.engine
         tree = self.build_photon_map(ps, stats, show_progress)
@@ -319,13 +332,21 @@ class VolumetricPhotonMapping(Method):
         del tree                     # the gather reads the device copy
         rel = ps.scene.scene_extent() / ps.frame.scale
         seed = (ps.scene.render.seed * 7919 + 29) & 0xFFFFFFFF
+        # per segment everything stays on the device: the gather's values are summed into
+        # pixels there and its work counters totalled there
+        segs = paths.on_device(eng, cam.width, cam.height)
         with stats.stage("vpm_gather") as t_gather:
             p = self.params
-            values, work = gather(eng, ps.medium, pmap, segs, p["knn"], p["dx"] * rel,
-                                  p["max_radius"] * rel, seed, p["segments_per_launch"],
-                                  show_progress)
-        pmap.free(eng)
-        stats.set(gather_seconds=t_gather.seconds, gather_steps=int(values[:, 3].sum()),
-                  knn_boxes_tested=int(work[:, 0].sum(dtype=np.int64)),
-                  knn_photons_tested=int(work[:, 1].sum(dtype=np.int64)))
-        return accumulate_segments(values, segs["pixel"], cam.width, cam.height)
+            values, work = gather_on_device(eng, ps.medium, pmap, segs.buf, segs.count, p["knn"],
+                                            p["dx"] * rel, p["max_radius"] * rel, seed,
+                                            p["segments_per_launch"], show_progress)
+            try:
+                pmap.free(eng)
+                sums = segs.pixel_sums(values)
+                boxes, tested = prim.int_totals(eng, work, segs.count, 2)
+            finally:
+                eng.free(values, work)
+        stats.set(gather_seconds=t_gather.seconds,
+                  gather_steps=int(sums[:, 3].astype(np.float64).sum()),
+                  knn_boxes_tested=int(boxes), knn_photons_tested=int(tested))
+        return sums[:, :3].reshape(cam.height, cam.width, 3)
