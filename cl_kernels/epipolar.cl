@@ -60,7 +60,7 @@ float4 epi_spot_dir(__global const EpiFrame *fr, float4 w, float gamma) {
 
 /* gamma reached by the view ray beta at distance t (paper, Sec. 3 and 9) */
 float epi_gamma(__global const EpiFrame *fr, float t, float beta) {
-    if (fr->type == LIGHT_SPOT) return atan2(t * sin(beta), fr->D - t * cos(beta));
+    if (fr->type == LIGHT_SPOT) return atan2_fast(t * sin(beta), fr->D - t * cos(beta));
     return t * sin(beta);
 }
 
@@ -180,8 +180,8 @@ float epi_blocker(__global const EpiFrame *fr, __global const EpiFace *faces,
 /* The blocker's slice position (z, rho) and its beta = atan2(rho, z) (paper, Sec. 3: the
  * value changes in rectification, depth -> beta). */
 float epi_blocker_beta(__global const EpiFrame *fr, float gamma, float v) {
-    if (fr->type == LIGHT_DIRECTIONAL) return atan2(gamma, v);
-    return atan2(v * sin(gamma), fr->D - v * cos(gamma));
+    if (fr->type == LIGHT_DIRECTIONAL) return atan2_fast(gamma, v);
+    return atan2_fast(v * sin(gamma), fr->D - v * cos(gamma));
 }
 
 /* Sort key increasing with beta along one light ray (directional: beta falls as z
@@ -461,9 +461,9 @@ float epi_locate(__global const EpiFrame *fr, __global const float *phis, int n,
                  float4 v, int *k0, int *k1, float *f) {
     float c = dot3(v, fr->u);
     float4 perp = v - c * fr->u;
-    float phi = atan2(dot3(perp, fr->b2), dot3(perp, fr->b1));
+    float phi = atan2_fast(dot3(perp, fr->b2), dot3(perp, fr->b1));
     epi_bracket(phis, n, full, phi, k0, k1, f);
-    return atan2(length3(perp), c);
+    return atan2_fast(length3(perp), c);
 }
 
 /* One work-item per primary view segment (segment lookup): its coordinates and the two
@@ -713,4 +713,11 @@ __kernel void epi_weighted(__global const float4 *values, __global const ViewSeg
     float4 w = segs[i].weight;
     w.w = 0.0f;
     weighted[i] = values[i] * w;
+}
+
+/* Test hook: atan2_fast (common.h) over arrays (tests/test_fast_math.py). */
+__kernel void atan2_test(__global const float *y, __global const float *x, int n,
+                         __global float *out) {
+    int i = get_global_id(0);
+    if (i < n) out[i] = atan2_fast(y[i], x[i]);
 }
