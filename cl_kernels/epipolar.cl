@@ -58,10 +58,16 @@ float4 epi_spot_dir(__global const EpiFrame *fr, float4 w, float gamma) {
     return -cos(gamma) * fr->u + sin(gamma) * w;
 }
 
-/* gamma reached by the view ray beta at distance t (paper, Sec. 3 and 9) */
+/* gamma reached by the view ray beta at distance t (paper, Sec. 3 and 9), given
+ * sb = sin(beta) and cb = cos(beta) (a caller holding the view direction has them
+ * without trigonometry) */
+float epi_gamma_sc(__global const EpiFrame *fr, float t, float sb, float cb) {
+    if (fr->type == LIGHT_SPOT) return atan2_fast(t * sb, fr->D - t * cb);
+    return t * sb;
+}
+
 float epi_gamma(__global const EpiFrame *fr, float t, float beta) {
-    if (fr->type == LIGHT_SPOT) return atan2_fast(t * sin(beta), fr->D - t * cos(beta));
-    return t * sin(beta);
+    return epi_gamma_sc(fr, t, sin(beta), cos(beta));
 }
 
 /* ---- maps ---- */
@@ -456,14 +462,17 @@ void epi_bracket(__global const float *phis, int n, int full, float phi, int *k0
     if (!full && (first || last)) { *k1 = i; *f = 0.0f; }
 }
 
-/* beta of the unit direction v and the slices around it (geometry.Axis.coords + bracket) */
+/* beta of the unit direction v and the slices around it (geometry.Axis.coords +
+ * bracket); *sb, *cb: sin and cos of beta (|v - (v.u) u| and v.u) */
 float epi_locate(__global const EpiFrame *fr, __global const float *phis, int n, int full,
-                 float4 v, int *k0, int *k1, float *f) {
+                 float4 v, int *k0, int *k1, float *f, float *sb, float *cb) {
     float c = dot3(v, fr->u);
     float4 perp = v - c * fr->u;
     float phi = atan2_fast(dot3(perp, fr->b2), dot3(perp, fr->b1));
     epi_bracket(phis, n, full, phi, k0, k1, f);
-    return atan2_fast(length3(perp), c);
+    *sb = length3(perp);
+    *cb = c;
+    return atan2_fast(*sb, c);
 }
 
 /* One work-item per primary view segment (segment lookup): its coordinates and the two
@@ -484,11 +493,12 @@ __kernel void epi_samples(__global const EpiFrame *fr, __global const float *phi
     float t_a = fmax(dot3(a, v), 0.0f);
     int k0, k1;
     float f;
-    float beta = epi_locate(fr, phis, nslices, full, v, &k0, &k1, &f);
+    float sb, cb;
+    float beta = epi_locate(fr, phis, nslices, full, v, &k0, &k1, &f, &sb, &cb);
     float px, py;
     int in_ring = ring.z > 0.0f && epi_project(cam, v, cam->width, cam->height, &px, &py)
                   && hypot(px - ring.x, py - ring.y) < ring.z;
-    geo[gid] = (float4)(beta, epi_gamma(fr, t_a, beta), epi_gamma(fr, t_b, beta), t_a);
+    geo[gid] = (float4)(beta, epi_gamma_sc(fr, t_a, sb, cb), epi_gamma_sc(fr, t_b, sb, cb), t_a);
     idx[gid] = (int4)(k0, k1, as_int(f), in_ring);
 }
 
@@ -515,7 +525,8 @@ __kernel void epi_unrectify(__global const EpiFrame *fr, __global const EpiSlice
     v.w = 0.0f;
     int k0, k1;
     float f;
-    float beta = epi_locate(fr, phis, nslices, full, v, &k0, &k1, &f);
+    float sb, cb;
+    float beta = epi_locate(fr, phis, nslices, full, v, &k0, &k1, &f, &sb, &cb);
     float4 a = epi_grid_at(&slices[k0], grid + (size_t)k0 * R, R, beta);
     float4 b = epi_grid_at(&slices[k1], grid + (size_t)k1 * R, R, beta);
     out[gid] = (1.0f - f) * a + f * b;
