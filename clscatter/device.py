@@ -231,6 +231,7 @@ class KernelParam:
 
 
 _CL_INCLUDE = re.compile(r'^[ \t]*#[ \t]*include[ \t]+"([^"]+\.cl)"', re.M)
+_INCLUDE = re.compile(r'^[ \t]*#[ \t]*include[ \t]+"([^"]+)"', re.M)
 
 
 def _strip_comments(source: str) -> str:
@@ -282,6 +283,24 @@ def program_signature(program: str, kernel: str, root: Path | None = None) -> tu
                 seen.add(inc)
                 queue.append(inc)
     raise KernelArgError(f"kernel '{kernel}' is not defined in {program}.cl or the .cl files it includes")
+
+
+def program_files(program: str, root: Path | None = None) -> list[Path]:
+    """``<root>/<program>.cl`` and every file it ``#include``s, directly or not (``.h`` and
+    ``.cl``; sorted by name): what a build of the program reads."""
+    root = Path(root) if root is not None else kernel_dir()
+    first = root / f"{program}.cl"
+    queue, seen = [first], {first}
+    while queue:
+        path = queue.pop()
+        if not path.is_file():
+            continue
+        for name in _INCLUDE.findall(_strip_comments(path.read_text())):
+            inc = root / name
+            if inc not in seen:
+                seen.add(inc)
+                queue.append(inc)
+    return sorted((p for p in seen if p.is_file()), key=lambda p: p.name)
 
 
 class Engine:
@@ -389,9 +408,12 @@ class Engine:
                     *self.bind(program, kernel, args))
 
     def _cache_key(self, name: str, opts: Sequence[str]) -> str:
+        """The binary cache key: the program's source and every file it includes, directly
+        or not (so editing one kernel leaves the other programs' binaries valid), the
+        options, the device and driver."""
         h = hashlib.sha256()
         kd = kernel_dir()
-        for p in sorted(list(kd.glob("*.cl")) + list(kd.glob("*.h"))):
+        for p in program_files(name, kd):
             h.update(p.name.encode())
             h.update(p.read_bytes())
         h.update(name.encode())

@@ -115,3 +115,21 @@ def test_probe_results_are_cached_across_runs(tmp_path, monkeypatch):
     assert len(calls) == 1 and second.label == first.label
     dev.list_devices(probe=True)
     assert len(calls) == 1 + len(dev.list_devices(probe=False)[0])
+
+
+def test_program_files_follow_includes_transitively(tmp_path):
+    """The binary cache key reads a program's own source and what it includes, directly
+    or not (a header edit invalidates the programs using it, and only those); comments
+    and missing files are ignored."""
+    from clscatter.device import program_files
+    (tmp_path / "a.cl").write_text('#include "b.h"\n  # include "c.cl"\n/* #include "z.h" */\n')
+    (tmp_path / "b.h").write_text('#include "d.h"\n')
+    (tmp_path / "c.cl").write_text('#include "b.h"\n#include "missing.h"\n')
+    (tmp_path / "d.h").write_text("")
+    (tmp_path / "z.h").write_text("")
+    (tmp_path / "other.cl").write_text('#include "z.h"\n')
+    assert [p.name for p in program_files("a", tmp_path)] == ["a.cl", "b.h", "c.cl", "d.h"]
+    assert [p.name for p in program_files("other", tmp_path)] == ["other.cl", "z.h"]
+    real = {p.name for p in program_files("primitives")}
+    assert real == {"primitives.cl"}
+    assert {"common.h", "bvh.h", "epipolar.h", "epipolar.cl"} <= {p.name for p in program_files("epipolar")}
