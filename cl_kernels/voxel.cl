@@ -678,6 +678,18 @@ __kernel void voxel_view_march(__global const VoxRay *rays, int count, float4 gl
     rays_out[r] = ray;
 }
 
+/* The throughput filter between the viewing pass and the straight tracer: keep[r] = 1
+ * where ray r still carries light (largest rgb throughput above min_thr, view_paths.cl's
+ * MIN_THROUGHPUT per sample), else 0. The host compacts the rays by these flags on the
+ * device (clscatter/primitives.py: compact). */
+__kernel void vox_keep_flags(__global const VoxRay *rays, int count, float min_thr,
+                             __global int *keep) {
+    int r = get_global_id(0);
+    if (r >= count) return;
+    float4 t = rays[r].thr;
+    keep[r] = fmax(t.x, fmax(t.y, t.z)) > min_thr ? 1 : 0;
+}
+
 /* ------------------------------------------------- straight paths outside the grid -- */
 
 /* Follow one branch tree exactly as trace_view does (view_paths.cl), except that a

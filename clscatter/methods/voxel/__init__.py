@@ -83,7 +83,9 @@ class Voxel(Method):
               lo=0.0, hi=1.0, lo_open=True),
         Param("min_flux", 1e-3, "a photon ends below this fraction of its starting flux", lo=0.0),
         Param("smoothing", True, "3x3x3 smoothing of the deposited radiance"),
-        Param("view_rounds", 4, "grid passes per view path (in, out, back in after a mirror...)", lo=1),
+        Param("view_rounds", 4, "grid passes per view path (in, out, back in after a mirror...); "
+              "at most 4: branch ids grow 64x a round and must stay exact as float32 sort keys",
+              lo=1, hi=4),
         Param("direct_steps", 32, "raymarch samples per view segment outside the grid", lo=1),
         Param("beyond", "grid", "how light that left the grid scatters outside it: 'grid' (deposited "
               "in a coarse outer grid), 'lsg' (line-space gathering of the photons' rays: sharper, "

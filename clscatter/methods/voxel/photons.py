@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ... import primitives as prim
 from ... import structs
 from ...device import AppendBuffer, Engine
 from .grid import GridBox
@@ -217,12 +218,34 @@ def smooth(eng: Engine, box: GridBox, buf) -> None:
         eng.free(tmp, taps)
 
 
+def exits_by_photon(eng: Engine, app: AppendBuffer, n: int, photons: int) -> np.ndarray:
+    """The ``n`` lighting segments one ``photon_exits`` launch appended to ``app`` (at most
+    one per photon, in no fixed order), bucket-sorted by photon index on the device
+    (``record_keys`` of view_paths.cl takes any record's int words), then read back:
+    lsg's line tree (``gather_exits``) is built from them on the host, so this read is
+    what that host structure needs; the order makes it reproducible."""
+    rec = structs.LIGHT_SEGMENT
+    if n == 0:
+        return np.zeros(0, rec)
+    keys, unused = eng.empty(4 * n), eng.empty(4 * n)
+    perm = offsets = out = None
+    try:
+        word = rec.fields["ray"][1] // 4
+        eng.call("view_paths", "record_keys", n, records=app.buf, stride=rec.itemsize // 4,
+                 sample_word=word, branch_word=word, n=n, base=0, keys=keys, branch=unused)
+        perm, offsets = prim.bucket_sort(eng, keys, n, photons)
+        out = prim.gather(eng, app.buf, perm, n, rec.itemsize)
+        return eng.read(out, n, rec)
+    finally:
+        eng.free(keys, unused, *(b for b in (perm, offsets, out) if b is not None))
+
+
 def light_pass(eng: Engine, fields: Fields, ps, photons: int, ms: MarchSettings,
                test_surfaces: bool, smoothing: bool = True, outer: GridBox | None = None) -> Radiance:
     """Emit ``photons`` per light of the prepared scene ``ps``, march them, deposit,
     smooth. ``ps.dev`` supplies the scene BVH, lights and medium. Photons that leave the
-    grid become lighting segments (``exits``) and, with an ``outer`` grid, are also
-    deposited there as straight lines (``photon_outer``)."""
+    grid become lighting segments (``exits``, sorted by (light, photon)) and, with an
+    ``outer`` grid, are also deposited there as straight lines (``photon_outer``)."""
     from .voxelise import medium_at_centres
     box = fields.box
     rad, dirs = eng.zeros(16 * box.size), eng.zeros(16 * box.size)
@@ -251,9 +274,10 @@ def light_pass(eng: Engine, fields: Fields, ps, photons: int, ms: MarchSettings,
                      pos=st.pos, vel=st.vel, flux=st.flux)
             alive = int((eng.read(st.pos, (N, 4), np.float32)[:, 3] > 0).sum())
             c = march(eng, fields, st, rad, dirs, ms, (ps.dev.nodes, ps.dev.tris), test_surfaces)
-            exits.append(app.call("voxel", "photon_exits", N, pos=st.pos, vel=st.vel, flux=st.flux,
-                                  count=N, light_index=li, nodes=ps.dev.nodes, tris=ps.dev.tris,
-                                  medium=ps.dev.medium))
+            got = app.call_on_device("voxel", "photon_exits", N, pos=st.pos, vel=st.vel,
+                                     flux=st.flux, count=N, light_index=li, nodes=ps.dev.nodes,
+                                     tris=ps.dev.tris, medium=ps.dev.medium)
+            exits.append(exits_by_photon(eng, app, got, N))
             if outer is not None:
                 eng.call("voxel", "photon_outer", N, pos=st.pos, vel=st.vel, flux=st.flux, count=N,
                          nodes=ps.dev.nodes, tris=ps.dev.tris, medium=ps.dev.medium,
@@ -268,7 +292,6 @@ def light_pass(eng: Engine, fields: Fields, ps, photons: int, ms: MarchSettings,
         total["voxel_photons_unfinished"] += c["live_at_end"]
     app.release()
     ex = np.concatenate(exits) if exits else np.zeros(0, structs.LIGHT_SEGMENT)
-    ex = ex[np.lexsort((ex["ray"], ex["light"]))]      # appended in no fixed order
     total["voxel_photons_leaving"] = int(len(ex))
     if smoothing:
         smooth(eng, box, rad)

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...view_paths import accumulate_segments
+from ...view_paths import DeviceSegments, ViewPaths
 from .grid import GridBox, make_box, scene_box
 from .photons import Fields, MarchSettings, Radiance, light_pass, upload_fields
 from .view import view_pass
@@ -116,57 +116,66 @@ class Pipeline:
         cam = ps.scene.camera
         direct = np.zeros((cam.height, cam.width, 3), np.float32)
         beyond = np.zeros_like(direct)
-        if len(vr.segments) and ps.num_lights and ps.has_medium:
-            direct = direct_outside(ps, self.fields.box, vr.segments, self.params["direct_steps"])
-            ex = self.radiance.exits
-            if self.params["beyond"] == "grid":
-                beyond = outer_view(ps, self.radiance, vr.segments)
-            elif self.params["beyond"] == "lsg" and ex is not None and len(ex):
-                r = self.params["exit_radius"] * ps.scene.scene_extent() / ps.frame.scale
-                beyond = gather_exits(ps, vr.segments, ex, r, show_progress)
+        try:
+            if vr.segments.count and ps.num_lights and ps.has_medium:
+                direct = direct_outside(ps, self.fields.box, vr.segments,
+                                        self.params["direct_steps"])
+                ex = self.radiance.exits
+                if self.params["beyond"] == "grid":
+                    beyond = outer_view(ps, self.radiance, vr.segments)
+                elif self.params["beyond"] == "lsg" and ex is not None and len(ex):
+                    r = self.params["exit_radius"] * ps.scene.scene_extent() / ps.frame.scale
+                    beyond = gather_exits(ps, vr.segments, ex, r, show_progress)
+        finally:
+            vr.segments.release()
         return {"surface": vr.surface, "medium": vr.inside + direct + beyond, "inside": vr.inside,
                 "direct_outside": direct, "beyond": beyond, "counters": vr.counters}
 
 
-def direct_outside(ps, box, segs: np.ndarray, steps: int, per_launch: int = 65536) -> np.ndarray:
+def direct_outside(ps, box: GridBox, segs: DeviceSegments, steps: int,
+                   per_launch: int = 65536) -> np.ndarray:
     """raymarch's direct single scattering over ``segs`` with the grid box occluding
-    (``cl_kernels/voxel_direct.cl``): the light that crosses the grid is the photons'."""
+    (``cl_kernels/voxel_direct.cl``): the light that crosses the grid is the photons'.
+    Launched over the device segments and summed into pixels there (only the image is
+    read back)."""
     eng = ps.engine
-    cam = ps.scene.camera
     med2 = np.zeros(2, ps.medium.dtype)
     med2[0] = ps.medium
     med2[1]["bmin"][:3], med2[1]["bmax"][:3] = box.lo, box.hi
-    med_buf, seg_buf = eng.to_device(med2), eng.to_device(segs)
-    n = len(segs)
-    chunk = min(per_launch, n)
-    out = eng.empty(16 * max(n, 1))
+    n = segs.count
+    chunk = max(1, min(per_launch, n))
+    med_buf, out = eng.to_device(med2), eng.empty(16 * max(n, 1))
     seed = np.uint32((ps.scene.render.seed * 7919 + 17) & 0xFFFFFFFF)   # as raymarch
     try:
         scene = ps.scene_args("voxel_direct", "raymarch", medium=med_buf)   # box rides in medium
         for start in range(0, n, chunk):
             m = min(chunk, n - start)
-            eng.call("voxel_direct", "raymarch", m, **scene, medium=med_buf, segs=seg_buf,
+            eng.call("voxel_direct", "raymarch", m, **scene, medium=med_buf, segs=segs.buf,
                      seg_offset=start, num_segs=m, scale=out, use_scale=0, steps=steps,
                      seed=seed, out=out)
-        values = eng.read(out, (n, 4), np.float32)
+        return segs.accumulate(out)
     finally:
-        eng.free(med_buf, seg_buf, out)
-    return accumulate_segments(values, segs["pixel"], cam.width, cam.height)
+        eng.free(med_buf, out)
 
 
-def gather_exits(ps, segs: np.ndarray, exits: np.ndarray, radius: float,
+def gather_exits(ps, segs: DeviceSegments, exits: np.ndarray, radius: float,
                  show_progress: bool = True) -> np.ndarray:
     """Single scattering outside the grid of the light that left it (the photons' straight
-    continuations), by lsg's line-space gathering with ``radius`` (normalised units)."""
+    continuations), by lsg's line-space gathering with ``radius`` (normalised units).
+
+    lsg's :class:`~clscatter.methods.lsg.Gatherer` needs the view segments on the host
+    (their bounding box clips the lighting segments before its host line tree is built),
+    so they are read back once for it; it gathers over the device copy itself, and its
+    per-segment estimates stay on the device, summed into pixels there."""
     from ..lsg import Gatherer
-    cam = ps.scene.camera
-    gat = Gatherer(ps.engine, segs, ps.medium, radius, show_progress=show_progress)
+    views = ViewPaths(None, None, device=segs).segments
+    gat = Gatherer(ps.engine, views, ps.medium, radius, show_progress=show_progress,
+                   views_buf=segs.buf)
     try:
         gat.add(exits)
-        values = gat.values()
+        return gat.image(segs)
     finally:
         gat.release()
-    return accumulate_segments(values, segs["pixel"], cam.width, cam.height)
 
 
 def outer_box(ps, box: GridBox, resolution: int) -> GridBox:
@@ -182,19 +191,16 @@ def outer_box(ps, box: GridBox, resolution: int) -> GridBox:
     return make_box(lo, hi, resolution)
 
 
-def outer_view(ps, radiance, segs: np.ndarray, per_launch: int = 1 << 16) -> np.ndarray:
-    """Single scattering along ``segs`` of the light held by the outer grid."""
+def outer_view(ps, radiance: Radiance, segs: DeviceSegments) -> np.ndarray:
+    """Single scattering along ``segs`` of the light held by the outer grid, launched over
+    the device segments and summed into pixels there (only the image is read back)."""
     eng = ps.engine
-    cam = ps.scene.camera
     ob = radiance.outer
-    n = len(segs)
-    seg_buf = eng.to_device(segs)
-    out = eng.empty(16 * n)
+    out = eng.empty(16 * max(segs.count, 1))
     try:
-        eng.call("voxel", "outer_view", n, segs=seg_buf, count=n, medium=ps.dev.medium,
-                 olo=ob.lo4(), od=ob.dims4(), oh=ob.h, rad=radiance.outer_rad,
-                 dirs=radiance.outer_dirs, out=out)
-        values = eng.read(out, (n, 4), np.float32)
+        eng.call("voxel", "outer_view", segs.count, segs=segs.buf, count=segs.count,
+                 medium=ps.dev.medium, olo=ob.lo4(), od=ob.dims4(), oh=ob.h,
+                 rad=radiance.outer_rad, dirs=radiance.outer_dirs, out=out)
+        return segs.accumulate(out)
     finally:
-        eng.free(seg_buf, out)
-    return accumulate_segments(values, segs["pixel"], cam.width, cam.height)
+        eng.free(out)

@@ -22,10 +22,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ... import primitives as prim
 from ... import structs
-from ...device import AppendBuffer, Engine
+from ...device import AppendBuffer, Engine, launch_appending
 from ...stats import progress
-from ...view_paths import SAMPLES_PER_LAUNCH
+from ...view_paths import SAMPLES_PER_LAUNCH, DeviceSegments, _first_samples, _Store
 from .grid import VOX_RAY, GridBox
 from .photons import Fields, Radiance
 
@@ -34,108 +35,209 @@ MIN_THROUGHPUT = 1e-4     # as view_paths.cl: branches below this (per sample) a
 
 @dataclass
 class ViewResult:
+    """What :func:`view_pass` returns. ``segments`` are on the device, sorted by (sample,
+    branch), with pixel offsets; the caller releases them."""
+
     surface: np.ndarray        # (H, W, 3) directly lit surfaces, seen through the grid too
     inside: np.ndarray         # (H, W, 3) medium radiance from inside the grid (photons)
-    segments: np.ndarray       # structs.VIEW_SEGMENT: the straight medium pieces outside
+    segments: DeviceSegments   # structs.VIEW_SEGMENT: the straight medium pieces outside
     counters: dict
 
 
-def _run_tracer(eng: Engine, program_kernel: tuple[str, str], n: int, args: dict,
-                segs: AppendBuffer, stop_cap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Launch a tracer kernel with its two appended outputs (stopped rays, segments);
-    grows the stopped-ray buffer and relaunches when it overflowed (kernels are
-    deterministic). Returns (surface per work-item, stopped rays, segments)."""
-    prog, kern = program_kernel
-    surface = eng.empty(16 * n)
-    count = eng.empty(4)
+class _Pass:
+    """The device state of one view pass: the append buffers the tracers write to, the
+    view segments of every launch (a :class:`~clscatter.view_paths._Store`), the camera
+    samples' pixel offsets and the two images so far. Images are the only per-pixel data
+    read back: each launch's per-work-item values are summed into pixels on the device and
+    the image (or a camera launch's band of pixels) is added here (float64)."""
+
+    def __init__(self, ps, box: GridBox, samples_per_launch: int):
+        eng = self.eng = ps.engine
+        self.ps = ps
+        cam = ps.scene.camera
+        self.w, self.h, self.spp = cam.width, cam.height, cam.spp
+        self.total = self.w * self.h * self.spp
+        self.chunk = int(max(1, min(samples_per_launch, self.total)))
+        self.bounds = {"gmin": box.lo4(), "gmax": box.hi4()}
+        self.apps = {"stopped": AppendBuffer(eng, VOX_RAY, self.chunk + 64),
+                     "segs": AppendBuffer(eng, structs.VIEW_SEGMENT,
+                                          self.chunk * 2 if ps.has_medium else 1)}
+        self.segs = _Store(eng, structs.VIEW_SEGMENT)
+        self.first = _first_samples(eng, 0, self.total, self.w, self.h, self.spp)
+        self.surface = np.zeros((self.h, self.w, 3), np.float64)
+        self.inside = np.zeros((self.h, self.w, 3), np.float64)
+
+    def trace(self, kernel: str, n: int, stopped: _Store, surface, **args) -> None:
+        """One straight-tracer launch (``voxel_trace_camera`` / ``voxel_trace_rays``) over
+        ``n`` work-items: ``surface[i]`` written, the rays it stopped at the grid moved
+        into ``stopped``, its segments into :attr:`segs` (an overflowing launch runs again
+        with its buffers grown: the kernels are deterministic)."""
+        got = launch_appending(self.eng, "voxel", kernel, n, self.apps, **self.bounds,
+                               **args, surface=surface)
+        stopped.take(self.apps["stopped"], got["stopped"])
+        self.segs.take(self.apps["segs"], got["segs"])
+
+    def by_sample(self, store: _Store) -> DeviceSegments:
+        """``store``'s records bucket-sorted by (sample, branch), with pixel offsets."""
+        return store.sorted(0, self.total, self.first, self.w, self.h)
+
+    def camera(self, bar) -> DeviceSegments:
+        """Every camera sample traced straight up to the grid, launch by launch: adds their
+        surface light; returns the rays stopped at the grid, sorted by (sample, branch)."""
+        eng, ps = self.eng, self.ps
+        store = _Store(eng, VOX_RAY)
+        surface = eng.empty(16 * self.chunk)
+        args = {**ps.scene_args("voxel", "voxel_trace_camera"), "cam": ps.dev.camera,
+                "max_depth": ps.scene.render.max_depth,
+                "seed": np.uint32(ps.scene.render.seed & 0xFFFFFFFF)}
+        pixels = self.surface.reshape(-1, 3)
+        try:
+            for start in range(0, self.total, self.chunk):
+                n = min(self.chunk, self.total - start)
+                self.trace("voxel_trace_camera", n, store, surface, **args, sample_offset=start,
+                           num_samples=n)
+                p0, sums = sample_sums(eng, surface, start, n, self.spp)
+                pixels[p0:p0 + len(sums)] += sums
+                bar.update(n)
+            return self.by_sample(store)
+        finally:
+            store.release()
+            eng.free(surface)
+
+    def round(self, rays: DeviceSegments, march_args: dict, last: bool) -> DeviceSegments | None:
+        """One grid round: ``rays`` bent through the grid (their light added to the inside
+        image); unless ``last``, the rays it hands back that still carry light go on
+        straight (their surface light added, their segments kept). Returns the rays
+        stopped at the grid again, sorted (None when none went on)."""
+        eng, n = self.eng, rays.count
+        light, out = eng.empty(16 * n), eng.empty(n * VOX_RAY.itemsize)
+        kept = None
+        try:
+            eng.call("voxel", "voxel_view_march", n, rays=rays.buf, count=n, radiance=light,
+                     rays_out=out, **march_args)
+            self.inside += rays.accumulate(light)
+            if last:
+                return None
+            kept = keep_rays(eng, out, rays, MIN_THROUGHPUT / self.spp)
+            return self.straight(kept) if kept.count else None
+        finally:
+            eng.free(light, out)
+            if kept is not None:
+                kept.release()
+
+    def straight(self, rays: DeviceSegments) -> DeviceSegments:
+        """``rays`` (handed back by the viewing pass) traced on straight: adds their
+        surface light; returns the rays stopped at the grid, sorted."""
+        eng, ps = self.eng, self.ps
+        store = _Store(eng, VOX_RAY)
+        surface = eng.empty(16 * rays.count)
+        try:
+            self.trace("voxel_trace_rays", rays.count, store, surface,
+                       **ps.scene_args("voxel", "voxel_trace_rays"),
+                       max_depth=ps.scene.render.max_depth, min_weight=MIN_THROUGHPUT / self.spp,
+                       rays=rays.buf, count=rays.count)
+            self.surface += rays.accumulate(surface)
+            return self.by_sample(store)
+        finally:
+            store.release()
+            eng.free(surface)
+
+    def release(self) -> None:
+        for app in self.apps.values():
+            app.release()
+        self.segs.release()
+        self.eng.free(self.first)
+
+
+def sample_sums(eng: Engine, values, start: int, n: int, spp: int) -> tuple[int, np.ndarray]:
+    """Per-pixel sums of the float4 ``values`` of camera samples ``[start, start + n)``
+    (pixel = sample // spp), on the device: (first pixel, (pixels, 3) float32). Only the
+    launch's pixels are read back, so a pass reads one image's worth in all."""
+    p0, p1 = start // spp, (start + n - 1) // spp + 1
+    offsets = eng.to_device(np.clip(np.arange(p0, p1 + 1) * spp - start, 0, n).astype(np.int32))
+    sums = None
     try:
-        while True:
-            stopped = eng.empty(stop_cap * VOX_RAY.itemsize)
-            eng.cl.enqueue_fill_buffer(eng.queue, count, np.zeros(1, np.int32), 0, 4)
-            got_segs = segs.call(prog, kern, n, **args, surface=surface, stopped=stopped,
-                                 max_stopped=stop_cap, stop_count=count)
-            got = int(eng.read(count, 1, np.int32)[0])
-            if got <= stop_cap:
-                rays = eng.read(stopped, got, VOX_RAY) if got else np.zeros(0, VOX_RAY)
-                eng.free(stopped)
-                return eng.read(surface, (n, 4), np.float32), rays, got_segs
-            eng.free(stopped)
-            stop_cap = int(got * 1.25) + 16
+        sums = prim.segment_sums(eng, values, offsets, p1 - p0)
+        return p0, eng.read(sums, (p1 - p0, 4), np.float32)[:, :3]
     finally:
-        eng.free(surface, count)
+        eng.free(offsets, *([sums] if sums is not None else []))
+
+
+def keep_rays(eng: Engine, rays, sorted_rays: DeviceSegments, min_thr: float) -> DeviceSegments:
+    """The throughput filter, on the device: of the ``sorted_rays.count`` VoxRay records in
+    ``rays`` (in the order of ``sorted_rays``: by sample, so by pixel), those whose largest
+    rgb throughput exceeds ``min_thr``, compacted in order, with their pixel offsets
+    (``kept_off[p]`` = rays kept before pixel p's first = the exclusive scan of the keep
+    flags at ``sorted_rays.pix_off[p]``)."""
+    n = sorted_rays.count
+    keep = eng.empty(4 * max(n, 1))
+    index = scan = None
+    try:
+        eng.call("voxel", "vox_keep_flags", n, rays=rays, count=n, min_thr=np.float32(min_thr),
+                 keep=keep)
+        index, m = prim.compact(eng, keep, n)
+        scan, _ = prim.exclusive_scan(eng, keep, n)
+        buf = prim.gather(eng, rays, index, m, VOX_RAY.itemsize)
+        npix = sorted_rays.width * sorted_rays.height
+        off = prim.gather(eng, scan, sorted_rays.pix_off, npix + 1, 4)
+    finally:
+        eng.free(keep, *(b for b in (index, scan) if b is not None))
+    return DeviceSegments(eng, buf, m, off, sorted_rays.width, sorted_rays.height)
+
+
+def march_args(ps, fields: Fields, radiance: Radiance, test_surfaces: bool) -> dict:
+    """``voxel_view_march``'s arguments but the rays and its outputs: the grid, its fields,
+    the photons' radiance and the scene's BVH."""
+    box = fields.box
+    return dict(glo=box.lo4(), ghi=box.hi4(), dims=box.dims4(), h=box.h, n_grid=fields.n,
+                grad=fields.grad, sigma_s=fields.sigma_s, kappa=fields.kappa, rad=radiance.rad,
+                dirs=radiance.dirs, g_phase=float(ps.medium["g"]), max_steps=4 * sum(box.dims),
+                nodes=ps.dev.nodes, tris=ps.dev.tris, test_surfaces=int(test_surfaces))
 
 
 def view_pass(ps, fields: Fields, radiance: Radiance, max_rounds: int = 4,
-              show_progress: bool = True, test_surfaces: bool = True) -> ViewResult:
-    """Trace the whole image through the grid (see the module docstring)."""
-    eng = ps.engine
-    box: GridBox = fields.box
-    cam = ps.scene.camera
-    W, H, spp = cam.width, cam.height, cam.spp
-    total = W * H * spp
-    chunk = int(min(SAMPLES_PER_LAUNCH, total))
-    segs = AppendBuffer(eng, structs.VIEW_SEGMENT, chunk * 2 if ps.has_medium else 1)
-    seed = np.uint32(ps.scene.render.seed & 0xFFFFFFFF)
-    gmin, gmax = box.lo4(), box.hi4()
-    surface = np.zeros((3, W * H), np.float64)
-    inside = np.zeros((3, W * H), np.float64)
-    seg_parts: list[np.ndarray] = []
-    ray_parts: list[np.ndarray] = []
-    counters = {"voxel_view_rays": 0, "voxel_view_rounds": 0}
-    base = ps.scene_args("voxel", "voxel_trace_camera")
-    with progress(total, "voxel view", show_progress) as bar:
-        for start in range(0, total, chunk):
-            n = min(chunk, total - start)
-            surf, rays, sg = _run_tracer(eng, ("voxel", "voxel_trace_camera"), n, {
-                **base, "cam": ps.dev.camera, "max_depth": ps.scene.render.max_depth, "seed": seed,
-                "sample_offset": start, "num_samples": n, "gmin": gmin, "gmax": gmax}, segs, n + 64)
-            pix = np.arange(start, start + n) // spp
-            for c in range(3):
-                surface[c] += np.bincount(pix, weights=surf[:, c], minlength=W * H)
-            seg_parts.append(sg)
-            ray_parts.append(rays)
-            bar.update(n)
-    rays = np.concatenate(ray_parts) if ray_parts else np.zeros(0, VOX_RAY)
-    march_args = dict(glo=gmin, ghi=gmax, dims=box.dims4(), h=box.h, n_grid=fields.n,
-                      grad=fields.grad, sigma_s=fields.sigma_s, kappa=fields.kappa,
-                      rad=radiance.rad, dirs=radiance.dirs, g_phase=float(ps.medium["g"]),
-                      max_steps=4 * sum(box.dims), nodes=ps.dev.nodes, tris=ps.dev.tris,
-                      test_surfaces=int(test_surfaces))
-    trace_base = ps.scene_args("voxel", "voxel_trace_rays")
-    for rnd in range(max_rounds):
-        if len(rays) == 0:
-            break
-        counters["voxel_view_rays"] += len(rays)
-        counters["voxel_view_rounds"] = rnd + 1
-        n = len(rays)
-        rin, rout, L = eng.to_device(rays), eng.empty(n * VOX_RAY.itemsize), eng.empty(16 * n)
-        try:
-            eng.call("voxel", "voxel_view_march", n, rays=rin, count=n, radiance=L, rays_out=rout,
-                     **march_args)
-            Lh = eng.read(L, (n, 4), np.float32)
-            out = eng.read(rout, n, VOX_RAY)
-        finally:
-            eng.free(rin, rout, L)
-        for c in range(3):
-            inside[c] += np.bincount(rays["pixel"], weights=Lh[:, c], minlength=W * H)
-        out = out[out["thr"][:, :3].max(axis=1) > MIN_THROUGHPUT / spp]
-        if len(out) == 0 or rnd == max_rounds - 1:
-            break
-        rbuf = eng.to_device(out)
-        try:
-            surf, rays, sg = _run_tracer(eng, ("voxel", "voxel_trace_rays"), len(out), {
-                **trace_base, "max_depth": ps.scene.render.max_depth,
-                "min_weight": MIN_THROUGHPUT / spp, "rays": rbuf, "count": len(out),
-                "gmin": gmin, "gmax": gmax}, segs, len(out) + 64)
-        finally:
-            eng.free(rbuf)
-        for c in range(3):
-            surface[c] += np.bincount(out["pixel"], weights=surf[:, c], minlength=W * H)
-        seg_parts.append(sg)
-    segs.release()
-    segments = np.concatenate(seg_parts) if seg_parts else np.zeros(0, structs.VIEW_SEGMENT)
-    segments = segments[np.lexsort((segments["branch"], segments["sample"]))]
-    counters["voxel_segments_outside"] = int(len(segments))
-    img = lambda a: a.T.reshape(H, W, 3).astype(np.float32)
-    return ViewResult(img(surface), img(inside), segments, counters)
+              show_progress: bool = True, test_surfaces: bool = True,
+              samples_per_launch: int = SAMPLES_PER_LAUNCH) -> ViewResult:
+    """Trace the whole image through the grid (see the module docstring).
 
+    Everything per camera sample and per ray stays on the device between the passes: the
+    rays stopped at the grid are collected launch by launch and bucket-sorted by (sample,
+    branch) (appends run in no fixed order; the sort makes every sum below reproducible),
+    marched, filtered by throughput (a compaction) and traced on; per-sample and per-ray
+    light is summed into pixels there. The view segments of every launch are kept in one
+    buffer and returned sorted by (sample, branch) (a
+    :class:`~clscatter.view_paths.DeviceSegments`, for the direct and beyond passes).
+    Read back: per-pixel sums only (each camera launch's band of pixels, two images per
+    round; added here in float64) and the counts.
+
+    Order: (sample, branch) is unique while each branch tree that one launch follows from
+    one ray has fewer than 64 branches (``voxel_trace_rays`` numbers a ray's tree from 64 x
+    its id), and branch ids are exact float32 sort keys below 2^24, which they stay up to
+    ``max_rounds`` = 4 (64^4 = 2^24). Beyond either limit records with equal keys keep
+    the order of their launches but, within one launch, their append order (not
+    reproducible).
+    """
+    box: GridBox = fields.box
+    args = march_args(ps, fields, radiance, test_surfaces)
+    counters = {"voxel_view_rays": 0, "voxel_view_rounds": 0}
+    vp = _Pass(ps, box, samples_per_launch)
+    rays = None
+    try:
+        with progress(vp.total, "voxel view", show_progress) as bar:
+            rays = vp.camera(bar)
+        for rnd in range(max_rounds):
+            if rays is None or rays.count == 0:
+                break
+            counters["voxel_view_rays"] += rays.count
+            counters["voxel_view_rounds"] = rnd + 1
+            nxt = vp.round(rays, args, rnd == max_rounds - 1)
+            rays.release()
+            rays = nxt
+        segments = vp.by_sample(vp.segs)
+    finally:
+        if rays is not None:
+            rays.release()
+        vp.release()
+    counters["voxel_segments_outside"] = int(segments.count)
+    return ViewResult(vp.surface.astype(np.float32), vp.inside.astype(np.float32), segments,
+                      counters)
