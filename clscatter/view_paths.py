@@ -321,8 +321,8 @@ def trace_diffuse_hits(ps: PreparedScene, samples_per_launch: int = SAMPLES_PER_
 
 def accumulate_segments(values: np.ndarray, pixels: np.ndarray, width: int, height: int) -> np.ndarray:
     """Sum per-segment rgb ``values`` (N, >=3) into an (H, W, 3) image by pixel index, on
-    the host: for methods whose per-segment values are host arrays already (LSG, VPM,
-    voxel); device methods use :meth:`DeviceSegments.accumulate`."""
+    the host: the NumPy reference that tests and tools compare device sums with (renders
+    sum on the device: :meth:`DeviceSegments.accumulate`)."""
     img = np.zeros((3, width * height), np.float64)
     for c in range(3):
         img[c] = np.bincount(pixels, weights=values[:, c], minlength=width * height)
