@@ -8,8 +8,10 @@
 
 __kernel void closest_hit(__global const BVHNode *nodes, __global const float4 *tris,
                           __global const float4 *orig, __global const float4 *dir,
-                          float tmin, float tmax, __global float *t_out, __global int *tri_out) {
+                          float tmin, float tmax, int n, __global float *t_out,
+                          __global int *tri_out) {
     int i = get_global_id(0);
+    if (i >= n) return;
     Hit h;
     if (bvh_closest(nodes, tris, orig[i], dir[i], tmin, tmax, &h)) {
         t_out[i] = h.t;
@@ -23,9 +25,10 @@ __kernel void closest_hit(__global const BVHNode *nodes, __global const float4 *
 /* closest_hit plus the barycentrics (u, v) of v1, v2; NaN on a miss */
 __kernel void closest_hit_uv(__global const BVHNode *nodes, __global const float4 *tris,
                              __global const float4 *orig, __global const float4 *dir,
-                             float tmin, float tmax, __global float *t_out,
+                             float tmin, float tmax, int n, __global float *t_out,
                              __global int *tri_out, __global float2 *uv_out) {
     int i = get_global_id(0);
+    if (i >= n) return;
     Hit h;
     if (bvh_closest(nodes, tris, orig[i], dir[i], tmin, tmax, &h)) {
         t_out[i] = h.t;
@@ -40,7 +43,8 @@ __kernel void closest_hit_uv(__global const BVHNode *nodes, __global const float
 
 __kernel void any_hit(__global const BVHNode *nodes, __global const float4 *tris,
                       __global const float4 *orig, __global const float4 *dir,
-                      float tmin, float tmax, __global int *hit_out) {
+                      float tmin, float tmax, int n, __global int *hit_out) {
     int i = get_global_id(0);
+    if (i >= n) return;
     hit_out[i] = bvh_any(nodes, tris, orig[i], dir[i], tmin, tmax);
 }

@@ -7,10 +7,11 @@
  */
 #include "epipolar.h"
 
-__kernel void fenwick_test(int d, __global const float *init, __global const float4 *ops,
-                           int nops, int nq, __global float *T, __global float *L,
-                           __global float *out) {
+__kernel void fenwick_test(int ntree, int d, __global const float *init,
+                           __global const float4 *ops, int nops, int nq, __global float *T,
+                           __global float *L, __global float *out) {
     int t = get_global_id(0);
+    if (t >= ntree) return;
     __global float *Tt = T + (size_t)t * d * EPI_NV;
     __global float *Lt = L + (size_t)t * d * EPI_NV;
     __global const float *it = init + (size_t)t * d * EPI_NV;

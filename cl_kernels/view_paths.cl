@@ -226,8 +226,9 @@ __kernel void shade_hits(__global const BVHNode *nodes, __global const float4 *t
 }
 
 /* Test hook: fresnel_dielectric over an array of cosines (tests/test_render.py). */
-__kernel void fresnel_test(__global const float *cos_i, float eta, __global float *out) {
+__kernel void fresnel_test(__global const float *cos_i, float eta, int n, __global float *out) {
     int i = get_global_id(0);
+    if (i >= n) return;
     float ct;
     out[i] = fresnel_dielectric(cos_i[i], eta, &ct);
 }

@@ -34,6 +34,8 @@ from .errors import DeviceError, KernelArgError, KernelBuildError
 
 ENV_DEVICE = "CLSCATTER_DEVICE"
 ENV_CACHE = "CLSCATTER_CACHE_DIR"
+# work-items per group of a 1-D launch (Engine.launch; less where a kernel allows fewer)
+GROUP_SIZE = 64
 
 
 def kernel_dir() -> Path:
@@ -93,7 +95,7 @@ def _probe(device) -> str:
         mf = cl.mem_flags
         a_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
         o_buf = cl.Buffer(ctx, mf.WRITE_ONLY, a.nbytes)
-        prog.probe(queue, a.shape, None, a_buf, o_buf)
+        prog.probe(queue, a.shape, None, a_buf, np.int32(len(a)), o_buf)
         out = np.empty_like(a)
         cl.enqueue_copy(queue, out, o_buf)
         queue.finish()
@@ -321,6 +323,7 @@ class Engine:
         self._programs: dict[tuple, object] = {}
         self._kernels: dict[tuple, object] = {}
         self._signatures: dict[tuple, tuple[KernelParam, ...]] = {}
+        self._groups: dict[int, int] = {}
         self._sizes: dict[int, int] = {}
         self.bytes_live = 0
         self.bytes_peak = 0
@@ -520,12 +523,31 @@ class Engine:
     def reset_peak(self) -> None:
         self.bytes_peak = self.bytes_live
 
+    def _group_size(self, kernel) -> int:
+        """:data:`GROUP_SIZE`, or the most ``kernel`` allows on this device if less."""
+        key = kernel.int_ptr
+        if key not in self._groups:
+            most = kernel.get_work_group_info(self.cl.kernel_work_group_info.WORK_GROUP_SIZE,
+                                              self.device)
+            self._groups[key] = max(1, min(GROUP_SIZE, int(most)))
+        return self._groups[key]
+
     def launch(self, kernel, global_size: int | Sequence[int], *args) -> None:
-        """Enqueue ``kernel`` over ``global_size`` work-items (driver-chosen group size)."""
+        """Enqueue ``kernel`` over ``global_size`` work-items.
+
+        A 1-D launch runs in work-groups of :data:`GROUP_SIZE`, its size rounded up to a
+        multiple (every kernel returns early past its own count). A driver that chooses the
+        group size itself picks it from the global size's divisors, and PoCL compiles the
+        kernel anew for each group size it meets: a render whose sizes change with the
+        scene (slices per batch, live samples) paid that, ~0.3 s a time, on every frame."""
         gs = (int(global_size),) if np.isscalar(global_size) else tuple(int(g) for g in global_size)
         if min(gs) <= 0:
             return
-        kernel(self.queue, gs, None, *args)
+        if len(gs) == 1:
+            g = self._group_size(kernel)
+            kernel(self.queue, (-(-gs[0] // g) * g,), (g,), *args)
+        else:
+            kernel(self.queue, gs, None, *args)
 
 
 _ENGINES: dict[str | None, Engine] = {}

@@ -86,7 +86,7 @@ def _run_fenwick(engine, init, ops, nch):
     k = engine.kernel("fenwick", "fenwick_test", {"EPI_NT": nv // nch, "EPI_NCH": nch})
     bufs = [engine.to_device(init), engine.to_device(ops), engine.empty(init.nbytes),
             engine.empty(init.nbytes), engine.empty(4 * ntree * nq * nv)]
-    engine.launch(k, ntree, np.int32(d), bufs[0], bufs[1], np.int32(len(ops)), np.int32(nq),
+    engine.launch(k, ntree, np.int32(ntree), np.int32(d), bufs[0], bufs[1], np.int32(len(ops)), np.int32(nq),
                   bufs[2], bufs[3], bufs[4])
     out = engine.read(bufs[4], (ntree, nq, nv), np.float32)
     engine.free(*bufs)

@@ -141,14 +141,14 @@ def test_keyword_launch_runs_and_checks_names(engine):
     a = np.arange(16, dtype=np.float32)
     ab, ob = engine.to_device(a), engine.empty(a.nbytes)
     try:
-        engine.call("probe", "probe", 16, a=ab, out=ob)
+        engine.call("probe", "probe", 16, a=ab, n=16, out=ob)
         np.testing.assert_allclose(engine.read(ob, 16, np.float32), a * a + 6.0)
         with pytest.raises(KernelArgError, match="no parameter 'outt'.*did you mean 'out'"):
-            engine.call("probe", "probe", 16, a=ab, outt=ob)
+            engine.call("probe", "probe", 16, a=ab, n=16, outt=ob)
         with pytest.raises(KernelArgError, match="missing argument.*out"):
-            engine.call("probe", "probe", 16, a=ab)
+            engine.call("probe", "probe", 16, a=ab, n=16)
         with pytest.raises(KernelArgError, match="'a'.*needs a device buffer"):
-            engine.call("probe", "probe", 16, a=a, out=ob)
+            engine.call("probe", "probe", 16, a=a, n=16, out=ob)
     finally:
         engine.free(ab, ob)
 

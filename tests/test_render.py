@@ -166,7 +166,7 @@ def test_fresnel_matches_numpy(engine):
         out = np.empty_like(cos_i)
         ib = engine.to_device(cos_i)
         ob = engine.empty(out.nbytes)
-        engine.launch(kern, len(cos_i), ib, np.float32(eta), ob)
+        engine.launch(kern, len(cos_i), ib, np.float32(eta), np.int32(len(cos_i)), ob)
         cl.enqueue_copy(engine.queue, out, ob)
         engine.free(ib, ob)
         ci = cos_i.astype(np.float64)

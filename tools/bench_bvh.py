@@ -97,14 +97,14 @@ class Ours:
         n, ob, db, tb, ib = rays
         k = self.e.kernel("bvh", "closest_hit")
         self.e.launch(k, n, self.bufs.nodes, self.bufs.triangles, ob, db, np.float32(0.0),
-                      np.float32(tmax), tb, ib)
+                      np.float32(tmax), np.int32(n), tb, ib)
         self.e.queue.finish()
 
     def any(self, rays, tmax):
         n, ob, db, tb, ib = rays
         k = self.e.kernel("bvh", "any_hit")
         self.e.launch(k, n, self.bufs.nodes, self.bufs.triangles, ob, db, np.float32(0.0),
-                      np.float32(tmax), ib)
+                      np.float32(tmax), np.int32(n), ib)
         self.e.queue.finish()
 
     def free(self, rays):

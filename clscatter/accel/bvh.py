@@ -367,7 +367,7 @@ def trace(engine, bvh: BVH, origins: np.ndarray, dirs: np.ndarray, tmin: float =
         return empty + (np.zeros((0, 2), np.float32),) if uv else empty
     bufs = bvh.device_buffers(engine)
     ob, db = engine.to_device(o), engine.to_device(d)
-    args = dict(nodes=bufs.nodes, tris=bufs.triangles, orig=ob, dir=db, tmin=tmin, tmax=tmax)
+    args = dict(nodes=bufs.nodes, tris=bufs.triangles, orig=ob, dir=db, tmin=tmin, tmax=tmax, n=n)
     if not closest:
         hb = engine.empty(4 * n)
         try:

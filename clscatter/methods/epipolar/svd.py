@@ -153,7 +153,8 @@ def _ray_box(o, d, box):
         ta = (bmin - o) / d
         tb = (bmax - o) / d
     lo, hi = np.fmin(ta, tb), np.fmax(ta, tb)
-    return np.nanmax(lo, axis=-1), np.nanmin(hi, axis=-1)
+    # fmax/fmin skip NaN as nanmax/nanmin do, without their masked copies (host time)
+    return np.fmax.reduce(lo, axis=-1), np.fmin.reduce(hi, axis=-1)
 
 
 def light_entry(axis: Axis, box, w: np.ndarray, gam: np.ndarray):
