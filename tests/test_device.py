@@ -133,3 +133,22 @@ def test_program_files_follow_includes_transitively(tmp_path):
     real = {p.name for p in program_files("primitives")}
     assert real == {"primitives.cl"}
     assert {"common.h", "bvh.h", "epipolar.h", "epipolar.cl"} <= {p.name for p in program_files("epipolar")}
+
+
+def test_launch_pads_to_whole_groups_and_kernels_stop_at_their_count(engine):
+    """1-D launches run in groups of GROUP_SIZE (one compiled variant per kernel on
+    drivers that specialise by group size): the global size is rounded up and the kernel
+    returns past its count, so a 3-element launch touches only its 3 elements."""
+    from clscatter.device import GROUP_SIZE
+    a = np.arange(3, dtype=np.float32)
+    guard = np.full(GROUP_SIZE, -7.0, np.float32)
+    ab, ob = engine.to_device(a), engine.to_device(np.concatenate([np.zeros(3, np.float32), guard]),
+                                                   writable=True)
+    try:
+        engine.call("probe", "probe", 3, a=ab, n=3, out=ob)
+        out = engine.read(ob, 3 + GROUP_SIZE, np.float32)
+    finally:
+        engine.free(ab, ob)
+    np.testing.assert_allclose(out[:3], a * a + 6.0)
+    np.testing.assert_array_equal(out[3:], guard)
+    assert 1 <= engine._group_size(engine.kernel("probe", "probe")) <= GROUP_SIZE
