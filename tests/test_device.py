@@ -139,6 +139,8 @@ def test_launch_pads_to_whole_groups_and_kernels_stop_at_their_count(engine):
     """1-D launches run in groups of GROUP_SIZE (one compiled variant per kernel on
     drivers that specialise by group size): the global size is rounded up and the kernel
     returns past its count, so a 3-element launch touches only its 3 elements."""
+    import numpy as np
+
     from clscatter.device import GROUP_SIZE
     a = np.arange(3, dtype=np.float32)
     guard = np.full(GROUP_SIZE, -7.0, np.float32)
