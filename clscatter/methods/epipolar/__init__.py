@@ -6,7 +6,7 @@ import dataclasses
 import numpy as np
 
 from ... import structs
-from .pipeline import LOOKUPS, Settings, render_light
+from .pipeline import LOOKUPS, MIN_LIGHT_RAYS, Settings, render_light
 from ...prepared import PreparedScene
 from ...view_paths import ViewPaths
 from ...stats import Stats
@@ -89,7 +89,8 @@ class Epipolar(Method):
         Param("rays_per_slice", 0, "grid lookup: view rays per slice (0: the longest slice's "
               "length in pixels)", lo=0),
         Param("depth_map", 0, "grid lookup: depth-map width (0: image width)", lo=0),
-        Param("light_rays", 0, "light rays per slice, d (0: 2 max(W, H)); not 1", lo=0),
+        Param("light_rays", 0, "light rays per slice, d (0: max(W, H, 256), one per pixel of the "
+              "longer side, each with four depth sub-samples when prefiltering); not 1", lo=0),
         Param("shadow_map", 0, "shadow map resolution (0: 2 max(W, H), clamped to 1024 .. 4096)",
               lo=0),
         Param("svd_terms", 4, "SVD terms N", lo=1, hi=16),
@@ -130,7 +131,7 @@ class Epipolar(Method):
         from ...budget import Estimate, camera_samples
         w, h = scene.camera.width, scene.camera.height
         smap = params["shadow_map"] or min(max(2 * max(w, h), 1024), 4096)
-        d = params["light_rays"] or 2 * max(w, h)
+        d = params["light_rays"] or max(w, h, MIN_LIGHT_RAYS)
         slices = params["slices"] or 4 * (w + h)
         n = camera_samples(scene)
         return [Estimate("epipolar", "render.epipolar.shadow_map",

@@ -49,6 +49,7 @@ from .svd import (REF_NODES, accepts, decompose, float32_error, heldout_error, n
                   references, riemann_error, slice_error, summarize, view_entry)
 
 LOOKUPS = ("segment", "grid")
+MIN_LIGHT_RAYS = 256       # the automatic light rays per slice never go below this
 
 
 @dataclass
@@ -140,7 +141,11 @@ def _auto(st: Settings, cam: geo.CameraGeom) -> Settings:
     big = max(cam.width, cam.height)
     return dataclasses.replace(
         st,
-        light_rays=st.light_rays if st.light_rays > 0 else 2 * big,
+        # one light ray per pixel: halving from two changed the built-in scenes' images by
+        # relMSE <= 8e-7 at 640 x 480 (the shadow map's texels dominate the error); at
+        # least MIN_LIGHT_RAYS, so that the estimate's escalation (up to 4x) reaches
+        # enough for thick media in small images
+        light_rays=st.light_rays if st.light_rays > 0 else max(big, MIN_LIGHT_RAYS),
         # the map must resolve the occluders whatever the image size: at least 1024
         shadow_map=st.shadow_map if st.shadow_map > 0 else min(4096, max(1024, 2 * big)),
         depth_map=st.depth_map if st.depth_map > 0 else cam.width,
