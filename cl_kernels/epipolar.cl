@@ -662,6 +662,7 @@ __kernel void epi_view_nodes(__global const float4 *geo, __global const int4 *id
  * dummy bucket nslices, after every slice. beta orders the events within a slice. */
 __kernel void epi_event_keys(__global const float4 *geo, __global const int4 *idx,
                              __global const int *live, int L, int nslices,
+                             __global const EpiSlice *slices, int bins,
                              __global int *keys, __global float *beta) {
     int e = get_global_id(0);
     if (e >= 2 * L) return;
@@ -670,8 +671,20 @@ __kernel void epi_event_keys(__global const float4 *geo, __global const int4 *id
     int4 x = idx[i];
     float f = as_float(x.z);
     float w = which ? f : 1.0f - f;
-    keys[e] = w > 0.0f ? (which ? x.y : x.x) : nslices;
-    beta[e] = geo[i].x;
+    float b = geo[i].x;
+    beta[e] = b;
+    if (!(w > 0.0f)) {
+        keys[e] = nslices * bins;            /* dropped: the bucket after every slice's */
+        return;
+    }
+    /* bin of beta in the slice's beta range: non-decreasing in beta (every step of it
+     * rounds monotonically, clamped), so sorting by (bucket, beta) is sorting by (slice,
+     * beta); NaN sorts last, as in the bucket sort's float order */
+    int k = which ? x.y : x.x;
+    float lo = slices[k].beta_lo, span = slices[k].beta_hi - lo;
+    float u = span > 0.0f ? (b - lo) / span * (float)bins : 0.0f;
+    int s = isnan(u) ? bins - 1 : (int)clamp(floor(u), 0.0f, (float)(bins - 1));
+    keys[e] = k * bins + s;
 }
 
 /* The sweep's events in sorted order (perm from the bucket sort): event p = (beta,

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from clscatter import structs
+from clscatter.methods.epipolar import geometry as geo_mod
 from clscatter.methods.epipolar.pipeline import (DeviceViews, HostViews, LiveSamples,
                                                  _segment_events, ring_weights)
 from clscatter.methods.epipolar.svd import REF_NODES
@@ -119,30 +120,39 @@ def _host_events(geo, idx, live, S):
     return geo[live[order % L]], off, order
 
 
-@pytest.mark.parametrize("n,S,L,equal", [(2000, 37, 1500, False), (1, 3, 1, False),
-                                         (500, 5, 0, False), (3001, 11, 3001, True),
-                                         (1025, 1, 700, False)])
-def test_events_match_host_sort(engine, n, S, L, equal):
+@pytest.mark.parametrize("n,S,L,equal,bins", [(2000, 37, 1500, False, None), (1, 3, 1, False, None),
+                                              (500, 5, 0, False, None), (3001, 11, 3001, True, 7),
+                                              (1025, 1, 700, False, 1), (4000, 9, 3900, False, 97),
+                                              (2000, 37, 1500, False, 1024)])
+def test_events_match_host_sort(engine, n, S, L, equal, bins):
     """epi_event_keys + bucket_sort + epi_events give the host's events in the host's
     order, the slice offsets, and inv (the position of each (which, sample) event, -1 for
-    dropped ones): empty, one sample, one slice, all betas equal, sizes not powers of 2."""
+    dropped ones): empty, one sample, one slice, all betas equal, sizes not powers of 2,
+    one bin per slice up to 1024 (betas beyond a slice's range, a zero range, +-inf and
+    NaN betas land in its first or last bin)."""
     rng = np.random.default_rng(n + S)
     geo, idx = _samples(rng, n, S, equal)
+    if n > 100 and not equal:
+        geo[rng.choice(n, 5, replace=False), 0] = [np.nan, np.inf, -np.inf, -1.0, 9.0]
     live = np.sort(rng.choice(n, L, replace=False)).astype(np.int32)
-    gb, ib = engine.to_device(geo), engine.to_device(idx)
+    table = np.zeros(S, geo_mod.EPI_SLICE)
+    table["beta_lo"] = rng.uniform(0.0, 1.0, S)
+    table["beta_hi"] = table["beta_lo"] + rng.uniform(0.5, 2.5, S)
+    table["beta_hi"][0] = table["beta_lo"][0]              # a zero range
+    gb, ib, sb = engine.to_device(geo), engine.to_device(idx), engine.to_device(table)
     lv = _live(engine, gb, ib, live)
     bufs: list = []
     try:
-        ev, offs, inv, off = _segment_events(engine, gb, ib, lv, S, DEFS, bufs)
+        ev, offs, inv, off = _segment_events(engine, gb, ib, lv, S, DEFS, bufs, sb, bins)
         n_ev = int(off[S])
         got = engine.read(ev, (n_ev, 4), np.float32)
         inv_h = engine.read(inv, 2 * L, np.int32)
         off_dev = engine.read(offs, S + 1, np.int32)
     finally:
-        engine.free(gb, ib, lv.buf, *bufs)
+        engine.free(gb, ib, sb, lv.buf, *bufs)
     ref, ref_off, order = _host_events(geo, idx, live, S)
     assert np.array_equal(off, ref_off) and np.array_equal(off_dev, ref_off)
-    assert np.array_equal(got, ref)
+    assert np.array_equal(got, ref, equal_nan=True)
     want = np.full(2 * L, -1)
     want[order] = np.arange(len(order))
     assert np.array_equal(inv_h, want)

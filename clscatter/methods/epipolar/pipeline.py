@@ -277,7 +277,7 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
         with stats.stage("epipolar_rectify"):
             if st.lookup == "segment":
                 ev_buf, off_buf, inv_buf, off = _segment_events(eng, geo_buf, idx_buf, live, S,
-                                                                defines, bufs)
+                                                                defines, bufs, slice_buf)
                 n_ev = int(off[S])
                 b_range = views.ranges(1)[0] or (0.0, 0.0)
             else:
@@ -522,22 +522,36 @@ class DeviceViews:
         return out.view(np.float32).astype(np.float64)
 
 
+EVENTS_PER_BIN = 32      # the event sort's buckets: about this many events each
+
+
 def _segment_events(eng, geo_buf, idx_buf, live: LiveSamples, S: int, defines: dict,
-                    bufs: list):
+                    bufs: list, slice_buf, bins: int | None = None):
     """The sweep's events, two per live sample (its two neighbouring slices, weights
     1 - f and f; weight-0 ones dropped), bucket-sorted on the device by slice and then
     beta. Returns the events, the slice offsets (device, and the S + 1 of them on the
     host for the batch sizes) and ``inv`` (event of each (which, sample) pair, -1 when
-    dropped)."""
+    dropped).
+
+    Each slice's events are bucketed further by beta into ``bins`` bins of its beta range
+    (``slice_buf``: the EPI_SLICE table; default: about :data:`EVENTS_PER_BIN` events a
+    bin), so that the per-bucket sorts are short; the order is the same."""
     L = live.count
+    if bins is None:
+        bins = int(min(max(round(2 * L / max(S, 1) / EVENTS_PER_BIN), 1), 1024))
     keys, beta = eng.empty(8 * max(L, 1)), eng.empty(8 * max(L, 1))
+    starts = eng.to_device((np.arange(S + 1) * bins).astype(np.int32))
+    fine = None
     try:
         eng.call("epipolar", "epi_event_keys", 2 * L, defines, geo=geo_buf, idx=idx_buf,
-                 live=live.buf, L=L, nslices=S, keys=keys, beta=beta)
-        perm, offs = prim.bucket_sort(eng, keys, 2 * L, S + 1, fkey=beta)
+                 live=live.buf, L=L, nslices=S, slices=slice_buf, bins=bins, keys=keys,
+                 beta=beta)
+        perm, fine = prim.bucket_sort(eng, keys, 2 * L, S * bins + 1, fkey=beta)
+        bufs.append(perm)
+        offs = prim.gather(eng, fine, starts, S + 1, 4)     # each slice's first bin
     finally:
-        eng.free(keys, beta)
-    bufs += [perm, offs]
+        eng.free(keys, beta, starts, *([fine] if fine is not None else []))
+    bufs.append(offs)
     off = eng.read(offs, S + 1, np.int32)
     n_ev = int(off[S])
     ev = eng.empty(16 * max(n_ev, 1))
