@@ -234,7 +234,7 @@ def test_segment_sums(dev, nout, m, weighted):
 
 # ---- gather ----
 
-@pytest.mark.parametrize("itemsize", [4, 12, 64])
+@pytest.mark.parametrize("itemsize", [4, 12, 16, 64, 80])
 @pytest.mark.parametrize("n", [0, 1, 1025])
 def test_gather_records(dev, itemsize, n):
     """Random indices with repeats plus out-of-range ones (-1, nsrc): those give zeros."""
