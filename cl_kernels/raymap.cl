@@ -150,14 +150,15 @@ float4 rm_estimate(__global const float4 *seg_a, __global const float4 *seg_d,
 }
 
 /* One work-item answers `run` consecutive queries (keep them coherent, e.g. in pixel
- * order); with reuse_eps > 0 it reuses candidate lists between them (raymap.h). */
+ * order); with reuse_eps > 0 it reuses candidate lists between them (raymap.h). Query q
+ * writes out_e[out_offset + q] and its work pair there: batches fill one buffer. */
 __kernel void rm_density(__global const RMNode *nodes, __global const int *refs,
                          __global const float4 *seg_a, __global const float4 *seg_b,
                          __global const float4 *seg_d, __global const float4 *seg_flux,
                          __global const float4 *qx, __global const float4 *qn, int num_q,
                          int k, int metric, float radius, int plane_weights, int epanechnikov,
                          float cos_alpha, int run, float reuse_eps,
-                         __global float *scratch_d, __global int *scratch_x,
+                         __global float *scratch_d, __global int *scratch_x, int out_offset,
                          __global float4 *out_e, __global int *out_work) {
     int first = get_global_id(0) * run;
     if (first >= num_q) return;
@@ -190,9 +191,21 @@ __kernel void rm_density(__global const RMNode *nodes, __global const int *refs,
                 nlist = rm_collect(nodes, x, d0 + 2.0f * reuse_eps, list, RM_LIST);
             }
         }
-        out_e[q] = rm_estimate(seg_a, seg_d, seg_flux, x, n, hd, hx, c, kk, radius,
+        int o = out_offset + q;
+        out_e[o] = rm_estimate(seg_a, seg_d, seg_flux, x, n, hd, hx, c, kk, radius,
                                plane_weights, epanechnikov);
-        out_work[2 * q] = work[0];
-        out_work[2 * q + 1] = work[1];
+        out_work[2 * o] = work[0];
+        out_work[2 * o + 1] = work[1];
     }
+}
+
+/* What each diffuse hit sends to its pixel: its weight (throughput x albedo / pi) times
+ * the irradiance e[i] estimated there (surface_caustics sums these per pixel). */
+__kernel void rm_weigh_hits(__global const DiffuseHit *hits, __global const float4 *e, int n,
+                            __global float4 *out) {
+    int i = get_global_id(0);
+    if (i >= n) return;
+    float4 v = hits[i].weight * e[i];
+    v.w = 0.0f;
+    out[i] = v;
 }

@@ -1,6 +1,6 @@
 """The records the surface-caustic methods are built from: lighting-ray pieces that end on
 surfaces (light_paths.cl -DRAY_PIECES) and the diffuse hits of camera paths
-(view_paths.cl trace_diffuse_hits), checked against flux / throughput bookkeeping."""
+(view_paths.cl trace_view asked for hits only), checked against flux / throughput bookkeeping."""
 from __future__ import annotations
 
 import copy

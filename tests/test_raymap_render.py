@@ -53,3 +53,37 @@ def test_auto_adds_and_records_the_surface_caustic_pass(engine):
     no_glass["objects"] = no_glass["objects"][:1]
     st2 = render(scene_from_dict(no_glass, HERE, "t"), "auto", engine=engine, show_progress=False).stats
     assert all(p["role"] != "surface_caustics" for p in st2["passes"])
+
+
+def test_surface_caustics_sums_on_the_device_as_the_host_would(engine):
+    """surface_caustics keeps the hits, their irradiance and the per-pixel sums on the
+    device (batches of 100 queries: several launches into one buffer); against the host
+    route (hits read back, estimate(), weight x E, bincount by pixel) with the same seeds:
+    equal within float32 summation, and the work counters equal exactly."""
+    from clscatter.methods.raymap.density import (DensitySettings, build_map, caustic_pieces,
+                                                  estimate, surface_caustics)
+    from clscatter.prepared import prepare_scene
+    from clscatter.stats import Stats
+    from clscatter.view_paths import trace_diffuse_hits
+    ps = prepare_scene(_scene(), engine)
+    s = DensitySettings(k=16, max_radius=0.2, batch=100)
+    try:
+        st = Stats()
+        img = surface_caustics(ps, "raymap", 5000, s, st, show_progress=False)
+        pieces = caustic_pieces(ps, 5000, show_progress=False)
+        hits = trace_diffuse_hits(ps)
+        rmap = build_map(engine, pieces, "raymap", s)
+        try:
+            e, work = estimate(rmap, hits["p"][:, :3], hits["n"][:, :3], "raymap", s)
+        finally:
+            rmap.release()
+    finally:
+        ps.release()
+    w, h = 40, 30
+    value = hits["weight"][:, :3].astype(np.float64) * e
+    ref = np.stack([np.bincount(hits["pixel"], weights=value[:, c], minlength=w * h)
+                    for c in range(3)], axis=1).reshape(h, w, 3)
+    assert ref.max() > 0 and len(hits) > 800       # 9 batches of 100
+    np.testing.assert_allclose(img, ref, rtol=1e-5, atol=1e-6 * ref.max())
+    assert st.values["raymap_nodes_visited"] == int(work[:, 0].sum()) > 0
+    assert st.values["raymap_refs_tested"] == int(work[:, 1].sum()) > 0

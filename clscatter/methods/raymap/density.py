@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ... import primitives as prim
 from ... import structs
 from ...light_paths import trace_light_paths
 from ...stats import Stats, progress
@@ -90,20 +91,21 @@ def lazy_radius(rmap: RayMap, x: np.ndarray, k: int, max_radius: float) -> np.nd
     return np.minimum(dist[:, 0] * 1.01, max_radius)
 
 
-def estimate(rmap: RayMap, x: np.ndarray, n: np.ndarray, estimator: str,
-             settings: DensitySettings, show_progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Irradiance (Q, 3) at points ``x`` with unit normals ``n`` (normalised frame) and the
-    work per query (Q, 2: nodes visited, references tested). Queries run in batches of
-    ``settings.batch`` in the given order (keep them coherent, e.g. in pixel order): each
-    batch refines the lazy tree, then one kernel launch answers it."""
+def estimate_on_device(rmap: RayMap, x: np.ndarray, n: np.ndarray, estimator: str,
+                       settings: DensitySettings, show_progress: bool = False):
+    """Irradiance at points ``x`` with unit normals ``n`` (normalised frame), left on the
+    device: two new buffers (the caller frees them), Q float4 (rgb irradiance) and Q int2
+    (nodes visited, references tested). Queries run in batches of ``settings.batch`` in
+    the given order (keep them coherent, e.g. in pixel order): each batch refines the lazy
+    tree on the host (its query positions: what that host structure needs), then one
+    kernel launch answers it into its part of the buffers."""
     eng = rmap.engine
     x = np.asarray(x, np.float64).reshape(-1, 3)
     n = np.asarray(n, np.float64).reshape(-1, 3)
     nq = len(x)
-    out = np.zeros((nq, 3), np.float32)
-    work = np.zeros((nq, 2), np.int64)
+    out_e, out_work = eng.zeros(16 * max(nq, 1)), eng.zeros(8 * max(nq, 1))
     if nq == 0 or len(rmap.b) == 0:
-        return out, work
+        return out_e, out_work
     metric = 3 if estimator == "raymap" else 1     # RM_HEMIDISC / RM_SEGMENT (points)
     k = int(settings.k)
     batch = settings.batch
@@ -116,20 +118,36 @@ def estimate(rmap: RayMap, x: np.ndarray, n: np.ndarray, estimator: str,
             m = len(xb)
             rmap.prepare(xb, nb, lazy_radius(rmap, xb, k, settings.max_radius) if rmap.lazy else 0.0)
             run = max(1, int(settings.run))
-            bufs = [eng.to_device(_f4(xb)), eng.to_device(_f4(nb)), eng.empty(16 * m), eng.empty(8 * m),
+            bufs = [eng.to_device(_f4(xb)), eng.to_device(_f4(nb)),
                     *heap_scratch(eng, k, (m + run - 1) // run)]
-            eng.call("raymap", "rm_density", (m + run - 1) // run, heap_define(k), **rmap.tree_args(),
-                     seg_flux=rmap.buf["seg_flux"], qx=bufs[0], qn=bufs[1], num_q=m, k=k,
-                     metric=metric, radius=settings.max_radius,
-                     plane_weights=int(estimator == "raymap"),
-                     epanechnikov=int(settings.kernel == "epanechnikov"),
-                     cos_alpha=rmap.cos_alpha, run=run, reuse_eps=settings.reuse_eps,
-                     scratch_d=bufs[4], scratch_x=bufs[5], out_e=bufs[2], out_work=bufs[3])
-            out[sl] = eng.read(bufs[2], (m, 4), np.float32)[:, :3]
-            work[sl] = eng.read(bufs[3], (m, 2), np.int32)
-            eng.free(*bufs)
+            try:
+                eng.call("raymap", "rm_density", (m + run - 1) // run, heap_define(k),
+                         **rmap.tree_args(), seg_flux=rmap.buf["seg_flux"], qx=bufs[0],
+                         qn=bufs[1], num_q=m, k=k, metric=metric, radius=settings.max_radius,
+                         plane_weights=int(estimator == "raymap"),
+                         epanechnikov=int(settings.kernel == "epanechnikov"),
+                         cos_alpha=rmap.cos_alpha, run=run, reuse_eps=settings.reuse_eps,
+                         scratch_d=bufs[2], scratch_x=bufs[3], out_offset=start, out_e=out_e,
+                         out_work=out_work)
+                eng.finish()                  # the next batch refines the tree in place
+            finally:
+                eng.free(*bufs)
             bar.update(m)
-    return out, work
+    return out_e, out_work
+
+
+def estimate(rmap: RayMap, x: np.ndarray, n: np.ndarray, estimator: str,
+             settings: DensitySettings, show_progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`estimate_on_device` read back: irradiance (Q, 3) and the work per query
+    (Q, 2) (tests and tools; renders keep them on the device)."""
+    nq = len(np.asarray(x).reshape(-1, 3))
+    eng = rmap.engine
+    e_buf, w_buf = estimate_on_device(rmap, x, n, estimator, settings, show_progress)
+    try:
+        return (eng.read(e_buf, (max(nq, 1), 4), np.float32)[:nq, :3],
+                eng.read(w_buf, (max(nq, 1), 2), np.int32)[:nq].astype(np.int64))
+    finally:
+        eng.free(e_buf, w_buf)
 
 
 def surface_caustics(ps, estimator: str, rays: int, settings: DensitySettings, stats: Stats,
@@ -137,8 +155,13 @@ def surface_caustics(ps, estimator: str, rays: int, settings: DensitySettings, s
                      sample_range: tuple[int, int] | None = None) -> np.ndarray:
     """Radiance (H, W, 3) of diffuse surfaces lit through mirrors and glass, seen along the
     camera paths (directly or through specular chains): sum over diffuse hits of
-    weight * E(hit). Settings' radii are in the normalised frame."""
-    from ...view_paths import trace_diffuse_hits
+    weight * E(hit). Settings' radii are in the normalised frame.
+
+    The hits stay on the device (sorted by camera sample, so by pixel); their positions and
+    normals are read once for the host-built tree, which the queries refine lazily batch by
+    batch. Each hit's irradiance, its weighted value and the per-pixel sums stay on the
+    device; the work counters are totalled there."""
+    from ...view_paths import trace_diffuse_hits_on_device
     cam = ps.scene.camera
     img = np.zeros((cam.height, cam.width, 3), np.float32)
     if ps.num_lights == 0:
@@ -146,28 +169,34 @@ def surface_caustics(ps, estimator: str, rays: int, settings: DensitySettings, s
     eng = ps.engine
     with stats.stage(f"{estimator}_trace"):
         pieces = caustic_pieces(ps, rays, stats, show_progress)
-        hits = trace_diffuse_hits(ps, sample_range=sample_range)
-    stats.set(**{f"{estimator}_rays_stored": int(len(pieces)), "diffuse_hits": int(len(hits))})
-    if len(pieces) == 0 or len(hits) == 0:
-        return img
-    with stats.stage(f"{estimator}_build"):
-        rmap = build_map(eng, pieces, estimator, settings)
+        dev = trace_diffuse_hits_on_device(ps, sample_range=sample_range)
     try:
-        with stats.stage(f"{estimator}_estimate"):
-            e, work = estimate(rmap, hits["p"][:, :3], hits["n"][:, :3], estimator, settings,
-                               show_progress)
-        t = rmap.tree
-        stats.set(**{f"{estimator}_tree_nodes": int(t.n), f"{estimator}_tree_refs": int(t.num_refs),
-                     f"{estimator}_index_peak_bytes": int(t.peak_bytes),
-                     f"{estimator}_collapses": int(t.collapses),
-                     f"{estimator}_nodes_visited": int(work[:, 0].sum()),
-                     f"{estimator}_refs_tested": int(work[:, 1].sum())})
-        eng.note_host(t.nbytes + pieces.nbytes + hits.nbytes)
+        nh = dev.count
+        stats.set(**{f"{estimator}_rays_stored": int(len(pieces)), "diffuse_hits": int(nh)})
+        if len(pieces) == 0 or nh == 0:
+            return img
+        hits = eng.read(dev.buf, nh, structs.DIFFUSE_HIT)     # for the host-built tree
+        with stats.stage(f"{estimator}_build"):
+            rmap = build_map(eng, pieces, estimator, settings)
+        e_buf = w_buf = v_buf = None
+        try:
+            with stats.stage(f"{estimator}_estimate"):
+                e_buf, w_buf = estimate_on_device(rmap, hits["p"][:, :3], hits["n"][:, :3],
+                                                  estimator, settings, show_progress)
+                visited, tested = prim.int_totals(eng, w_buf, nh, 2)
+                v_buf = eng.empty(16 * nh)
+                eng.call("raymap", "rm_weigh_hits", nh, hits=dev.buf, e=e_buf, n=nh, out=v_buf)
+                img = dev.accumulate(v_buf)
+            t = rmap.tree
+            stats.set(**{f"{estimator}_tree_nodes": int(t.n), f"{estimator}_tree_refs": int(t.num_refs),
+                         f"{estimator}_index_peak_bytes": int(t.peak_bytes),
+                         f"{estimator}_collapses": int(t.collapses),
+                         f"{estimator}_nodes_visited": int(visited),
+                         f"{estimator}_refs_tested": int(tested)})
+            eng.note_host(t.nbytes + pieces.nbytes + hits.nbytes)
+        finally:
+            rmap.release()
+            eng.free(*(b for b in (e_buf, w_buf, v_buf) if b is not None))
     finally:
-        rmap.release()
-    value = hits["weight"][:, :3].astype(np.float64) * e
-    flat = np.zeros((3, cam.width * cam.height))
-    for c in range(3):
-        flat[c] = np.bincount(hits["pixel"], weights=value[:, c], minlength=cam.width * cam.height)
-    img = flat.T.reshape(cam.height, cam.width, 3).astype(np.float32)
+        dev.release()
     return np.where(np.isfinite(img), img, 0.0).astype(np.float32)
