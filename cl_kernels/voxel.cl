@@ -372,7 +372,8 @@ __kernel void photon_emit(__global const BVHNode *nodes, __global const float4 *
                           float4 axis, float cos_max, float4 rect_o, float4 rect_u, float4 rect_v,
                           float4 flux_per_photon, float4 glo, float4 ghi, int4 dims, float h,
                           __global const float *n_grid,
-                          __global float4 *pos, __global float4 *vel, __global float4 *flux) {
+                          __global float4 *pos, __global float4 *vel, __global float4 *flux,
+                          volatile __global int *entering) {
     int p = get_global_id(0);
     if (p >= S * S) return;
     __global const Light *L = &lights[light_index];
@@ -413,6 +414,7 @@ __kernel void photon_emit(__global const BVHNode *nodes, __global const float4 *
     Tri tr = tri_setup(x, glo, dims, 1.0f / h);
     float n = tri_f(n_grid, dims, &tr);
     pos[p] = (float4)(x.x, x.y, x.z, alive ? 1.0f : 0.0f);
+    if (alive) atomic_inc(entering);        /* photons that reach the grid (statistics) */
     vel[p] = n * d;
     F.w = fmax(F.x, fmax(F.y, F.z));      /* flux at the start: the termination reference */
     flux[p] = alive ? F : (float4)(0.0f);

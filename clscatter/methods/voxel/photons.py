@@ -261,18 +261,20 @@ def light_pass(eng: Engine, fields: Fields, ps, photons: int, ms: MarchSettings,
     seed = np.uint32((ps.scene.render.seed * 40503 + 7) & 0xFFFFFFFF)
     exits: list[np.ndarray] = []
     app = AppendBuffer(eng, structs.LIGHT_SEGMENT, 1024)
+    entering = eng.empty(4)
     for li in range(ps.num_lights):
         em = emitter(ps.lights[li], box, photons)
         N = em.S * em.S
         st = MarchState(eng.empty(16 * N), eng.empty(16 * N), eng.empty(16 * N), N)
         try:
+            prim.fill_int(eng, entering, 1, 0)
             eng.call("voxel", "photon_emit", N, nodes=ps.dev.nodes, tris=ps.dev.tris,
                      lights=ps.dev.lights, light_index=li, medium=ps.dev.medium, S=em.S,
                      seed=seed, axis=em.axis, cos_max=em.cos_max, rect_o=em.rect[0],
                      rect_u=em.rect[1], rect_v=em.rect[2], flux_per_photon=em.flux,
                      glo=box.lo4(), ghi=box.hi4(), dims=box.dims4(), h=box.h, n_grid=fields.n,
-                     pos=st.pos, vel=st.vel, flux=st.flux)
-            alive = int((eng.read(st.pos, (N, 4), np.float32)[:, 3] > 0).sum())
+                     pos=st.pos, vel=st.vel, flux=st.flux, entering=entering)
+            alive = int(eng.read(entering, 1, np.int32)[0])
             c = march(eng, fields, st, rad, dirs, ms, (ps.dev.nodes, ps.dev.tris), test_surfaces)
             got = app.call_on_device("voxel", "photon_exits", N, pos=st.pos, vel=st.vel,
                                      flux=st.flux, count=N, light_index=li, nodes=ps.dev.nodes,
@@ -291,6 +293,7 @@ def light_pass(eng: Engine, fields: Fields, ps, photons: int, ms: MarchSettings,
         total["voxel_photon_steps"] += c["steps"]
         total["voxel_photons_unfinished"] += c["live_at_end"]
     app.release()
+    eng.free(entering)
     ex = np.concatenate(exits) if exits else np.zeros(0, structs.LIGHT_SEGMENT)
     total["voxel_photons_leaving"] = int(len(ex))
     if smoothing:
