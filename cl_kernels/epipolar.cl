@@ -443,7 +443,12 @@ void epi_bracket(__global const float *phis, int n, int full, float phi, int *k0
                  float *f) {
     float two_pi = 2.0f * PI_F;
     float base = full ? phis[0] : phis[0] - 0.5f * (two_pi - (phis[n - 1] - phis[0]));
-    float x = base + fmod(fmod(phi - base, two_pi) + two_pi, two_pi);
+    /* phi - base mod 2 pi in [0, 2 pi) by floor (the builtin fmod is a slow scalar
+     * routine on some drivers: PoCL's CPU device, ~17 ns a call) */
+    float r = phi - base;
+    r -= two_pi * floor(r / two_pi);
+    r = r >= two_pi ? r - two_pi : (r < 0.0f ? 0.0f : r);
+    float x = base + r;
     int lo = 0, hi = n;                     /* lo = number of phis <= x */
     while (lo < hi) {
         int mid = (lo + hi) >> 1;
