@@ -439,8 +439,8 @@ __kernel void epi_integrate(__global const EpiFrame *fr, __global const EpiSlice
 /* slices k0, k1 around angle phi and the weight f of k1 (phis sorted, unwrapped; the
  * same code as geometry.Slices.bracket: a full fan wraps, an open fan is cut in the
  * middle of its gap and clamps at its ends) */
-void epi_bracket(__global const float *phis, int n, int full, float phi, int *k0, int *k1,
-                 float *f) {
+void epi_bracket(__global const float *phis, int n, int full, __global const int *lut,
+                 int bins, float phi, int *k0, int *k1, float *f) {
     float two_pi = 2.0f * PI_F;
     float base = full ? phis[0] : phis[0] - 0.5f * (two_pi - (phis[n - 1] - phis[0]));
     /* phi - base mod 2 pi in [0, 2 pi) by floor (the builtin fmod is a slow scalar
@@ -449,7 +449,10 @@ void epi_bracket(__global const float *phis, int n, int full, float phi, int *k0
     r -= two_pi * floor(r / two_pi);
     r = r >= two_pi ? r - two_pi : (r < 0.0f ? 0.0f : r);
     float x = base + r;
-    int lo = 0, hi = n;                     /* lo = number of phis <= x */
+    /* lo = number of phis <= x, found in the window the lookup table gives its bin (one
+     * bin of slack each side for rounding; Slices.lookup_table) */
+    int b = clamp((int)(r * ((float)bins / two_pi)), 0, bins - 1);
+    int lo = b >= 1 ? lut[b - 1] : 0, hi = b + 2 <= bins ? lut[b + 2] : n;
     while (lo < hi) {
         int mid = (lo + hi) >> 1;
         if (phis[mid] <= x) lo = mid + 1; else hi = mid;
@@ -470,11 +473,12 @@ void epi_bracket(__global const float *phis, int n, int full, float phi, int *k0
 /* beta of the unit direction v and the slices around it (geometry.Axis.coords +
  * bracket); *sb, *cb: sin and cos of beta (|v - (v.u) u| and v.u) */
 float epi_locate(__global const EpiFrame *fr, __global const float *phis, int n, int full,
-                 float4 v, int *k0, int *k1, float *f, float *sb, float *cb) {
+                 __global const int *lut, int bins, float4 v, int *k0, int *k1, float *f,
+                 float *sb, float *cb) {
     float c = dot3(v, fr->u);
     float4 perp = v - c * fr->u;
     float phi = atan2_fast(dot3(perp, fr->b2), dot3(perp, fr->b1));
-    epi_bracket(phis, n, full, phi, k0, k1, f);
+    epi_bracket(phis, n, full, lut, bins, phi, k0, k1, f);
     *sb = length3(perp);
     *cb = c;
     return atan2_fast(*sb, c);
@@ -485,7 +489,8 @@ float epi_locate(__global const EpiFrame *fr, __global const float *phis, int n,
  * of the segment's ends from the eye; idx = (k0, k1, weight of k1 as bits, in the ring).
  * The ring is the disc of radius ring.z pixels around the epipole (ring.x, ring.y). */
 __kernel void epi_samples(__global const EpiFrame *fr, __global const float *phis, int nslices,
-                          int full, __global const Camera *cam, float4 ring,
+                          int full, __global const int *lut, int bins,
+                          __global const Camera *cam, float4 ring,
                           __global const ViewSegment *segs, int n, __global float4 *geo,
                           __global int4 *idx) {
     int gid = get_global_id(0);
@@ -499,7 +504,7 @@ __kernel void epi_samples(__global const EpiFrame *fr, __global const float *phi
     int k0, k1;
     float f;
     float sb, cb;
-    float beta = epi_locate(fr, phis, nslices, full, v, &k0, &k1, &f, &sb, &cb);
+    float beta = epi_locate(fr, phis, nslices, full, lut, bins, v, &k0, &k1, &f, &sb, &cb);
     float px, py;
     int in_ring = ring.z > 0.0f && epi_project(cam, v, cam->width, cam->height, &px, &py)
                   && hypot(px - ring.x, py - ring.y) < ring.z;
@@ -521,7 +526,8 @@ float4 epi_grid_at(__global const EpiSlice *sl, __global const float4 *grid, int
 /* One work-item per direction: bilinear lookup in the rectified grid (R values per
  * slice) at the direction's (alpha, beta). */
 __kernel void epi_unrectify(__global const EpiFrame *fr, __global const EpiSlice *slices,
-                            __global const float *phis, int nslices, int full, int R,
+                            __global const float *phis, int nslices, int full,
+                            __global const int *lut, int bins, int R,
                             __global const float4 *grid, __global const float4 *dirs, int n,
                             __global float4 *out) {
     int gid = get_global_id(0);
@@ -531,7 +537,7 @@ __kernel void epi_unrectify(__global const EpiFrame *fr, __global const EpiSlice
     int k0, k1;
     float f;
     float sb, cb;
-    float beta = epi_locate(fr, phis, nslices, full, v, &k0, &k1, &f, &sb, &cb);
+    float beta = epi_locate(fr, phis, nslices, full, lut, bins, v, &k0, &k1, &f, &sb, &cb);
     float4 a = epi_grid_at(&slices[k0], grid + (size_t)k0 * R, R, beta);
     float4 b = epi_grid_at(&slices[k1], grid + (size_t)k1 * R, R, beta);
     out[gid] = (1.0f - f) * a + f * b;
@@ -749,4 +755,16 @@ __kernel void atan2_test(__global const float *y, __global const float *x, int n
                          __global float *out) {
     int i = get_global_id(0);
     if (i < n) out[i] = atan2_fast(y[i], x[i]);
+}
+
+/* Test hook: epi_bracket over angles (tests/test_epipolar.py). */
+__kernel void epi_bracket_test(__global const float *phis, int n, int full,
+                               __global const int *lut, int bins, __global const float *phi,
+                               int m, __global int4 *out) {
+    int i = get_global_id(0);
+    if (i >= m) return;
+    int k0, k1;
+    float f;
+    epi_bracket(phis, n, full, lut, bins, phi[i], &k0, &k1, &f);
+    out[i] = (int4)(k0, k1, as_int(f), 0);
 }

@@ -711,12 +711,13 @@ def test_samples_kernel(engine, kind):
     segs["b"][:, :3] = cam.origin + t_b[:, None] * v
     phis = slices.phi.astype(np.float32)
     ring = np.array([slices.P[0], slices.P[1], 6.0, 0.0], np.float32)
+    lut = slices.lookup_table()
     bufs = [engine.to_device(frame.reshape(1)), engine.to_device(phis),
             engine.to_device(cam_s.reshape(1)), engine.to_device(segs), engine.empty(16 * n),
-            engine.empty(16 * n)]
+            engine.empty(16 * n), engine.to_device(lut)]
     engine.launch(engine.kernel("epipolar", "epi_samples", DEF1), n, bufs[0], bufs[1],
-                  np.int32(len(phis)), np.int32(slices.full), bufs[2], ring, bufs[3], np.int32(n),
-                  bufs[4], bufs[5])
+                  np.int32(len(phis)), np.int32(slices.full), bufs[6], np.int32(len(lut) - 1),
+                  bufs[2], ring, bufs[3], np.int32(n), bufs[4], bufs[5])
     g = engine.read(bufs[4], (n, 4), np.float32)
     idx = engine.read(bufs[5], (n, 4), np.int32)
     engine.free(*bufs)
@@ -795,12 +796,14 @@ def test_rectify_unrectify_roundtrip(engine, eye, target):
     bufs = {"fr": engine.to_device(frame.reshape(1)), "sl": engine.to_device(slices.table),
             "cam": engine.to_device(cam_s.reshape(1)), "img": engine.to_device(img),
             "grid": engine.empty(16 * S * R), "phis": engine.to_device(slices.phi.astype(np.float32)),
-            "dirs": engine.to_device(dirs), "out": engine.empty(16 * w * h)}
+            "dirs": engine.to_device(dirs), "out": engine.empty(16 * w * h),
+            "lut": engine.to_device(slices.lookup_table())}
     engine.launch(engine.kernel("epipolar", "epi_rectify_image", DEF1), S * R, bufs["fr"],
                   bufs["sl"], np.int32(S), np.int32(R), bufs["cam"], bufs["img"], np.int32(w),
                   np.int32(h), bufs["grid"])
     engine.launch(engine.kernel("epipolar", "epi_unrectify", DEF1), w * h, bufs["fr"], bufs["sl"],
-                  bufs["phis"], np.int32(S), np.int32(slices.full), np.int32(R), bufs["grid"],
+                  bufs["phis"], np.int32(S), np.int32(slices.full), bufs["lut"], np.int32(4 * S),
+                  np.int32(R), bufs["grid"],
                   bufs["dirs"], np.int32(w * h), bufs["out"])
     back = engine.read(bufs["out"], (h, w, 4), np.float32)
     engine.free(*bufs.values())
@@ -808,3 +811,45 @@ def test_rectify_unrectify_roundtrip(engine, eye, target):
     err = np.abs(back[..., :2] - img[..., :2])[far]
     assert err.max() < 0.02 * 2.0, err.max()
     assert err.mean() < 0.003
+
+
+@pytest.mark.parametrize("full", [True, False])
+@pytest.mark.parametrize("bins", [None, 1, 3, 7])
+def test_bracket_lookup_table_finds_the_binary_search_answer(engine, full, bins):
+    """epi_bracket searches only the window the lookup table gives an angle's bin (one bin
+    of slack each way): the slices it finds equal a float32 search over all of them (what
+    it did before), for a full fan (wrapping) and an open fan (cut in its gap, clamped),
+    angles anywhere in (-4 pi, 4 pi), exactly on slices and on the table's bin edges,
+    with the default 4 n bins and with very few."""
+    rng = np.random.default_rng(int(full) * 10 + (bins or 0))
+    n = 300
+    span = 2 * np.pi - 0.3 if full else 2.2
+    phi = np.sort(rng.uniform(0.0, span, n)) + 1.0
+    phi[5:12] = phi[5]                                   # equal angles
+    sl = geo.Slices(np.zeros(n, geo.EPI_SLICE), phi, full, np.zeros(2), True,
+                    np.zeros((n, 2)), np.ones(n))
+    lut = sl.lookup_table(bins)
+    B = len(lut) - 1
+    p32 = phi.astype(np.float32)
+    two_pi = np.float32(2 * np.pi)
+    base = p32[0] if full else np.float32(p32[0] - np.float32(0.5) * (two_pi - (p32[-1] - p32[0])))
+    q = np.concatenate([rng.uniform(-4 * np.pi, 4 * np.pi, 20000), p32,
+                        base + np.arange(B) * (2 * np.pi / B)]).astype(np.float32)
+    bufs = [engine.to_device(p32), engine.to_device(lut), engine.to_device(q), engine.empty(16 * len(q))]
+    try:
+        engine.call("epipolar", "epi_bracket_test", len(q), DEF1, phis=bufs[0], n=n, full=int(full),
+                    lut=bufs[1], bins=B, phi=bufs[2], m=len(q), out=bufs[3])
+        got = engine.read(bufs[3], (len(q), 4), np.int32)
+    finally:
+        engine.free(*bufs)
+    r = (q - base).astype(np.float32)
+    r = (r - two_pi * np.floor(r / two_pi)).astype(np.float32)
+    r = np.where(r >= two_pi, r - two_pi, np.maximum(r, 0)).astype(np.float32)
+    x = (base + r).astype(np.float32)
+    count = np.searchsorted(p32, x, side="right")
+    k0 = np.clip(count - 1, 0, n - 1)
+    if full:
+        want = k0
+    else:
+        want = np.where(count - 1 < 0, 0, k0)
+    assert np.array_equal(got[:, 0], want)

@@ -274,6 +274,19 @@ class Slices:
     def __len__(self) -> int:
         return len(self.table)
 
+    def lookup_table(self, bins: int | None = None) -> np.ndarray:
+        """Where the kernels' slice search starts (``epi_bracket``): int32 ``T`` of
+        ``bins + 1`` entries (default ``4 n``), ``T[b]`` = slices with ``phi`` (as float32)
+        at most ``base + b 2 pi / bins``, ``base`` as in :meth:`bracket`. An angle in bin
+        ``b`` then has its count within ``[T[b - 1], T[b + 2]]`` even with the kernel's
+        float32 rounding of its bin, so a few steps of binary search replace ~log2(n)."""
+        n = len(self.phi)
+        bins = int(bins or 4 * n)
+        p32 = self.phi.astype(np.float32).astype(np.float64)
+        base = p32[0] if self.full else p32[0] - 0.5 * (2.0 * math.pi - (p32[-1] - p32[0]))
+        edges = base + np.arange(bins + 1) * (2.0 * math.pi / bins)
+        return np.searchsorted(p32, edges, side="right").astype(np.int32)
+
     def bracket(self, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Neighbouring slices ``k0, k1`` of angles ``phi`` and the weight ``f`` of ``k1``
         (linear in phi). A full fan wraps from the last slice to the first; an open fan is

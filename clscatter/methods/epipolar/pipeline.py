@@ -233,10 +233,13 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
                 frame_buf = up(frame.reshape(1))
                 slice_buf = up(slices.table)
                 phi_buf = up(slices.phi.astype(np.float32))
+                lut = slices.lookup_table()
+                lut_buf = up(lut)
                 # the ring is decided below, in angle (the kernel's pixel disc is off)
                 no_ring = np.array([slices.P[0], slices.P[1], -1.0, 0.0], np.float32)
                 eng.call("epipolar", "epi_samples", n, defines, fr=frame_buf, phis=phi_buf,
-                         nslices=S, full=slices.full, cam=ps.dev.camera, ring=no_ring,
+                         nslices=S, full=slices.full, lut=lut_buf, bins=len(lut) - 1,
+                         cam=ps.dev.camera, ring=no_ring,
                          segs=segs.buf, n=n, geo=geo_buf, idx=idx_buf)
                 if live is None:            # beta, hence the ring, does not depend on slices
                     live = _live_samples(eng, segs, geo_buf, idx_buf, wr_buf, slices.front,
@@ -363,7 +366,8 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
                 dbuf = up(segment_dirs(live_segs, cam.origin))
                 acc = scratch(16 * live.count)
                 eng.call("epipolar", "epi_unrectify", live.count, defines, fr=frame_buf,
-                         slices=slice_buf, phis=phi_buf, nslices=S, full=slices.full, R=R,
+                         slices=slice_buf, phis=phi_buf, nslices=S, full=slices.full,
+                         lut=lut_buf, bins=len(lut) - 1, R=R,
                          grid=out, dirs=dbuf, n=live.count, out=acc)
                 inv_buf = acc                       # unused with use_acc
             eng.call("epipolar", "epi_sample_values", live.count, defines, res=out,
