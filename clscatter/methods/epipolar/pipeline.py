@@ -804,5 +804,5 @@ def _launch_slices(eng, kernel: str, n: int, defines: dict, **args) -> None:
     """Keyword launch (see ``Engine.call``) of an ``epipolar.cl`` kernel with one work-item
     per slice, each its own work-group: the sweeps are long sequential loops, so a driver
     that groups many work-items per group would serialise them."""
-    eng.kernel("epipolar", kernel, defines)(eng.queue, (int(n),), (1,),
-                                            *eng.bind("epipolar", kernel, args))
+    eng.launch(eng.kernel("epipolar", kernel, defines), int(n),
+               *eng.bind("epipolar", kernel, args), group=1)
