@@ -185,18 +185,6 @@ __kernel void segment_sums(__global const float4 *values, __global const float *
 /* ---- gather of fixed-size records, one work-item per 32-bit word ----
  * dst record i = src record index[i]; an index outside [0, nsrc) gives a zero record. */
 
-/* The same with 16-byte words (records whose size is a multiple of 16): a quarter of the
- * work-items. */
-__kernel void gather_quads(__global const uint4 *src, int nsrc, __global const int *index,
-                           int n, int words, __global uint4 *dst) {
-    size_t gid = get_global_id(0);
-    if (gid >= (size_t)n * (size_t)words) return;
-    size_t i = gid / (size_t)words;
-    size_t w = gid - i * (size_t)words;
-    int j = index[i];
-    dst[gid] = (j >= 0 && j < nsrc) ? src[(size_t)j * (size_t)words + w] : (uint4)(0u);
-}
-
 __kernel void gather_words(__global const uint *src, int nsrc, __global const int *index,
                            int n, int words, __global uint *dst) {
     size_t gid = get_global_id(0);

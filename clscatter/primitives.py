@@ -170,8 +170,7 @@ def segment_sums(eng: Engine, values, offsets, nout: int, weights=None):
 def gather(eng: Engine, src, index, n: int, itemsize: int):
     """``dst[i] = src[index[i]]`` for ``n`` records of ``itemsize`` bytes (a multiple of 4).
 
-    Records are copied as 32-bit words (16-byte ones when ``itemsize`` is a multiple of
-    16), so any struct layout works (e.g. 64-byte
+    Records are copied as 32-bit words, so any struct layout works (e.g. 64-byte
     segments permuted by a :func:`bucket_sort` ``perm``). An index outside the records
     that ``src`` holds (its byte size // ``itemsize``) gives an all-zero record. Returns a
     new buffer of ``n * itemsize`` bytes.
@@ -179,12 +178,11 @@ def gather(eng: Engine, src, index, n: int, itemsize: int):
     n, itemsize = int(n), int(itemsize)
     if itemsize <= 0 or itemsize % 4:
         raise ValueError(f"gather: itemsize must be a positive multiple of 4, got {itemsize}")
-    quad = itemsize % 16 == 0                 # 16-byte words: a quarter of the work-items
-    words = itemsize // (16 if quad else 4)
+    words = itemsize // 4
     nsrc = min(int(src.size) // itemsize, 2**31 - 1)
     dst = eng.empty(max(n * itemsize, 4))
-    eng.call(PROGRAM, "gather_quads" if quad else "gather_words", _padded(n * words), src=src,
-             nsrc=nsrc, index=index, n=n, words=words, dst=dst)
+    eng.call(PROGRAM, "gather_words", _padded(n * words), src=src, nsrc=nsrc, index=index,
+             n=n, words=words, dst=dst)
     return dst
 
 
