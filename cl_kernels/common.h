@@ -151,7 +151,8 @@ float4 normalize3(float4 a) {
     return l > 0.0f ? a / l : (float4)(0.0f);
 }
 /* atan2 for hot kernels: the builtin is a slow scalar routine on some drivers (PoCL's
- * CPU device: ~30 ns a call, 20x exp). Reduced to a = min/max in [0, 1], then to
+ * CPU device: 28.7 ns per work-item against 8.2 for this one and 2.8 for exp,
+ * tools/bench_epipolar_costs.py). Reduced to a = min/max in [0, 1], then to
  * |z| <= tan(pi/8), then Cephes' atanf polynomial (relative error ~2e-7); measured
  * within 4e-7 rad of float64 atan2 over all quadrants (tests/test_fast_math.py).
  * NaN in gives NaN; both arguments infinite is not handled (no caller passes it). */
