@@ -274,6 +274,12 @@ class Slices:
     def __len__(self) -> int:
         return len(self.table)
 
+    @staticmethod
+    def _base(phi: np.ndarray, full: bool) -> float:
+        """Where the angles start: the first slice (full fan), or the middle of an open
+        fan's gap before it."""
+        return phi[0] if full else phi[0] - 0.5 * (2.0 * math.pi - (phi[-1] - phi[0]))
+
     def lookup_table(self, bins: int | None = None) -> np.ndarray:
         """Where the kernels' slice search starts (``epi_bracket``): int32 ``T`` of
         ``bins + 1`` entries (default ``4 n``), ``T[b]`` = slices with ``phi`` (as float32)
@@ -283,7 +289,7 @@ class Slices:
         n = len(self.phi)
         bins = int(bins or 4 * n)
         p32 = self.phi.astype(np.float32).astype(np.float64)
-        base = p32[0] if self.full else p32[0] - 0.5 * (2.0 * math.pi - (p32[-1] - p32[0]))
+        base = self._base(p32, self.full)
         edges = base + np.arange(bins + 1) * (2.0 * math.pi / bins)
         return np.searchsorted(p32, edges, side="right").astype(np.int32)
 
@@ -294,7 +300,7 @@ class Slices:
         (``epi_bracket`` in epipolar.cl is the same code.)"""
         n = len(self.phi)
         two_pi = 2.0 * math.pi
-        base = self.phi[0] if self.full else self.phi[0] - 0.5 * (two_pi - (self.phi[-1] - self.phi[0]))
+        base = self._base(self.phi, self.full)
         x = base + np.mod(np.asarray(phi, np.float64) - base, two_pi)
         i = np.searchsorted(self.phi, x, side="right") - 1          # -1 .. n-1
         first, last = i < 0, i == n - 1
