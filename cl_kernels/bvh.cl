@@ -5,6 +5,7 @@
  * input triangle ids with BVH.order. Misses write t = INFINITY and tri = -1.
  */
 #include "bvh.h"
+#include "tile_grid.h"
 
 __kernel void closest_hit(__global const BVHNode *nodes, __global const float4 *tris,
                           __global const float4 *orig, __global const float4 *dir,
@@ -47,4 +48,31 @@ __kernel void any_hit(__global const BVHNode *nodes, __global const float4 *tris
     int i = get_global_id(0);
     if (i >= n) return;
     hit_out[i] = bvh_any(nodes, tris, orig[i], dir[i], tmin, tmax);
+}
+
+/* Test hook for tile_grid.h: rays from orig[i] along the grid's direction (own_dir == 0)
+ * or along dir[i]; closest (any == 0: t and slot, as closest_hit) or any hit (any != 0:
+ * t_out = 1 or 0). A ray outside the grid writes t = NaN and tri = -2. */
+__kernel void grid_hit(__global const float4 *tris, __global const int *grid,
+                       __global const float4 *orig, __global const float4 *dir, int own_dir,
+                       float tmin, float tmax, int any, int n, __global float *t_out,
+                       __global int *tri_out) {
+    int i = get_global_id(0);
+    if (i >= n) return;
+    float4 d = own_dir ? dir[i] : GRID_HEAD(grid)->dir;
+    int tile = grid_tile(grid, orig[i], d);
+    if (tile < 0) { t_out[i] = NAN; tri_out[i] = -2; return; }
+    if (any) {
+        t_out[i] = grid_any(tris, grid, tile, orig[i], d, tmin, tmax) ? 1.0f : 0.0f;
+        tri_out[i] = -1;
+        return;
+    }
+    Hit h;
+    if (grid_closest(tris, grid, tile, orig[i], d, tmin, tmax, &h)) {
+        t_out[i] = h.t;
+        tri_out[i] = h.tri;
+    } else {
+        t_out[i] = INFINITY;
+        tri_out[i] = -1;
+    }
 }

@@ -141,6 +141,19 @@ int bvh_triangle(const BvhRay *r, float4 v0, float4 v1, float4 v2, float tmin, f
     return 1;
 }
 
+/* Test triangle i of tris against the ray; a hit nearer than *best becomes the closest
+ * so far (*best, and *hit unless NULL). Shared by the BVH's leaves and tile_grid.h. */
+int bvh_try_triangle(const BvhRay *r, __global const float4 *tris, int i, float tmin,
+                     float *best, Hit *hit) {
+    float t, u, v;
+    if (!bvh_triangle(r, tris[3 * i], tris[3 * i + 1], tris[3 * i + 2], tmin, *best,
+                      &t, &u, &v))
+        return 0;
+    *best = t;
+    if (hit) { hit->t = t; hit->tri = i; hit->u = u; hit->v = v; }
+    return 1;
+}
+
 /* Shared traversal; any_hit != 0 returns at the first hit found (hit may be NULL). */
 int bvh_traverse(__global const BVHNode *nodes, __global const float4 *tris, float4 o,
                  float4 d, float tmin, float tmax, int any_hit, Hit *hit) {
@@ -163,12 +176,8 @@ int bvh_traverse(__global const BVHNode *nodes, __global const float4 *tris, flo
         int next = -1;
         if (count > 0) {
             for (int i = first; i < first + count; ++i) {
-                float t, u, v;
-                if (bvh_triangle(&r, tris[3 * i], tris[3 * i + 1], tris[3 * i + 2], tmin, best,
-                                 &t, &u, &v)) {
+                if (bvh_try_triangle(&r, tris, i, tmin, &best, hit)) {
                     found = 1;
-                    best = t;
-                    if (hit) { hit->t = t; hit->tri = i; hit->u = u; hit->v = v; }
                     if (any_hit) return 1;
                 }
             }

@@ -27,6 +27,7 @@
  */
 #include "common.h"
 #include "bvh.h"
+#include "tile_grid.h"
 #include "epipolar.h"
 
 #define EPI_EXP_MAX 80.0f
@@ -84,9 +85,12 @@ int epi_face_of(__global const EpiFrame *fr, __global const EpiFace *faces, floa
     return best;
 }
 
+/* Directional: when the host built a tile grid over the map (nx > 0, its
+ * direction -u), texels test their tile's triangles instead of traversing the BVH; the
+ * stored depth is the same (tile_grid.h). */
 __kernel void epi_shadow_map(__global const BVHNode *nodes, __global const float4 *tris,
                              __global const EpiFrame *fr, __global const EpiFace *faces,
-                             int ntex, __global float *out) {
+                             __global const int *grid, int ntex, __global float *out) {
     int gid = get_global_id(0);
     Hit hit;
     if (fr->type == LIGHT_DIRECTIONAL) {
@@ -98,8 +102,8 @@ __kernel void epi_shadow_map(__global const BVHNode *nodes, __global const float
         /* the map stores the blocker's axial coordinate z = (x - eye).u */
         float4 o = fr->eye + x1 * fr->sm_s1 + x2 * fr->sm_s2 + fr->z_start * fr->u;
         o.w = 0.0f;
-        out[gid] = bvh_closest(nodes, tris, o, -fr->u, 0.0f, T_INF, &hit) ? fr->z_start - hit.t
-                                                                          : T_INF;
+        out[gid] = scene_closest(nodes, tris, grid, o, -fr->u, 0.0f, T_INF, &hit)
+                   ? fr->z_start - hit.t : T_INF;
         return;
     }
     if (gid >= ntex) return;

@@ -6,6 +6,7 @@
 #define CLSCATTER_LIGHTS_H
 #include "common.h"
 #include "bvh.h"
+#include "tile_grid.h"
 
 /* Unoccluded, unattenuated irradiance (on a surface facing the light) at x, with wi the
  * unit direction from x towards the light and dist the distance (T_INF: directional). */
@@ -25,6 +26,13 @@ float4 light_arrival(__global const Light *L, float4 x, float4 *wi, float *dist)
     return L->power / d2;
 }
 
+/* The medium's part of light_transmission: transmittance along the light path's piece
+ * inside the medium's bounds. */
+float4 light_medium_fraction(__global const Medium *m, float4 x, float4 wi, float dist) {
+    float len = medium_path_length(m, x, wi, 0.0f, dist);
+    return len > 0.0f ? transmittance(m->kappa, len) : (float4)(1.0f, 1.0f, 1.0f, 0.0f);
+}
+
 /* Fraction of that light reaching x: 0 when a surface blocks the way (every surface,
  * glass included, occludes direct light; caustics are the caustic methods' job), else
  * the medium's transmittance along the part of the light path inside its bounds. */
@@ -32,8 +40,22 @@ float4 light_transmission(__global const BVHNode *nodes, __global const float4 *
                           __global const Medium *m, float4 x, float4 wi, float dist, float tmin) {
     float tmax = dist < T_INF ? dist * (1.0f - 1e-5f) : T_INF;
     if (bvh_any(nodes, tris, x, wi, tmin, tmax)) return (float4)(0.0f);
-    float len = medium_path_length(m, x, wi, 0.0f, dist);
-    return len > 0.0f ? transmittance(m->kappa, len) : (float4)(1.0f, 1.0f, 1.0f, 0.0f);
+    return light_medium_fraction(m, x, wi, dist);
+}
+
+/* light_transmission for light li, with the scene's light grid (tile_grid.h; packed):
+ * the shadow rays of the light the grid serves go through it, the same answer as the
+ * BVH's (surface shading, where a directional light's 1.2 M parallel shadow rays per
+ * frame are worth a grid). */
+float4 light_transmission_grid(__global const BVHNode *nodes, __global const float4 *tris,
+                               __global const int *light_grid, int li,
+                               __global const Medium *m, float4 x, float4 wi, float dist,
+                               float tmin) {
+    if (GRID_HEAD(light_grid)->light != li)
+        return light_transmission(nodes, tris, m, x, wi, dist, tmin);
+    float tmax = dist < T_INF ? dist * (1.0f - 1e-5f) : T_INF;
+    if (scene_any(nodes, tris, light_grid, x, wi, tmin, tmax)) return (float4)(0.0f);
+    return light_medium_fraction(m, x, wi, dist);
 }
 
 #endif

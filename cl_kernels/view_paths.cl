@@ -94,8 +94,9 @@ void append_view_segment(__global ViewSegment *segs, int max_segs, volatile __gl
 /* Irradiance from every light at a diffuse point p (sum of E cos T): n is the shading
  * normal and gn the geometric normal, both facing the viewer (shadow rays leave along gn). */
 float4 direct_irradiance(__global const BVHNode *nodes, __global const float4 *tris,
-                         __global const Light *lights, int num_lights,
-                         __global const Medium *medium, float4 p, float4 n, float4 gn) {
+                         __global const int *light_grid, __global const Light *lights,
+                         int num_lights, __global const Medium *medium, float4 p, float4 n,
+                         float4 gn) {
     float4 sum = (float4)(0.0f);
     float4 origin = p + gn * RAY_EPS;
     for (int i = 0; i < num_lights; ++i) {
@@ -104,16 +105,19 @@ float4 direct_irradiance(__global const BVHNode *nodes, __global const float4 *t
         float4 E = light_arrival(&lights[i], p, &wi, &dist);
         float c = dot3(n, wi);
         if (c <= 0.0f || dot3(gn, wi) <= 0.0f || (E.x == 0.0f && E.y == 0.0f && E.z == 0.0f)) continue;
-        sum += E * c * light_transmission(nodes, tris, medium, origin, wi, dist, 0.0f);
+        sum += E * c * light_transmission_grid(nodes, tris, light_grid, i, medium, origin, wi,
+                                               dist, 0.0f);
     }
     return sum;
 }
 
 /* Radiance a diffuse point of colour albedo sends towards the viewer under direct light. */
 float4 shade_diffuse(__global const BVHNode *nodes, __global const float4 *tris,
-                     __global const Light *lights, int num_lights, __global const Medium *medium,
-                     float4 p, float4 n, float4 gn, float4 albedo) {
-    return direct_irradiance(nodes, tris, lights, num_lights, medium, p, n, gn) * albedo
+                     __global const int *light_grid, __global const Light *lights,
+                     int num_lights, __global const Medium *medium, float4 p, float4 n,
+                     float4 gn, float4 albedo) {
+    return direct_irradiance(nodes, tris, light_grid, lights, num_lights, medium, p, n, gn)
+           * albedo
            * (1.0f / PI_F);
 }
 
@@ -143,6 +147,7 @@ void append_diffuse_hit(__global DiffuseHit *hits, int max_hits, volatile __glob
  * albedo / pi: what shade_hits relights, what the ray and photon maps add surface
  * caustics to). */
 __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *tris,
+                         __global const int *light_grid, __global const int *camera_grid,
                          __global const float4 *normals, __global const int *tri_mat,
                          __global const Material *materials,
                          __global const Light *lights, int num_lights,
@@ -167,7 +172,10 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
     while (top > 0) {
         Branch br = stack[--top];
         Hit hit;
-        int found = bvh_closest(nodes, tris, br.o, br.d, 0.0f, T_INF, &hit);
+        /* the camera's own rays (branch 0) through the camera grid, the rest the BVH */
+        int found = br.id == 0
+            ? scene_closest(nodes, tris, camera_grid, br.o, br.d, 0.0f, T_INF, &hit)
+            : bvh_closest(nodes, tris, br.o, br.d, 0.0f, T_INF, &hit);
         float t_hit = found ? hit.t : T_INF;
 
         /* ---- the straight piece in the medium (the medium lies outside all objects) ---- */
@@ -189,8 +197,9 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
                 append_diffuse_hit(hits, max_hits, hit_count, &f, materials[mi].color, &br,
                                    pixel, s);
             if (shade)
-                radiance += br.thr * shade_diffuse(nodes, tris, lights, num_lights, medium,
-                                                   f.p, f.nf, f.gf, materials[mi].color);
+                radiance += br.thr * shade_diffuse(nodes, tris, light_grid, lights, num_lights,
+                                                   medium, f.p, f.nf, f.gf,
+                                                   materials[mi].color);
         }
     }
     if (shade) {
@@ -216,13 +225,15 @@ __kernel void record_keys(__global const int *records, int stride, int sample_wo
 /* The surface shading of trace_view again, at recorded diffuse hits (a light change:
  * no camera path is traced again): out[i] = weight * direct irradiance. */
 __kernel void shade_hits(__global const BVHNode *nodes, __global const float4 *tris,
+                         __global const int *light_grid,
                          __global const Light *lights, int num_lights,
                          __global const Medium *medium, __global const DiffuseHit *hits,
                          int n, __global float4 *out) {
     int i = get_global_id(0);
     if (i >= n) return;
     DiffuseHit h = hits[i];
-    out[i] = h.weight * direct_irradiance(nodes, tris, lights, num_lights, medium, h.p, h.n, h.g);
+    out[i] = h.weight * direct_irradiance(nodes, tris, light_grid, lights, num_lights, medium,
+                                          h.p, h.n, h.g);
 }
 
 /* Test hook: fresnel_dielectric over an array of cosines (tests/test_render.py). */

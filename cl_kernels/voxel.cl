@@ -702,6 +702,7 @@ __kernel void vox_keep_flags(__global const VoxRay *rays, int count, float min_t
  * no attenuation, no stop). Returns the directly lit surface radiance. */
 float4 voxel_follow(Branch first, int first_flags, int pixel, int sample, int depth_limit,
                     __global const BVHNode *nodes, __global const float4 *tris,
+                    __global const int *light_grid, __global const int *camera_grid,
                     __global const float4 *normals, __global const int *tri_mat,
                     __global const Material *materials, __global const Light *lights,
                     int num_lights, __global const Medium *medium, float4 gmin, float4 gmax,
@@ -716,7 +717,9 @@ float4 voxel_follow(Branch first, int first_flags, int pixel, int sample, int de
     while (top > 0) {
         Branch br = stack[--top];
         Hit hit;
-        int found = bvh_closest(nodes, tris, br.o, br.d, 0.0f, T_INF, &hit);
+        int found = br.id == 0      /* a camera ray (trace_view's rule) */
+            ? scene_closest(nodes, tris, camera_grid, br.o, br.d, 0.0f, T_INF, &hit)
+            : bvh_closest(nodes, tris, br.o, br.d, 0.0f, T_INF, &hit);
         float t_hit = found ? hit.t : T_INF;
         float tb0, tb1;
         int stop = !skip && br.inside < 0 &&
@@ -746,14 +749,15 @@ float4 voxel_follow(Branch first, int first_flags, int pixel, int sample, int de
         int mi;
         if (surface_hit(tris, normals, tri_mat, materials, &hit, &br, depth_limit, min_weight,
                         stack, &top, &next_id, &f, &mi))
-            radiance += br.thr * shade_diffuse(nodes, tris, lights, num_lights, medium, f.p, f.nf,
-                                               f.gf, materials[mi].color);
+            radiance += br.thr * shade_diffuse(nodes, tris, light_grid, lights, num_lights,
+                                               medium, f.p, f.nf, f.gf, materials[mi].color);
     }
     return radiance;
 }
 
 /* Camera samples [sample_offset, + num_samples): the same rays as trace_view. */
 __kernel void voxel_trace_camera(__global const BVHNode *nodes, __global const float4 *tris,
+                                 __global const int *light_grid, __global const int *camera_grid,
                                  __global const float4 *normals, __global const int *tri_mat,
                                  __global const Material *materials,
                                  __global const Light *lights, int num_lights,
@@ -769,7 +773,8 @@ __kernel void voxel_trace_camera(__global const BVHNode *nodes, __global const f
     int s = sample_offset + gid, pixel;
     float inv_spp = 1.0f / cam->spp;
     Branch b = camera_branch(cam, seed, s, &pixel);
-    surface[gid] = voxel_follow(b, 0, pixel, s, max_depth, nodes, tris, normals, tri_mat,
+    surface[gid] = voxel_follow(b, 0, pixel, s, max_depth, nodes, tris, light_grid, camera_grid,
+                                normals, tri_mat,
                                 materials, lights, num_lights, medium, gmin, gmax,
                                 MIN_THROUGHPUT * inv_spp, segs, max_segs, seg_count, stopped,
                                 max_stopped, stop_count);
@@ -778,6 +783,7 @@ __kernel void voxel_trace_camera(__global const BVHNode *nodes, __global const f
 /* Continue the rays the viewing pass handed back (leaving the grid or meeting a surface).
  * Branch ids continue from the ray's id times 64 so (sample, branch) stays unique. */
 __kernel void voxel_trace_rays(__global const BVHNode *nodes, __global const float4 *tris,
+                               __global const int *light_grid, __global const int *camera_grid,
                                __global const float4 *normals, __global const int *tri_mat,
                                __global const Material *materials,
                                __global const Light *lights, int num_lights,
@@ -796,6 +802,7 @@ __kernel void voxel_trace_rays(__global const BVHNode *nodes, __global const flo
     b.depth = r.flags >> 4; b.inside = -1; b.id = r.branch * 64 + 1; b.pad = 0;
     if (fmax(b.thr.x, fmax(b.thr.y, b.thr.z)) <= 0.0f) { surface[gid] = (float4)(0.0f); return; }
     surface[gid] = voxel_follow(b, r.flags & 15, r.pixel, r.sample, max_depth, nodes, tris,
+                                light_grid, camera_grid,
                                 normals, tri_mat, materials, lights, num_lights, medium, gmin,
                                 gmax, min_weight, segs, max_segs, seg_count, stopped, max_stopped,
                                 stop_count);

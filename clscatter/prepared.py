@@ -11,6 +11,7 @@ from typing import Sequence
 import numpy as np
 
 from . import structs
+from .accel import tile_grid
 from .accel.bvh import BVH, build_bvh
 from .device import Engine
 from .scene.normalised import Frame, camera_struct, light_structs, medium_struct, triangle_soup
@@ -30,6 +31,8 @@ class SceneBuffers:
     lights: object      # structs.LIGHT (one dummy record when the scene has none)
     medium: object      # structs.MEDIUM
     camera: object      # structs.CAMERA
+    light_grid: object  # tile grid for the first directional light's shadow rays (packed)
+    camera_grid: object  # tile grid for the camera's primary rays (packed)
 
     def as_dict(self) -> dict[str, object]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -94,6 +97,9 @@ def prepare_scene(scene: Scene, engine: Engine, stats: Stats | None = None) -> P
         camera = camera_struct(scene.camera, frame)
         lights = light_structs(scene.lights, frame)
         lights_dev = lights if len(lights) else np.zeros(1, structs.LIGHT)
+    with stats.stage("scene_grids"):
+        grids = {"light_grid": tile_grid.light_grid(bvh, lights),
+                 "camera_grid": tile_grid.camera_grid(bvh, camera)}
     with stats.stage("upload"):
         dev = SceneBuffers(
             nodes=engine.to_device(bvh.nodes),
@@ -104,8 +110,10 @@ def prepare_scene(scene: Scene, engine: Engine, stats: Stats | None = None) -> P
             lights=engine.to_device(lights_dev),
             medium=engine.to_device(medium.reshape(1)),
             camera=engine.to_device(camera.reshape(1)),
+            **{k: tile_grid.upload(engine, g) for k, g in grids.items()},
         )
-    stats.set(triangles=int(len(order)), bvh_nodes=int(len(bvh.nodes)), lights=int(len(lights)))
+    stats.set(triangles=int(len(order)), bvh_nodes=int(len(bvh.nodes)), lights=int(len(lights)),
+              tile_grids={k: g.stats() if g is not None else None for k, g in grids.items()})
     return PreparedScene(scene, engine, frame, bvh, medium, camera, lights, dev, soup.materials)
 
 
@@ -139,8 +147,25 @@ def refresh(ps: PreparedScene, scene: Scene, stats: Stats | None = None) -> list
             ps.dev.materials = eng.to_device(materials)
             ps.materials = materials
             changed.append("materials")
+    for name in changed:
+        _refresh_grid(ps, name, stats)
     ps.scene = scene
     return changed
+
+
+_GRID_OF = {"lights": ("light_grid", tile_grid.light_grid),
+            "camera": ("camera_grid", tile_grid.camera_grid)}
+
+
+def _refresh_grid(ps: PreparedScene, changed: str, stats: Stats) -> None:
+    """Rebuild the tile grid that follows the buffer ``changed`` (lights or camera)."""
+    if changed not in _GRID_OF:
+        return
+    field, build = _GRID_OF[changed]
+    with stats.stage("scene_grids"):
+        grid = build(ps.bvh, getattr(ps, changed))
+    ps.engine.free(getattr(ps.dev, field))
+    setattr(ps.dev, field, tile_grid.upload(ps.engine, grid))
 
 
 def same_frame(ps: PreparedScene, scene: Scene) -> bool:

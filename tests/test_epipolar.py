@@ -366,10 +366,13 @@ def _np_face_lookup(faces, l):
     return idx
 
 
-@pytest.mark.parametrize("kind,cutoff", [("dir", 0), ("spot", 65), ("spot", 85)])
-def test_shadow_map_kernel_matches_bvh_trace(engine, kind, cutoff):
-    """Every texel against the BVH tracer: the orthographic map, a single perspective map
-    (65 degrees) and the five cube faces of a wide cone (85 degrees)."""
+@pytest.mark.parametrize("kind,cutoff,with_grid", [("dir", 0, False), ("dir", 0, True),
+                                                   ("spot", 65, False), ("spot", 85, False)])
+def test_shadow_map_kernel_matches_bvh_trace(engine, kind, cutoff, with_grid):
+    """Every texel against the BVH tracer: the orthographic map (through the BVH, and
+    through a tile grid), a single perspective map (65 degrees) and the five cube faces
+    of a wide cone (85 degrees)."""
+    from clscatter.accel import tile_grid
     from clscatter.methods.epipolar.maps import face_texels, spot_faces
     tris = np.concatenate([_quad_tris(0.3, 0.2, 0.1), _quad_tris(0.0, 0.6)])
     bvh, nodes, tb = _upload_scene(engine, tris)
@@ -390,11 +393,16 @@ def test_shadow_map_kernel_matches_bvh_trace(engine, kind, cutoff):
         assert len(faces) == (1 if cutoff <= 60 else 5)
         frame["sm_faces"] = len(faces)
         n = face_texels(faces)
+    grid = tile_grid.build_grid(bvh, axis.eye, axis.b1, axis.b2, -axis.u, frame["sm_rect"],
+                                6, 5) if with_grid else None
+    assert grid is not None or not with_grid
+    gb = tile_grid.upload(engine, grid)
     fb = engine.to_device(frame.reshape(1))
     fcb = engine.to_device(faces)
     out = engine.empty(4 * n)
     engine.launch(engine.kernel("epipolar", "epi_shadow_map", DEF1), n, nodes, tb, fb, fcb,
-                  np.int32(n), out)
+                  gb, np.int32(n), out)
+    engine.free(gb)
     got = engine.read(out, n, np.float32)
     if kind == "dir":
         r = frame["sm_rect"].astype(np.float64)

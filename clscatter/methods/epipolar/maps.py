@@ -15,6 +15,7 @@ import math
 import numpy as np
 
 from ... import structs
+from ...accel import tile_grid
 from ...prepared import PreparedScene
 from .geometry import EPI_FACE, Axis, CameraGeom, medium_box
 
@@ -136,22 +137,45 @@ def setup_shadow_map(frame: np.ndarray, axis: Axis, ps: PreparedScene, res: int)
     return np.zeros(1, EPI_FACE)
 
 
+def shadow_map_grid(ps: PreparedScene, frame: np.ndarray) -> tile_grid.TileGrid | None:
+    """The tile grid over a directional light's shadow map (:mod:`clscatter.accel.tile_grid`:
+    its texels are parallel rays along ``-u``), or None when the light is a spot or the
+    grid would not beat the BVH (:func:`tile_grid.worth_it`)."""
+    if int(frame["sm_faces"]) != 0 or int(ps.bvh.n_valid) == 0:
+        return None
+    res = int(frame["sm_res"])
+    nt = tile_grid.tiles_for(res)
+    grid = tile_grid.build_grid(ps.bvh, frame["eye"], frame["sm_s1"], frame["sm_s2"],
+                                -np.asarray(frame["u"], np.float64), frame["sm_rect"], nt, nt)
+    return grid if tile_grid.worth_it(grid) else None
+
+
 def trace_shadow_map(ps: PreparedScene, frame_buf, res: int, defines: dict | None = None,
-                     faces: np.ndarray | None = None, faces_buf=None):
+                     faces: np.ndarray | None = None, faces_buf=None,
+                     frame: np.ndarray | None = None, info: dict | None = None):
     """Device buffer of the shadow map of the frame in ``frame_buf``: res * res floats
     (directional), or the spot faces' texels one face after the other (``defines``: those
-    of the epipolar program in use, so it is built once)."""
+    of the epipolar program in use, so it is built once). Given the host ``frame`` of a
+    directional light, the texels go through a tile grid where one pays
+    (:func:`shadow_map_grid`; the same depths as the BVH); ``info`` then receives
+    ``shadow_map_caster`` (``grid`` with the grid's list statistics, or ``bvh``)."""
     eng = ps.engine
     n = res * res if faces is None or not int(faces[0]["c"][3]) else face_texels(faces)
     out = eng.empty(4 * n)
     own = faces_buf is None
     fb = eng.to_device(faces if faces is not None else np.zeros(1, EPI_FACE)) if own else faces_buf
+    grid = shadow_map_grid(ps, frame) if frame is not None else None
+    if info is not None:
+        info["shadow_map_caster"] = ({"kind": "grid", **grid.stats()} if grid is not None
+                                     else {"kind": "bvh"})
+    gb = tile_grid.upload(eng, grid)
     try:
         eng.call("epipolar", "epi_shadow_map", n, defines, nodes=ps.dev.nodes, tris=ps.dev.tris,
-                 fr=frame_buf, faces=fb, ntex=n, out=out)
+                 fr=frame_buf, faces=fb, grid=gb, ntex=n, out=out)
     finally:
+        eng.finish()
+        eng.free(gb)
         if own:
-            eng.finish()
             eng.free(fb)
     return out
 

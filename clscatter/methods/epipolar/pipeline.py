@@ -272,7 +272,8 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
                 depth = trace_depth_map(ps, dw, dh, defines)
                 bufs.append(depth)
             faces_buf = up(faces)
-            smap = trace_shadow_map(ps, frame_buf, int(st.shadow_map), defines, faces, faces_buf)
+            smap = trace_shadow_map(ps, frame_buf, int(st.shadow_map), defines, faces, faces_buf,
+                                    frame=frame, info=info)
             bufs.append(smap)
             eng.finish()
 

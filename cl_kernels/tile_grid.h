@@ -1,0 +1,102 @@
+/* tile_grid.h: closest and any hit for rays that share a direction (orthographic grid)
+ * or an origin (perspective grid), through a tile grid instead of the BVH.
+ *
+ * The grid (clscatter/accel/tile_grid.py) lists, per tile of a rectangle normal to its
+ * direction, the triangles whose padded projection overlaps the tile, sorted by a key
+ * that bounds their distance from below: the nearest axial coordinate along the
+ * direction. A ray of the grid tests its tile's triangles with the BVH's watertight test
+ * (bvh_triangle) in order and stops once a key is past its closest hit: the same hit
+ * distance the BVH gives.
+ *
+ * The grid is one int buffer (TileGrid.packed): the TileGrid record, then the tiles'
+ * starts, the listed triangles' slots and the keys' float bits, at the record's offsets.
+ *
+ * Interface (g: the packed grid):
+ *   int grid_tile(g, o, d)      tile of the ray (o, d), or -1 (no grid, or outside it)
+ *   int grid_closest(tris, g, tile, o, d, tmin, tmax, &hit)
+ *   int grid_any(tris, g, tile, o, d, tmin, tmax)
+ * Orthographic: d must be the grid's unit direction. Perspective: o must be the grid's
+ * origin and d a unit vector. t is a distance. Portable OpenCL 1.2 C.
+ */
+#ifndef CLSCATTER_TILE_GRID_H
+#define CLSCATTER_TILE_GRID_H
+
+#include "bvh.h"
+
+typedef struct {
+    float4 origin;   /* a point of the plane (orthographic) or the rays' origin */
+    float4 s1, s2;   /* unit axes of the plane */
+    float4 dir;      /* unit direction, normal to the plane */
+    float4 rect;     /* (lo1, lo2, hi1, hi2) in plane (perspective: tangent) coordinates */
+    int nx, ny;      /* tiles along s1, s2; nx == 0: no grid (use the BVH) */
+    int items;       /* listed (triangle, tile) entries */
+    int perspective; /* 1: rays from origin, plane coordinates divided by the depth */
+    int light;       /* the light whose shadow rays it serves (scene grids), or -1 */
+    int starts_at, items_at, keys_at;   /* offsets in words of the three arrays */
+} TileGrid;
+
+#define GRID_HEAD(g) ((__global const TileGrid *)(g))
+
+int grid_tile(__global const int *g, float4 o, float4 d) {
+    __global const TileGrid *h = GRID_HEAD(g);
+    if (h->nx <= 0) return -1;
+    float4 q = h->perspective ? d : o - h->origin;
+    float depth = h->perspective ? dot3(q, h->dir) : 1.0f;
+    if (!(depth > 0.0f)) return -1;
+    float4 rect = h->rect;
+    float fx = (dot3(q, h->s1) / depth - rect.x) / (rect.z - rect.x) * h->nx;
+    float fy = (dot3(q, h->s2) / depth - rect.y) / (rect.w - rect.y) * h->ny;
+    if (!(fx >= 0.0f && fx < (float)h->nx && fy >= 0.0f && fy < (float)h->ny)) return -1;
+    return min((int)fy, h->ny - 1) * h->nx + min((int)fx, h->nx - 1);
+}
+
+int grid_traverse(__global const float4 *tris, __global const int *g, int tile, float4 o,
+                  float4 d, float tmin, float tmax, int any_hit, Hit *hit) {
+    __global const TileGrid *h = GRID_HEAD(g);
+    BvhRay r;
+    if (!bvh_ray_setup(o, d, &r)) return 0;
+    /* axial coordinate of the origin (0 for a perspective grid's own rays) */
+    float base = h->perspective ? 0.0f : dot3(o - h->origin, h->dir);
+    __global const int *starts = g + h->starts_at;
+    __global const int *items = g + h->items_at;
+    __global const float *keys = (__global const float *)(g + h->keys_at);
+    float best = tmax;
+    int found = 0;
+    int end = starts[tile + 1];
+    for (int k = starts[tile]; k < end; ++k) {
+        if (keys[k] - base >= best) break;        /* this and every later one is farther */
+        if (bvh_try_triangle(&r, tris, items[k], tmin, &best, hit)) {
+            found = 1;
+            if (any_hit) return 1;
+        }
+    }
+    return found;
+}
+
+int grid_closest(__global const float4 *tris, __global const int *g, int tile, float4 o,
+                 float4 d, float tmin, float tmax, Hit *hit) {
+    return grid_traverse(tris, g, tile, o, d, tmin, tmax, 0, hit);
+}
+
+int grid_any(__global const float4 *tris, __global const int *g, int tile, float4 o,
+             float4 d, float tmin, float tmax) {
+    return grid_traverse(tris, g, tile, o, d, tmin, tmax, 1, 0);
+}
+
+/* Closest hit through the grid where the ray is one of its rays (tile found), else the
+ * BVH: callers hand every ray of a family here and get the BVH's answer either way. */
+int scene_closest(__global const BVHNode *nodes, __global const float4 *tris,
+                  __global const int *g, float4 o, float4 d, float tmin, float tmax, Hit *hit) {
+    int tile = grid_tile(g, o, d);
+    return tile >= 0 ? grid_closest(tris, g, tile, o, d, tmin, tmax, hit)
+                     : bvh_closest(nodes, tris, o, d, tmin, tmax, hit);
+}
+
+int scene_any(__global const BVHNode *nodes, __global const float4 *tris,
+              __global const int *g, float4 o, float4 d, float tmin, float tmax) {
+    int tile = grid_tile(g, o, d);
+    return tile >= 0 ? grid_any(tris, g, tile, o, d, tmin, tmax)
+                     : bvh_any(nodes, tris, o, d, tmin, tmax);
+}
+
+#endif
