@@ -4,8 +4,9 @@
  * seg_offset + the work-item, its result in out[si], times scale[si] when use_scale: a
  * segment of scale 0 is skipped, how a caller marches part of the segments). For every light, STEPS
  * jittered, stratified samples along the segment; at each, a shadow ray to the light
- * (any-hit through the BVH) and the medium transmittance on the way, the HG phase
- * function and sigma_s:
+ * (any-hit through the BVH, or through the scene's light grid for the directional light
+ * it serves: tile_grid.h, the same answer) and the medium transmittance on the way, the
+ * HG phase function and sigma_s:
  *
  *   L = sum_lights  int_0^len  sigma_s p(cos) E_light(x(t)) V T_light(x(t)) T_view(t) dt
  *
@@ -24,7 +25,7 @@
 #include "lights.h"
 
 __kernel void raymarch(__global const BVHNode *nodes, __global const float4 *tris,
-                       __global const Light *lights, int num_lights,
+                       __global const int *light_grid, __global const Light *lights, int num_lights,
                        __global const Medium *medium,
                        __global const ViewSegment *segs, int seg_offset, int num_segs,
                        __global const float *scale, int use_scale,
@@ -74,7 +75,8 @@ __kernel void raymarch(__global const BVHNode *nodes, __global const float4 *tri
             float dist;
             float4 E = light_arrival(L, x, &wi, &dist);
             if (E.x == 0.0f && E.y == 0.0f && E.z == 0.0f) continue;
-            float4 T_light = light_transmission(nodes, tris, medium, x, wi, dist, 1e-5f);
+            float4 T_light = light_transmission_grid(nodes, tris, light_grid, li, medium, x, wi,
+                                                     dist, 1e-5f);
             float cos_theta = dot3(-wi, -w);      /* light travels along -wi; camera is at -w */
             float ph = hg_phase(cos_theta, medium->g);
             acc += E * T_light * transmittance(medium->kappa, t) * (ph * dt);

@@ -156,12 +156,12 @@ def test_keyword_launch_runs_and_checks_names(engine):
 def test_scalars_are_converted_to_the_declared_type(engine):
     """``steps=3`` becomes a 32-bit int and ``seed`` a uint where the kernel says so."""
     args = engine.bind("raymarch", "raymarch", {
-        "nodes": engine.empty(4), "tris": engine.empty(4), "lights": engine.empty(4),
-        "num_lights": 1, "medium": engine.empty(4), "segs": engine.empty(4), "seg_offset": 0,
+        "nodes": engine.empty(4), "tris": engine.empty(4), "light_grid": engine.empty(4),
+        "lights": engine.empty(4), "num_lights": 1, "medium": engine.empty(4), "segs": engine.empty(4), "seg_offset": 0,
         "num_segs": 5, "scale": engine.empty(4), "use_scale": 0, "steps": 3, "seed": 7,
         "out": engine.empty(4)})
-    assert [type(a) for a in args[3:4]] == [np.int32]
-    assert isinstance(args[10], np.int32) and isinstance(args[11], np.uint32)
+    assert [type(a) for a in args[4:5]] == [np.int32]
+    assert isinstance(args[11], np.int32) and isinstance(args[12], np.uint32)
 
 
 def test_preview_parameters_scale_the_costly_ones():
