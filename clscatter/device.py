@@ -240,6 +240,26 @@ def _strip_comments(source: str) -> str:
     return re.sub(r"/\*.*?\*/|//[^\n]*", " ", source, flags=re.S)
 
 
+_KERNEL = re.compile(r"__kernel\s+void\s+(\w+)\s*\(([^)]*)\)")
+_SOURCES: dict[Path, tuple[tuple[int, int], str, dict[str, tuple[KernelParam, ...]]]] = {}
+
+
+def _source(path: Path) -> tuple[str, dict[str, tuple[KernelParam, ...]]]:
+    """A kernel file's text with comments removed and the signatures of every kernel it
+    defines, read and parsed once per process (again only when the file's mtime or size
+    changes): a render looks up ~80 signatures across a handful of files."""
+    st = path.stat()
+    stamp = (st.st_mtime_ns, st.st_size)
+    got = _SOURCES.get(path)
+    if got is None or got[0] != stamp:
+        text = _strip_comments(path.read_text())
+        kernels: dict[str, tuple[KernelParam, ...]] = {}
+        for m in _KERNEL.finditer(text):            # the first definition wins, as in C
+            kernels.setdefault(m.group(1), _params(m.group(2)))
+        got = _SOURCES[path] = (stamp, text, kernels)
+    return got[1], got[2]
+
+
 def kernel_signature(source: str, kernel: str) -> tuple[KernelParam, ...]:
     """The parameters of ``__kernel void <kernel>(...)`` in ``source`` (comments removed).
 
@@ -250,8 +270,13 @@ def kernel_signature(source: str, kernel: str) -> tuple[KernelParam, ...]:
     m = re.search(r"__kernel\s+void\s+" + re.escape(kernel) + r"\s*\(([^)]*)\)", text)
     if not m:
         raise KernelArgError(f"kernel '{kernel}' is not defined in its program source")
+    return _params(m.group(1))
+
+
+def _params(declaration: str) -> tuple[KernelParam, ...]:
+    """KernelParams of a kernel's comma-separated parameter declarations."""
     params = []
-    for raw in m.group(1).split(","):
+    for raw in declaration.split(","):
         words = raw.replace("*", " * ").split()
         if not words:
             continue
@@ -274,12 +299,10 @@ def program_signature(program: str, kernel: str, root: Path | None = None) -> tu
         raise KernelBuildError(f"kernel source {path} does not exist")
     queue, seen = [path], {path}
     while queue:
-        text = queue.pop(0).read_text()
-        try:
-            return kernel_signature(text, kernel)
-        except KernelArgError:
-            pass
-        for name in _CL_INCLUDE.findall(_strip_comments(text)):
+        text, kernels = _source(queue.pop(0))
+        if kernel in kernels:
+            return kernels[kernel]
+        for name in _CL_INCLUDE.findall(text):
             inc = root / name
             if inc not in seen and inc.is_file():
                 seen.add(inc)
@@ -297,7 +320,7 @@ def program_files(program: str, root: Path | None = None) -> list[Path]:
         path = queue.pop()
         if not path.is_file():
             continue
-        for name in _INCLUDE.findall(_strip_comments(path.read_text())):
+        for name in _INCLUDE.findall(_source(path)[0]):
             inc = root / name
             if inc not in seen:
                 seen.add(inc)
@@ -353,6 +376,17 @@ class Engine:
         if key not in self._kernels:
             self._kernels[key] = self.cl.Kernel(self.program(program, defines), kernel)
         return self._kernels[key]
+
+    def preload(self, programs: Sequence[tuple[str, dict | None]]) -> None:
+        """Load each (program, defines) and create every kernel its ``.cl`` file defines,
+        now rather than at the first launch: start-up work (a session does it in its
+        ``device`` stage) kept out of a render's own time."""
+        for name, defines in programs:
+            path = kernel_dir() / f"{name}.cl"
+            if not path.is_file():
+                continue
+            for kernel in _source(path)[1]:
+                self.kernel(name, kernel, defines)
 
     def signature(self, program: str, kernel: str) -> tuple[KernelParam, ...]:
         """The declared parameters of ``kernel`` in ``cl_kernels/<program>.cl`` or a ``.cl``

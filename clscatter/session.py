@@ -37,7 +37,7 @@ import numpy as np
 
 from . import budget
 from .device import Engine, get_engine
-from .methods import get_method
+from .methods import configure, get_method
 from .prepared import PreparedScene, prepare_scene, refresh, same_frame
 from .scene.loader import apply_overrides, scene_from_dict, scene_source
 from .scene.model import Scene
@@ -189,6 +189,7 @@ class RenderSession:
             req = check(scene, self.method)
         with stats.stage("device"):
             engine = self.engine
+            engine.preload(_programs(scene, req))
         clock = (time.perf_counter(), engine.wait_seconds)
         with stats.stage("configure"):
             limit, source = budget.memory_budget(engine, self.max_memory)
@@ -319,6 +320,16 @@ class RenderSession:
 
     def __exit__(self, *exc: object) -> None:
         self.release()
+
+
+def _programs(scene: Scene, req) -> list[tuple[str, dict | None]]:
+    """The kernel programs a render of ``scene`` by plan ``req`` uses: the camera paths'
+    (every render traces them) and each pass's (:meth:`Method.programs`)."""
+    progs: list[tuple[str, dict | None]] = [("view_paths", None), ("primitives", None)]
+    for p in req.passes:
+        cls = get_method(p.method)
+        progs += cls.programs(scene, configure(p.method, p.table(scene)))
+    return progs
 
 
 def _preview_scene(scene: Scene) -> Scene:

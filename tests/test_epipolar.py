@@ -861,3 +861,17 @@ def test_bracket_lookup_table_finds_the_binary_search_answer(engine, full, bins)
     else:
         want = np.where(count - 1 < 0, 0, k0)
     assert np.array_equal(got[:, 0], want)
+
+
+def test_summarize_p99_matches_numpy_percentile():
+    from clscatter.methods.epipolar.svd import summarize
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 3, 7, 200, 401):
+        x = rng.exponential(size=n)
+        x[0] = np.nan if n > 3 else x[0]               # non-finite errors are dropped
+        s = summarize(x)
+        ref = x[np.isfinite(x)]
+        assert s["samples"] == len(ref)
+        assert s["p99"] == pytest.approx(np.percentile(ref, 99), rel=1e-12)
+        assert s["rms"] == pytest.approx(np.sqrt(np.mean(ref ** 2)), rel=1e-12)
+    assert summarize(np.zeros(0))["p99"] == 0.0

@@ -169,6 +169,15 @@ class Method:
             out[key] = max(1, int(round(value))) if isinstance(defaults[key], int) else value
         return out
 
+    @classmethod
+    def programs(cls, scene, params: dict[str, Any]) -> list[tuple[str, dict | None]]:
+        """The kernel programs (name, ``-D`` defines) a render of ``scene`` with checked
+        ``params`` will use: the session loads them, and creates their kernels, at start-up
+        (stage ``device``) instead of at the pass's first launch. A program not listed is
+        loaded when first used; one listed but not used costs its load (~10 ms). Default:
+        none."""
+        return []
+
     def render(self, ps, paths, stats, show_progress: bool = True) -> np.ndarray:
         """Radiance (H, W, 3) this method adds to the image (its ``TERMS``)."""
         raise NotImplementedError

@@ -45,6 +45,10 @@ class RayMarch(Method):
     def steps(self) -> int:
         return self.params["steps"]
 
+    @classmethod
+    def programs(cls, scene, params: dict) -> list[tuple[str, dict | None]]:
+        return [("raymarch", None)]
+
     def render(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
                       show_progress: bool = True) -> np.ndarray:
         """Single-scattered radiance (H, W, 3) for all view segments of ``paths``."""

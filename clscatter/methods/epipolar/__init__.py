@@ -172,6 +172,16 @@ class Epipolar(Method):
             if buf is not None:
                 ps.engine.free(buf)
 
+    @classmethod
+    def programs(cls, scene, params: dict) -> list[tuple[str, dict | None]]:
+        """The epipolar program with the defines render_light starts with (svd_terms, and
+        one channel when the medium's extinction is grey)."""
+        m = scene.medium
+        kappa = np.asarray(m.sigma_s, np.float64) + np.asarray(m.sigma_a, np.float64) \
+            if m is not None else np.zeros(3)
+        nch = 1 if np.all(np.broadcast_to(kappa, 3) == np.ravel(kappa)[0]) else 3
+        return [("epipolar", {"EPI_NT": int(params["svd_terms"]), "EPI_NCH": nch})]
+
     def render(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
                show_progress: bool = True) -> np.ndarray:
         """Single-scattered radiance (H, W, 3) for all view segments of ``paths``.
