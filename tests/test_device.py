@@ -135,6 +135,24 @@ def test_program_files_follow_includes_transitively(tmp_path):
     assert {"common.h", "bvh.h", "epipolar.h", "epipolar.cl"} <= {p.name for p in program_files("epipolar")}
 
 
+def test_signatures_follow_edits_and_the_first_definition(tmp_path):
+    """Signatures are parsed once per file, again when the file changes; a kernel found
+    in an included .cl file; of two definitions of one name the first counts."""
+    import os
+    from clscatter.device import program_signature
+    k = tmp_path / "k.cl"
+    k.write_text('#include "inc.cl"\n__kernel void f(__global float *a, int n) {}\n'
+                 "__kernel void f(int other) {}\n")
+    (tmp_path / "inc.cl").write_text("__kernel void g(__global const int *x, float s) {}\n")
+    assert [(p.name, p.ctype) for p in program_signature("k", "f", tmp_path)] == \
+        [("a", "float*"), ("n", "int")]
+    assert [p.name for p in program_signature("k", "g", tmp_path)] == ["x", "s"]
+    k.write_text("__kernel void f(__global float4 *b, int n, uint seed) {}\n")
+    st = k.stat()
+    os.utime(k, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))   # a later edit
+    assert [p.name for p in program_signature("k", "f", tmp_path)] == ["b", "n", "seed"]
+
+
 def test_launch_pads_to_whole_groups_and_kernels_stop_at_their_count(engine):
     """1-D launches run in groups of GROUP_SIZE (one compiled variant per kernel on
     drivers that specialise by group size): the global size is rounded up and the kernel

@@ -28,3 +28,32 @@ def test_stages_cover_the_render(method, tmp_path, capsys):
     assert covered >= 0.95 * st["seconds_total"], (covered, st["seconds_total"], st["stages"])
     assert {"startup", "load_scene", "configure", "device", "view_paths",
             "write_outputs"} <= set(st["stages"])
+
+
+def test_start_up_loads_the_programs_the_render_uses(engine, monkeypatch):
+    """The programs an epipolar render builds (view paths, primitives, epipolar with its
+    starting defines) are loaded at start-up: the passes use no other (program, defines)."""
+    from clscatter.device import Engine
+    from clscatter.render import render
+    from clscatter.scene.loader import load_scene
+
+    loaded, phase = [], ["start"]
+    real_kernel, real_preload = Engine.kernel, Engine.preload
+
+    def kernel(self, name, kernel, defines=None):
+        loaded.append((phase[0], name, tuple(sorted((defines or {}).items()))))
+        return real_kernel(self, name, kernel, defines)
+
+    def preload(self, programs):
+        phase[0] = "preload"
+        real_preload(self, programs)
+        phase[0] = "render"
+
+    monkeypatch.setattr(Engine, "kernel", kernel)
+    monkeypatch.setattr(Engine, "preload", preload)
+    scene = load_scene("builtin:shafts", ["camera.resolution=[40,30]", "camera.spp=1"])
+    render(scene, method="epipolar", engine=engine, show_progress=False)
+    pre = {(n, d) for p, n, d in loaded if p == "preload"}
+    used = {(n, d) for p, n, d in loaded if p == "render"}
+    assert {"view_paths", "primitives", "epipolar"} <= {n for n, _ in pre}
+    assert used <= pre, used - pre

@@ -6,7 +6,8 @@ import dataclasses
 import numpy as np
 
 from ... import structs
-from .pipeline import LOOKUPS, MIN_LIGHT_RAYS, Settings, render_light
+from .pipeline import (LOOKUPS, MIN_LIGHT_RAYS, Settings, render_light,
+                       start_defines)
 from ...prepared import PreparedScene
 from ...view_paths import ViewPaths
 from ...stats import Stats
@@ -174,13 +175,12 @@ class Epipolar(Method):
 
     @classmethod
     def programs(cls, scene, params: dict) -> list[tuple[str, dict | None]]:
-        """The epipolar program with the defines render_light starts with (svd_terms, and
-        one channel when the medium's extinction is grey)."""
+        """The epipolar program with the defines a render starts with (start_defines; the
+        scene's coefficients are grey exactly when the normalised ones are)."""
         m = scene.medium
         kappa = np.asarray(m.sigma_s, np.float64) + np.asarray(m.sigma_a, np.float64) \
             if m is not None else np.zeros(3)
-        nch = 1 if np.all(np.broadcast_to(kappa, 3) == np.ravel(kappa)[0]) else 3
-        return [("epipolar", {"EPI_NT": int(params["svd_terms"]), "EPI_NCH": nch})]
+        return [("epipolar", start_defines(params["svd_terms"], kappa))]
 
     def render(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
                show_progress: bool = True) -> np.ndarray:
@@ -204,9 +204,10 @@ class Epipolar(Method):
         others = [i for i in range(ps.num_lights) if i not in handled]
         primary, deeper, cnt = eng.empty(4 * n), eng.empty(4 * n), eng.zeros(4)
         weighted = eng.empty(16 * n)
+        defines = start_defines(self.settings.svd_terms, ps.medium["kappa"][:3])
         try:
             with stats.stage("epipolar_rectify"):
-                eng.call("epipolar", "epi_split", n, segs=segs.buf, n=n, primary=primary,
+                eng.call("epipolar", "epi_split", n, defines, segs=segs.buf, n=n, primary=primary,
                          deeper=deeper, counts=cnt)
                 n_deep = int(eng.read(cnt, 1, np.int32)[0])
             with stats.stage("epipolar_fallback"):
@@ -235,7 +236,7 @@ class Epipolar(Method):
                     continue
                 try:
                     with stats.stage("epipolar_unrectify"):
-                        eng.call("epipolar", "epi_weighted", n, values=out.values_buf,
+                        eng.call("epipolar", "epi_weighted", n, defines, values=out.values_buf,
                                  segs=segs.buf, n=n, weighted=weighted)
                         img += segs.accumulate(weighted)
                     if out.ring_samples:

@@ -136,6 +136,15 @@ def segment_dirs(segs: np.ndarray, eye: np.ndarray) -> np.ndarray:
     return out
 
 
+def start_defines(svd_terms: int, kappa) -> dict[str, int]:
+    """The epipolar program's defines a render starts with: ``EPI_NT`` SVD terms (more
+    if the estimate asks) and ``EPI_NCH``, 1 channel for a grey medium (rgb ``kappa`` all
+    equal), else 3. Every launch outside render_light uses them too, so one program is
+    built per render (and loaded at start-up: :meth:`Epipolar.programs`)."""
+    k = np.broadcast_to(np.asarray(kappa, np.float64), 3)
+    return {"EPI_NT": int(svd_terms), "EPI_NCH": 1 if np.all(k == k[0]) else 3}
+
+
 def _auto(st: Settings, cam: geo.CameraGeom) -> Settings:
     """``st`` with its automatic (0) sizes resolved for this image."""
     big = max(cam.width, cam.height)
@@ -187,9 +196,9 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
     if box is None and not axis.spot:
         raise ValueError("a directional light needs a bounded medium")
     kappa = np.asarray(ps.medium["kappa"][:3], np.float64)
-    nch = 1 if np.all(kappa == kappa[0]) else 3
+    defines = start_defines(st.svd_terms, kappa)
+    nch = defines["EPI_NCH"]
     g_hg = float(ps.medium["g"])
-    defines = {"EPI_NT": int(st.svd_terms), "EPI_NCH": nch}
     d = int(st.light_rays)
     bufs = []
 
