@@ -56,7 +56,8 @@ float4 epi_view_dir(__global const EpiFrame *fr, float4 w, float beta) {
 
 /* direction of the spot light ray gamma in slice w (from the light outwards) */
 float4 epi_spot_dir(__global const EpiFrame *fr, float4 w, float gamma) {
-    return -cos(gamma) * fr->u + sin(gamma) * w;
+    float c, s = sincos_fast(gamma, &c);
+    return -c * fr->u + s * w;
 }
 
 /* gamma reached by the view ray beta at distance t (paper, Sec. 3 and 9), given
@@ -85,9 +86,10 @@ int epi_face_of(__global const EpiFrame *fr, __global const EpiFace *faces, floa
     return best;
 }
 
-/* Directional: when the host built a tile grid over the map (nx > 0, its
- * direction -u), texels test their tile's triangles instead of traversing the BVH; the
- * stored depth is the same (tile_grid.h). */
+/* When the host built a tile grid over the map (nx > 0: orthographic along -u for a
+ * directional light, perspective from the light over a spot's single face), texels test
+ * their tile's triangles instead of traversing the BVH; the stored depth is the same
+ * (tile_grid.h). */
 __kernel void epi_shadow_map(__global const BVHNode *nodes, __global const float4 *tris,
                              __global const EpiFrame *fr, __global const EpiFace *faces,
                              __global const int *grid, int ntex, __global float *out) {
@@ -120,7 +122,8 @@ __kernel void epi_shadow_map(__global const BVHNode *nodes, __global const float
     /* the map stores the blocker's distance from the light */
     float4 dir = normalize3(c + x1 * e1 + x2 * e2);
     dir.w = 0.0f;
-    out[gid] = bvh_closest(nodes, tris, fr->light, dir, 0.0f, T_INF, &hit) ? hit.t : T_INF;
+    out[gid] = scene_closest(nodes, tris, grid, fr->light, dir, 0.0f, T_INF, &hit) ? hit.t
+                                                                                : T_INF;
 }
 
 /* camera ray through a continuous position in the image (x right, y down, in pixels of
@@ -191,7 +194,8 @@ float epi_blocker(__global const EpiFrame *fr, __global const EpiFace *faces,
  * value changes in rectification, depth -> beta). */
 float epi_blocker_beta(__global const EpiFrame *fr, float gamma, float v) {
     if (fr->type == LIGHT_DIRECTIONAL) return atan2_fast(gamma, v);
-    return atan2_fast(v * sin(gamma), fr->D - v * cos(gamma));
+    float c, s = sincos_fast(gamma, &c);
+    return atan2_fast(v * s, fr->D - v * c);
 }
 
 /* Sort key increasing with beta along one light ray (directional: beta falls as z
@@ -203,8 +207,9 @@ float epi_mode_key(__global const EpiFrame *fr, float v) {
 }
 float epi_mode_tol(__global const EpiFrame *fr, float gamma, float v) {
     if (fr->type == LIGHT_DIRECTIONAL) return fr->beta_tol * (gamma * gamma + v * v) / fmax(gamma, 1e-12f);
-    float z = fr->D - v * cos(gamma), rho = v * sin(gamma);
-    return fr->beta_tol * (z * z + rho * rho) / fmax(fr->D * sin(gamma), 1e-12f);
+    float c, s = sincos_fast(gamma, &c);
+    float z = fr->D - v * c, rho = v * s;
+    return fr->beta_tol * (z * z + rho * rho) / fmax(fr->D * s, 1e-12f);
 }
 
 /* One work-item per (slice, light ray): the termination modes of the light ray.
@@ -753,6 +758,15 @@ __kernel void epi_weighted(__global const float4 *values, __global const ViewSeg
     float4 w = segs[i].weight;
     w.w = 0.0f;
     weighted[i] = values[i] * w;
+}
+
+/* Test hook: sincos_fast (common.h) over an array: out[2i] = sin, out[2i+1] = cos. */
+__kernel void sincos_test(__global const float *x, int n, __global float *out) {
+    int i = get_global_id(0);
+    if (i >= n) return;
+    float c, s = sincos_fast(x[i], &c);
+    out[2 * i] = s;
+    out[2 * i + 1] = c;
 }
 
 /* Test hook: atan2_fast (common.h) over arrays (tests/test_fast_math.py). */

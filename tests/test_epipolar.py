@@ -367,11 +367,12 @@ def _np_face_lookup(faces, l):
 
 
 @pytest.mark.parametrize("kind,cutoff,with_grid", [("dir", 0, False), ("dir", 0, True),
-                                                   ("spot", 65, False), ("spot", 85, False)])
+                                                   ("spot", 55, True), ("spot", 65, False),
+                                                   ("spot", 85, False)])
 def test_shadow_map_kernel_matches_bvh_trace(engine, kind, cutoff, with_grid):
     """Every texel against the BVH tracer: the orthographic map (through the BVH, and
-    through a tile grid), a single perspective map (65 degrees) and the five cube faces
-    of a wide cone (85 degrees)."""
+    through a tile grid), a single perspective map (55 degrees through a perspective
+    tile grid, 65 through the BVH) and the five cube faces of a wide cone (85 degrees)."""
     from clscatter.accel import tile_grid
     from clscatter.methods.epipolar.maps import face_texels, spot_faces
     tris = np.concatenate([_quad_tris(0.3, 0.2, 0.1), _quad_tris(0.0, 0.6)])
@@ -393,8 +394,14 @@ def test_shadow_map_kernel_matches_bvh_trace(engine, kind, cutoff, with_grid):
         assert len(faces) == (1 if cutoff <= 60 else 5)
         frame["sm_faces"] = len(faces)
         n = face_texels(faces)
-    grid = tile_grid.build_grid(bvh, axis.eye, axis.b1, axis.b2, -axis.u, frame["sm_rect"],
-                                6, 5) if with_grid else None
+    grid = None
+    if with_grid and kind == "dir":
+        grid = tile_grid.build_grid(bvh, axis.eye, axis.b1, axis.b2, -axis.u,
+                                    frame["sm_rect"], 6, 5)
+    elif with_grid:
+        f = faces[0]
+        grid = tile_grid.build_grid(bvh, axis.light, f["e1"], f["e2"], f["c"], f["rect"], 6, 5,
+                                    perspective=True)
     assert grid is not None or not with_grid
     gb = tile_grid.upload(engine, grid)
     fb = engine.to_device(frame.reshape(1))

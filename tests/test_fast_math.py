@@ -45,3 +45,37 @@ def test_atan2_fast_signs_and_nan(engine):
     assert got[1] == 0.0 and np.signbit(got[1])
     np.testing.assert_allclose(got[2:4], [np.pi, -np.pi], rtol=1e-7)
     assert np.isnan(got[4:]).all()
+
+
+def _sincos(engine, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    x = np.asarray(x, np.float32)
+    xb, out = engine.to_device(x), engine.empty(8 * len(x))
+    try:
+        engine.call("epipolar", "sincos_test", len(x), {"EPI_NT": 4, "EPI_NCH": 1}, x=xb,
+                    n=len(x), out=out)
+        got = engine.read(out, (len(x), 2), np.float32).astype(np.float64)
+        return got[:, 0], got[:, 1]
+    finally:
+        engine.free(xb, out)
+
+
+def test_sincos_fast_matches_float64(engine):
+    """The spot light's angles (within +-pi) and well beyond, quadrant boundaries and
+    their neighbours, tiny arguments, zero; NaN and inf give NaN."""
+    rng = np.random.default_rng(5)
+    x = np.concatenate([rng.uniform(-np.pi, np.pi, 200_000), rng.uniform(-1e3, 1e3, 50_000),
+                        10.0 ** rng.uniform(-30, 0, 1000)]).astype(np.float32)
+    q = (np.arange(-40, 41) * np.pi / 4).astype(np.float32)
+    x = np.concatenate([x, q, np.nextafter(q, np.float32(np.inf)),
+                        np.nextafter(q, np.float32(-np.inf))])
+    s, c = _sincos(engine, x)
+    xd = x.astype(np.float64)
+    err = np.maximum(np.abs(s - np.sin(xd)), np.abs(c - np.cos(xd)))
+    small = np.abs(xd) <= np.pi
+    assert err[small].max() <= 2e-7, (err[small].max(), x[small][err[small].argmax()])
+    assert err.max() <= 3e-7, (err.max(), x[err.argmax()])
+    tiny = np.abs(xd) < 1e-20
+    assert np.array_equal(s[tiny], xd[tiny]) and np.all(c[tiny] == 1.0)
+    s0, c0 = _sincos(engine, np.array([-0.0, np.nan, np.inf, -np.inf]))
+    assert s0[0] == 0.0 and c0[0] == 1.0
+    assert np.isnan(s0[1:]).all() and np.isnan(c0[1:]).all()

@@ -223,8 +223,11 @@ def test_outside_and_empty_grids(engine):
                                 4096, 4096) is None
 
 
-@pytest.mark.parametrize("name", ["epi_grille", "epi_window"])
-def test_shadow_map_through_the_grid_equals_the_bvh(engine, name):
+@pytest.mark.parametrize("name,kind", [("epi_grille", "grid"), ("epi_window", "grid"),
+                                       ("epi_spot", "grid"), ("epi_wide_spot", "bvh")])
+def test_shadow_map_through_the_grid_equals_the_bvh(engine, name, kind):
+    """Directional maps and a spot's single map through a grid; the five faces of a wide
+    cone through the BVH."""
     from clscatter.methods.epipolar import geometry as geo
     from clscatter.methods.epipolar import maps
     from clscatter.prepared import prepare_scene
@@ -237,17 +240,19 @@ def test_shadow_map_through_the_grid_equals_the_bvh(engine, name):
         frame = geo.frame_struct(axis, ps.medium, 1)
         res = 512
         faces = maps.setup_shadow_map(frame, axis, ps, res)
+        n = maps.face_texels(faces) if axis.spot else res * res
         fb = engine.to_device(frame.reshape(1))
         info: dict = {}
         via_grid = maps.trace_shadow_map(ps, fb, res, {}, faces, frame=frame, info=info)
         via_bvh = maps.trace_shadow_map(ps, fb, res, {}, faces)
-        a = engine.read(via_grid, res * res, np.float32)
-        b = engine.read(via_bvh, res * res, np.float32)
+        a = engine.read(via_grid, n, np.float32)
+        b = engine.read(via_bvh, n, np.float32)
         engine.free(fb, via_grid, via_bvh)
     finally:
         ps.release() if hasattr(ps, "release") else None
-    assert info["shadow_map_caster"]["kind"] == "grid"
-    assert info["shadow_map_caster"]["mean_list"] <= tile_grid.MAX_MEAN_LIST
+    assert info["shadow_map_caster"]["kind"] == kind
+    if kind == "grid":
+        assert info["shadow_map_caster"]["mean_list"] <= tile_grid.MAX_MEAN_LIST
     lit = b < maps.T_INF
     assert 0.05 < lit.mean()
     assert np.array_equal(a < maps.T_INF, lit)

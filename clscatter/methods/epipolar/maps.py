@@ -137,16 +137,27 @@ def setup_shadow_map(frame: np.ndarray, axis: Axis, ps: PreparedScene, res: int)
     return np.zeros(1, EPI_FACE)
 
 
-def shadow_map_grid(ps: PreparedScene, frame: np.ndarray) -> tile_grid.TileGrid | None:
-    """The tile grid over a directional light's shadow map (:mod:`clscatter.accel.tile_grid`:
-    its texels are parallel rays along ``-u``), or None when the light is a spot or the
-    grid would not beat the BVH (:func:`tile_grid.worth_it`)."""
-    if int(frame["sm_faces"]) != 0 or int(ps.bvh.n_valid) == 0:
+def shadow_map_grid(ps: PreparedScene, frame: np.ndarray,
+                    faces: np.ndarray | None = None) -> tile_grid.TileGrid | None:
+    """The tile grid over a shadow map (:mod:`clscatter.accel.tile_grid`): orthographic
+    for a directional light (its texels are parallel rays along ``-u``), perspective
+    from the light for a spot light's single map (its texels are rays from the light
+    through the map's plane); None for the five faces of a wide cone, or where the grid
+    would not beat the BVH (:func:`tile_grid.worth_it`)."""
+    if int(ps.bvh.n_valid) == 0:
         return None
-    res = int(frame["sm_res"])
-    nt = tile_grid.tiles_for(res)
-    grid = tile_grid.build_grid(ps.bvh, frame["eye"], frame["sm_s1"], frame["sm_s2"],
-                                -np.asarray(frame["u"], np.float64), frame["sm_rect"], nt, nt)
+    if int(frame["sm_faces"]) == 0:
+        nt = tile_grid.tiles_for(int(frame["sm_res"]))
+        grid = tile_grid.build_grid(ps.bvh, frame["eye"], frame["sm_s1"], frame["sm_s2"],
+                                    -np.asarray(frame["u"], np.float64), frame["sm_rect"],
+                                    nt, nt)
+    elif int(frame["sm_faces"]) == 1 and faces is not None:
+        f = faces[0]
+        nt = tile_grid.tiles_for(int(f["c"][3]))
+        grid = tile_grid.build_grid(ps.bvh, frame["light"], f["e1"], f["e2"], f["c"],
+                                    f["rect"], nt, nt, perspective=True)
+    else:
+        return None
     return grid if tile_grid.worth_it(grid) else None
 
 
@@ -155,8 +166,9 @@ def trace_shadow_map(ps: PreparedScene, frame_buf, res: int, defines: dict | Non
                      frame: np.ndarray | None = None, info: dict | None = None):
     """Device buffer of the shadow map of the frame in ``frame_buf``: res * res floats
     (directional), or the spot faces' texels one face after the other (``defines``: those
-    of the epipolar program in use, so it is built once). Given the host ``frame`` of a
-    directional light, the texels go through a tile grid where one pays
+    of the epipolar program in use, so it is built once). Given the host ``frame``, the
+    texels of a directional map or a spot light's single map go through a tile grid
+    where one pays
     (:func:`shadow_map_grid`; the same depths as the BVH); ``info`` then receives
     ``shadow_map_caster`` (``grid`` with the grid's list statistics, or ``bvh``)."""
     eng = ps.engine
@@ -164,7 +176,7 @@ def trace_shadow_map(ps: PreparedScene, frame_buf, res: int, defines: dict | Non
     out = eng.empty(4 * n)
     own = faces_buf is None
     fb = eng.to_device(faces if faces is not None else np.zeros(1, EPI_FACE)) if own else faces_buf
-    grid = shadow_map_grid(ps, frame) if frame is not None else None
+    grid = shadow_map_grid(ps, frame, faces) if frame is not None else None
     if info is not None:
         info["shadow_map_caster"] = ({"kind": "grid", **grid.stats()} if grid is not None
                                      else {"kind": "bvh"})
