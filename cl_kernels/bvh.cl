@@ -76,3 +76,17 @@ __kernel void grid_hit(__global const float4 *tris, __global const int *grid,
         tri_out[i] = -1;
     }
 }
+
+/* Test hook for grid_any_toward: any hit on the ray from orig[i] towards the grid's
+ * origin with t in (tmin, (1 - 1e-5) |origin - orig[i]|) (a spot light's shadow ray);
+ * out = 1 / 0, or -1 where orig[i] lies outside the grid. */
+__kernel void grid_toward_hit(__global const float4 *tris, __global const int *grid,
+                              __global const float4 *orig, float tmin, int n,
+                              __global int *out) {
+    int i = get_global_id(0);
+    if (i >= n) return;
+    float4 to = GRID_HEAD(grid)->origin - orig[i];
+    to.w = 0.0f;
+    float dist = length3(to);
+    out[i] = grid_any_toward(tris, grid, orig[i], to / dist, tmin, dist * (1.0f - 1e-5f));
+}

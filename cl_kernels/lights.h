@@ -45,16 +45,20 @@ float4 light_transmission(__global const BVHNode *nodes, __global const float4 *
 
 /* light_transmission for light li, with the scene's light grid (tile_grid.h; packed):
  * the shadow rays of the light the grid serves go through it, the same answer as the
- * BVH's (surface shading, where a directional light's 1.2 M parallel shadow rays per
- * frame are worth a grid). */
+ * BVH's (surface shading and ray marching, where a light's millions of shadow rays per
+ * frame share a direction, or the light's position, and are worth a grid). */
 float4 light_transmission_grid(__global const BVHNode *nodes, __global const float4 *tris,
                                __global const int *light_grid, int li,
                                __global const Medium *m, float4 x, float4 wi, float dist,
                                float tmin) {
-    if (GRID_HEAD(light_grid)->light != li)
-        return light_transmission(nodes, tris, m, x, wi, dist, tmin);
+    __global const TileGrid *g = GRID_HEAD(light_grid);
+    if (g->light != li) return light_transmission(nodes, tris, m, x, wi, dist, tmin);
     float tmax = dist < T_INF ? dist * (1.0f - 1e-5f) : T_INF;
-    if (scene_any(nodes, tris, light_grid, x, wi, tmin, tmax)) return (float4)(0.0f);
+    /* directional: parallel rays of the grid; spot: rays towards its origin, the light */
+    int blocked = g->perspective ? grid_any_toward(tris, light_grid, x, wi, tmin, tmax)
+                                 : scene_any(nodes, tris, light_grid, x, wi, tmin, tmax);
+    if (blocked < 0) blocked = bvh_any(nodes, tris, x, wi, tmin, tmax);
+    if (blocked) return (float4)(0.0f);
     return light_medium_fraction(m, x, wi, dist);
 }
 

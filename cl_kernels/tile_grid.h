@@ -83,6 +83,32 @@ int grid_any(__global const float4 *tris, __global const int *g, int tile, float
     return grid_traverse(tris, g, tile, o, d, tmin, tmax, 1, 0);
 }
 
+/* Any hit for a ray from o towards a perspective grid's origin (a spot light's shadow
+ * ray: o a lit point, d towards the light), tested along the ray itself, so the answer
+ * is the BVH's. Its tile is that of the direction from the origin to o; every point of
+ * the segment is nearer the origin than o, hence at a smaller depth, so the list stops
+ * at the first key (a triangle's least depth) of |o - origin| or more. Returns -1 when o
+ * lies outside the grid (the caller asks the BVH). */
+int grid_any_toward(__global const float4 *tris, __global const int *g, float4 o, float4 d,
+                    float tmin, float tmax) {
+    __global const TileGrid *h = GRID_HEAD(g);
+    float4 q = o - h->origin;
+    q.w = 0.0f;
+    int tile = h->perspective ? grid_tile(g, h->origin, q) : -1;
+    if (tile < 0) return -1;
+    BvhRay r;
+    if (!bvh_ray_setup(o, d, &r)) return 0;
+    float lim = length3(q);
+    __global const int *starts = g + h->starts_at;
+    __global const int *items = g + h->items_at;
+    __global const float *keys = (__global const float *)(g + h->keys_at);
+    float best = tmax;
+    int end = starts[tile + 1];
+    for (int k = starts[tile]; k < end && keys[k] < lim; ++k)
+        if (bvh_try_triangle(&r, tris, items[k], tmin, &best, 0)) return 1;
+    return 0;
+}
+
 /* Closest hit through the grid where the ray is one of its rays (tile found), else the
  * BVH: callers hand every ray of a family here and get the BVH's answer either way. */
 int scene_closest(__global const BVHNode *nodes, __global const float4 *tris,

@@ -183,6 +183,37 @@ def test_perspective_grid_hits_equal_the_bvh(engine):
     assert np.isnan(t_out).all() and (slot == -2).all()
 
 
+def test_shadow_rays_towards_a_spot_light_equal_the_bvh(engine):
+    """Rays from points of the soup's space (and of the surfaces: points on triangles)
+    to a light at the grid's origin: blocked exactly where the BVH says, with the same
+    (tmin, (1 - 1e-5) dist) window; points outside the cone's grid report -1."""
+    light = -1.3 * DIR
+    bvh = build_bvh(_soup())
+    half = np.tan(np.radians(40.0))
+    grid = tile_grid.build_grid(bvh, light, S1, S2, DIR, (-half, -half, half, half), 24, 24,
+                                perspective=True)
+    rng = np.random.default_rng(8)
+    pts = rng.uniform(-0.7, 0.7, (30000, 3))
+    v = bvh.triangles[: bvh.n_valid, :, :3].astype(np.float64)
+    w = rng.dirichlet(np.ones(3), 5000)
+    on = np.einsum("nk,nkc->nc", w, v[rng.integers(0, len(v), 5000)])
+    pts = np.concatenate([pts, on + 1e-4 * rng.normal(size=on.shape)])
+    got = tile_grid.trace_toward(engine, bvh, grid, pts, tmin=1e-6)
+    to = light - pts
+    dist = np.linalg.norm(to, axis=1)
+    inside = got >= 0
+    rel = to / dist[:, None]
+    assert inside.mean() > 0.5
+    ref = trace(engine, bvh, pts[inside], rel[inside], tmin=1e-6)[0]
+    blocked = ref < (dist[inside] * (1 - 1e-5)).astype(np.float32)
+    assert 0.2 < blocked.mean() < 0.95
+    assert np.array_equal(got[inside] == 1, blocked)
+    # outside the cone's rectangle: -1
+    cosang = -(rel @ DIR)
+    tan_off = np.sqrt(np.maximum(1 - cosang ** 2, 0)) / np.maximum(cosang, 1e-9)
+    assert np.all(got[(cosang > 0) & (tan_off > 1.5 * half)] == -1)
+
+
 def test_watertight_through_shared_edges_and_vertices(engine):
     """A plane tessellated into grid-aligned quads: rays through its vertices and along
     its edges (on tile borders too) all hit, as with the BVH."""
@@ -261,10 +292,11 @@ def test_shadow_map_through_the_grid_equals_the_bvh(engine, name, kind):
 
 
 @pytest.mark.parametrize("name,method", [("shafts", "epipolar"), ("epi_grille", "raymarch"),
-                                         ("volume_lens", "voxel")])
+                                         ("volume_lens", "voxel"), ("epi_spot", "epipolar"),
+                                         ("spotlight", "raymarch")])
 def test_renders_equal_with_and_without_the_grids(engine, monkeypatch, name, method):
-    """The scene grids (camera rays, a directional light's shadow rays) and the shadow
-    map's grid change how hits are found, not which: the image equals the BVH-only one to
+    """The scene grids (camera rays, a directional or spot light's shadow rays) and the
+    shadow map's grid change how hits are found, not which: the image equals the BVH-only one to
     float tolerance (a ray exactly on an edge shared by two triangles may report either)."""
     from clscatter.render import render
     from clscatter.scene.loader import load_scene

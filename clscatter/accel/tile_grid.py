@@ -23,6 +23,7 @@ the BVH took 280-310 ms); :func:`worth_it` says when a grid beats the BVH.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -209,16 +210,39 @@ def _axes(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def light_grid(bvh: BVH, lights: np.ndarray) -> TileGrid | None:
-    """The grid for the shadow rays of the scene's first directional light (rays from
-    surface points towards the light, all parallel): over the projection of the scene's
-    bounding box, so every surface point falls in a tile. Its record's ``light`` is that
-    light's index. None without such a light or where the grid would not pay."""
-    kinds = [int(li["type"]) for li in np.atleast_1d(lights)]
-    if structs.LIGHT_DIRECTIONAL not in kinds or int(bvh.n_valid) == 0:
+    """The grid for the shadow rays of one light; its record's ``light`` is that light's
+    index. The scene's first directional light gets an orthographic grid (rays from
+    surface points towards the light are parallel) over the projection of the scene's
+    bounding box, so every surface point falls in a tile. Without one, the first spot
+    light of at most 60 degrees gets a perspective grid from its position over its cone
+    (shadow rays all end at the light: ``grid_any_toward``). None otherwise, or where the
+    grid would not pay."""
+    lights = np.atleast_1d(lights)
+    kinds = [int(li["type"]) for li in lights]
+    if int(bvh.n_valid) == 0:
         return None
-    li = kinds.index(structs.LIGHT_DIRECTIONAL)
-    d = -np.asarray(np.atleast_1d(lights)[li]["direction"][:3], np.float64)
-    d /= np.linalg.norm(d)
+    if structs.LIGHT_DIRECTIONAL in kinds:
+        li = kinds.index(structs.LIGHT_DIRECTIONAL)
+        grid = _parallel_grid(bvh, -np.asarray(lights[li]["direction"][:3], np.float64))
+    else:
+        cone = [i for i, k in enumerate(kinds) if k == structs.LIGHT_SPOT
+                and float(lights[i]["cos_cutoff"]) >= SPOT_GRID_COS]
+        if not cone:
+            return None
+        li = cone[0]
+        grid = _cone_grid(bvh, lights[li])
+    if not worth_it(grid):
+        return None
+    grid.record["light"] = li
+    return grid
+
+
+SPOT_GRID_COS = 0.5 - 1e-6   # spot cones up to 60 degrees get a light grid (one face)
+
+
+def _parallel_grid(bvh: BVH, d: np.ndarray) -> TileGrid | None:
+    """Orthographic grid along unit-ised ``d`` over the BVH's box."""
+    d = d / np.linalg.norm(d)
     s1, s2 = _axes(d)
     lo = np.asarray(bvh.nodes[0]["bmin"], np.float64)
     hi = np.asarray(bvh.nodes[0]["bmax"], np.float64)
@@ -227,13 +251,20 @@ def light_grid(bvh: BVH, lights: np.ndarray) -> TileGrid | None:
                         for i in range(8)]) - centre
     c1, c2 = corners @ s1, corners @ s2
     m1, m2 = 1e-3 * np.ptp(c1) + 1e-6, 1e-3 * np.ptp(c2) + 1e-6
-    grid = build_grid(bvh, centre, s1, s2, d, (c1.min() - m1, c2.min() - m2,
-                                              c1.max() + m1, c2.max() + m2),
+    return build_grid(bvh, centre, s1, s2, d, (c1.min() - m1, c2.min() - m2,
+                                               c1.max() + m1, c2.max() + m2),
                       SCENE_TILES, SCENE_TILES)
-    if not worth_it(grid):
-        return None
-    grid.record["light"] = li
-    return grid
+
+
+def _cone_grid(bvh: BVH, light) -> TileGrid | None:
+    """Perspective grid from a spot light over its cone (a hundredth wider)."""
+    a = np.asarray(light["direction"][:3], np.float64)
+    a /= np.linalg.norm(a)
+    s1, s2 = _axes(a)
+    c = float(np.clip(light["cos_cutoff"], 1e-6, 1.0))
+    ext = 1.01 * math.sqrt(max(1.0 - c * c, 0.0)) / c + 1e-6
+    return build_grid(bvh, light["position"][:3], s1, s2, a, (-ext, -ext, ext, ext),
+                      SCENE_TILES, SCENE_TILES, perspective=True)
 
 
 def camera_grid(bvh: BVH, camera: np.ndarray) -> TileGrid | None:
@@ -293,3 +324,20 @@ def trace_grid(engine, bvh: BVH, grid: TileGrid, origins: np.ndarray, tmin: floa
     finally:
         engine.free(ob, db, tb, ib, gb)
     return t == 1.0 if any_hit else (t, slot)
+
+
+def trace_toward(engine, bvh: BVH, grid: TileGrid, origins: np.ndarray, tmin: float = 0.0):
+    """Shadow rays from ``origins`` (N, 3) to a perspective grid's origin through the
+    ``grid_toward_hit`` test kernel: int array, 1 blocked, 0 clear, -1 outside the grid."""
+    o = np.zeros((len(origins), 4), np.float32)
+    o[:, :3] = np.asarray(origins, np.float64)[:, :3]
+    n = len(o)
+    bufs = bvh.device_buffers(engine)
+    gb = upload(engine, grid)
+    ob, out = engine.to_device(o), engine.empty(4 * max(n, 1))
+    try:
+        engine.call("bvh", "grid_toward_hit", n, tris=bufs.triangles, grid=gb, orig=ob,
+                    tmin=tmin, n=n, out=out)
+        return engine.read(out, n, np.int32)
+    finally:
+        engine.free(ob, out, gb)
