@@ -1,4 +1,4 @@
-"""Tile grid: the triangles binned over a plane, for many parallel rays (``tile_grid.h``).
+"""Tile grids: triangles binned over a plane for families of rays (``tile_grid.h``).
 
 A directional light's rays are all parallel. Its shadow map (1.6 M texels at the default
 1280 x 1280) sent through the BVH costs ~180 ns a ray on the CPU device, most of it in
@@ -20,6 +20,14 @@ are the BVH's to the bit; only which of two triangles at exactly the same distan
 reported may differ. The lists are built here in NumPy, row by row of tiles (4-10 ms for
 the built-in scenes' 1280-texel maps, against 66-88 ms of kernel for the whole map where
 the BVH took 280-310 ms); :func:`worth_it` says when a grid beats the BVH.
+
+A *perspective* grid serves rays that share an origin instead (a pinhole camera, a spot
+light): plane coordinates are divided by the depth along ``dir`` and the key is a
+triangle's least depth, a lower bound of its distance along any unit ray from the
+origin. Rays that *end* at the origin (a spot light's shadow rays) use the same lists
+from the other side (``grid_any_toward``). The grids of a scene: :func:`camera_grid`,
+:func:`light_grid` (kept in ``SceneBuffers`` and rebuilt when the camera or the lights
+change); the shadow maps' own are built in ``methods/epipolar/maps.py``.
 """
 from __future__ import annotations
 
