@@ -79,7 +79,8 @@ __kernel void grid_hit(__global const float4 *tris, __global const int *grid,
 
 /* Test hook for grid_any_toward: any hit on the ray from orig[i] towards the grid's
  * origin with t in (tmin, (1 - 1e-5) |origin - orig[i]|) (a spot light's shadow ray);
- * out = 1 / 0, or -1 where orig[i] lies outside the grid. */
+ * out = 1 / 0, or -1 where orig[i] lies outside the grid; a cube of grids (a point
+ * light's) answers through the face orig[i] falls in. */
 __kernel void grid_toward_hit(__global const float4 *tris, __global const int *grid,
                               __global const float4 *orig, float tmin, int n,
                               __global int *out) {
@@ -88,5 +89,6 @@ __kernel void grid_toward_hit(__global const float4 *tris, __global const int *g
     float4 to = GRID_HEAD(grid)->origin - orig[i];
     to.w = 0.0f;
     float dist = length3(to);
-    out[i] = grid_any_toward(tris, grid, orig[i], to / dist, tmin, dist * (1.0f - 1e-5f));
+    out[i] = grid_any_toward(tris, grid_cube_face(grid, orig[i]), orig[i], to / dist, tmin,
+                             dist * (1.0f - 1e-5f));
 }

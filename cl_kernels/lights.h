@@ -54,9 +54,11 @@ float4 light_transmission_grid(__global const BVHNode *nodes, __global const flo
     __global const TileGrid *g = GRID_HEAD(light_grid);
     if (g->light != li) return light_transmission(nodes, tris, m, x, wi, dist, tmin);
     float tmax = dist < T_INF ? dist * (1.0f - 1e-5f) : T_INF;
-    /* directional: parallel rays of the grid; spot: rays towards its origin, the light */
-    int blocked = g->perspective ? grid_any_toward(tris, light_grid, x, wi, tmin, tmax)
-                                 : scene_any(nodes, tris, light_grid, x, wi, tmin, tmax);
+    /* directional: parallel rays of the grid; spot or point (a cube of six): rays towards
+     * its origin, the light */
+    int blocked = g->perspective
+        ? grid_any_toward(tris, grid_cube_face(light_grid, x), x, wi, tmin, tmax)
+        : scene_any(nodes, tris, light_grid, x, wi, tmin, tmax);
     if (blocked < 0) blocked = bvh_any(nodes, tris, x, wi, tmin, tmax);
     if (blocked) return (float4)(0.0f);
     return light_medium_fraction(m, x, wi, dist);

@@ -33,6 +33,9 @@ typedef struct {
     int perspective; /* 1: rays from origin, plane coordinates divided by the depth */
     int light;       /* the light whose shadow rays it serves (scene grids), or -1 */
     int starts_at, items_at, keys_at;   /* offsets in words of the three arrays */
+    int faces;       /* 6: a point light's cube, six perspective grids one after another */
+    int next;        /* offset in words from this record to the next face's (0: last) */
+    int pad0, pad1;
 } TileGrid;
 
 #define GRID_HEAD(g) ((__global const TileGrid *)(g))
@@ -107,6 +110,21 @@ int grid_any_toward(__global const float4 *tris, __global const int *g, float4 o
     for (int k = starts[tile]; k < end && keys[k] < lim; ++k)
         if (bvh_try_triangle(&r, tris, items[k], tmin, &best, 0)) return 1;
     return 0;
+}
+
+/* The face of a cube of grids (faces == 6) that point p falls in, seen from the cube's
+ * origin: face 2 k + s for the axis k of the largest |p - origin| component, s = 1 on its
+ * negative side (clscatter.accel.tile_grid._cube_grids); the grid itself otherwise. */
+__global const int *grid_cube_face(__global const int *g, float4 p) {
+    __global const TileGrid *h = GRID_HEAD(g);
+    if (h->faces != 6) return g;
+    float4 q = p - h->origin;
+    float ax = fabs(q.x), ay = fabs(q.y), az = fabs(q.z);
+    int k = ax >= ay ? (ax >= az ? 0 : 2) : (ay >= az ? 1 : 2);
+    float c = k == 0 ? q.x : (k == 1 ? q.y : q.z);
+    int f = 2 * k + (c < 0.0f);
+    for (int i = 0; i < f; ++i) g += GRID_HEAD(g)->next;
+    return g;
 }
 
 /* Closest hit through the grid where the ray is one of its rays (tile found), else the

@@ -6,8 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from clscatter import structs
 from clscatter.accel import tile_grid
 from clscatter.accel.bvh import build_bvh, trace
+
+trimesh = pytest.importorskip("trimesh")
 
 DIR = np.array([0.3, -1.0, 0.2]) / np.linalg.norm([0.3, -1.0, 0.2])
 
@@ -183,6 +186,35 @@ def test_perspective_grid_hits_equal_the_bvh(engine):
     assert np.isnan(t_out).all() and (slot == -2).all()
 
 
+def test_walls_around_the_origin_are_clipped_not_listed_everywhere(engine):
+    """A camera inside a box room: the walls beside and behind it cross the plane through
+    the camera, are clipped to their part in front and listed only where that part
+    projects (a room needs ~2 triangles per tile, not all 12), and every ray still hits
+    what the BVH hits. A wall through the camera itself stays listed everywhere."""
+    box = trimesh.creation.box(extents=[2.0, 1.6, 3.0])
+    room = box.vertices[box.faces]
+    eye = np.array([0.3, -0.2, 0.4])
+    bvh = build_bvh(room.astype(np.float32))
+    half = np.tan(np.radians(40.0))
+    grid = tile_grid.build_grid(bvh, eye, S1, S2, DIR, (-half, -half, half, half), 16, 16,
+                                perspective=True)
+    assert grid.mean_list < 4.0
+    rng = np.random.default_rng(12)
+    tan = rng.uniform(-half, half, (20000, 2))
+    d = DIR + tan[:, :1] * S1 + tan[:, 1:] * S2
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.broadcast_to(eye, d.shape)
+    t_grid, _ = tile_grid.trace_grid(engine, bvh, grid, o, dirs=d)
+    t_bvh, _ = trace(engine, bvh, o, d)
+    assert np.all(np.isfinite(t_bvh))                      # closed room: every ray hits
+    np.testing.assert_allclose(t_grid, t_bvh, rtol=1e-6)
+    # a wall plane through the camera: that wall's triangles in every tile
+    flat = tile_grid.build_grid(bvh, np.array([1.0, 0.1, 0.2]), S1, S2, DIR,
+                                (-half, -half, half, half), 16, 16, perspective=True)
+    counts = np.bincount(flat.items, minlength=bvh.n_valid)
+    assert counts.max() == 16 * 16
+
+
 def test_shadow_rays_towards_a_spot_light_equal_the_bvh(engine):
     """Rays from points of the soup's space (and of the surfaces: points on triangles)
     to a light at the grid's origin: blocked exactly where the BVH says, with the same
@@ -212,6 +244,31 @@ def test_shadow_rays_towards_a_spot_light_equal_the_bvh(engine):
     cosang = -(rel @ DIR)
     tan_off = np.sqrt(np.maximum(1 - cosang ** 2, 0)) / np.maximum(cosang, 1e-9)
     assert np.all(got[(cosang > 0) & (tan_off > 1.5 * half)] == -1)
+
+
+def test_shadow_rays_towards_a_point_light_through_its_cube(engine):
+    """A point light inside the soup: six face grids, every point in one of them (none
+    reports -1), blocked exactly where the BVH says; cube edges and corners included."""
+    light = np.array([0.05, -0.02, 0.03])
+    bvh = build_bvh(_soup())
+    lights = np.zeros(1, structs.LIGHT)
+    lights[0]["type"] = structs.LIGHT_POINT
+    lights[0]["position"] = structs.vec4(light)
+    cube = tile_grid.light_grid(bvh, lights)
+    assert isinstance(cube, tile_grid.CubeGrid) and len(cube.faces) == 6
+    assert cube.packed()[:tile_grid.HEAD_WORDS].view(tile_grid.TILE_GRID)["faces"] == 6
+    rng = np.random.default_rng(11)
+    pts = rng.uniform(-0.8, 0.8, (30000, 3))
+    diag = light + np.array([[1, 1, 0], [1, -1, 1], [-1, -1, -1], [0, 1, -1]]) * 0.4
+    pts = np.concatenate([pts, diag])
+    got = tile_grid.trace_toward(engine, bvh, cube, pts, tmin=1e-6)
+    assert np.all(got >= 0)
+    to = light - pts
+    dist = np.linalg.norm(to, axis=1)
+    t, _ = trace(engine, bvh, pts, to / dist[:, None], tmin=1e-6)
+    blocked = t < (dist * (1 - 1e-5)).astype(np.float32)
+    assert 0.2 < blocked.mean() < 0.95
+    assert np.array_equal(got == 1, blocked)
 
 
 def test_watertight_through_shared_edges_and_vertices(engine):
@@ -293,10 +350,10 @@ def test_shadow_map_through_the_grid_equals_the_bvh(engine, name, kind):
 
 @pytest.mark.parametrize("name,method", [("shafts", "epipolar"), ("epi_grille", "raymarch"),
                                          ("volume_lens", "voxel"), ("epi_spot", "epipolar"),
-                                         ("spotlight", "raymarch")])
+                                         ("spotlight", "raymarch"), ("occluder", "raymarch")])
 def test_renders_equal_with_and_without_the_grids(engine, monkeypatch, name, method):
-    """The scene grids (camera rays, a directional or spot light's shadow rays) and the
-    shadow map's grid change how hits are found, not which: the image equals the BVH-only one to
+    """The scene grids (camera rays; a directional, spot or point light's shadow rays) and
+    the shadow map's grid change how hits are found, not which: the image equals the BVH-only one to
     float tolerance (a ray exactly on an edge shared by two triangles may report either)."""
     from clscatter.render import render
     from clscatter.scene.loader import load_scene
@@ -304,7 +361,10 @@ def test_renders_equal_with_and_without_the_grids(engine, monkeypatch, name, met
     scene = load_scene(f"builtin:{name}", ["camera.resolution=[48,36]", "camera.spp=2"])
     with_grids = render(scene, method=method, engine=engine, show_progress=False)
     grids = with_grids.stats["tile_grids"]
-    assert grids["camera_grid"] is not None and grids["light_grid"] is not None
+    assert grids["light_grid"] is not None
+    # the occluder's ball, a detailed mesh over 8 x 8 tiles of a 48 x 36 image: the camera
+    # rays keep the BVH there
+    assert (grids["camera_grid"] is None) == (name == "occluder")
     monkeypatch.setattr(tile_grid, "worth_it", lambda grid: False)
     without = render(scene, method=method, engine=engine, show_progress=False)
     assert without.stats["tile_grids"] == {"camera_grid": None, "light_grid": None}

@@ -45,6 +45,7 @@ TILE_GRID = structs.register_struct("tile_grid.h", "TileGrid", np.dtype([
     ("origin", *F4), ("s1", *F4), ("s2", *F4), ("dir", *F4), ("rect", *F4),
     ("nx", np.int32), ("ny", np.int32), ("items", np.int32), ("perspective", np.int32),
     ("light", np.int32), ("starts_at", np.int32), ("items_at", np.int32), ("keys_at", np.int32),
+    ("faces", np.int32), ("next", np.int32), ("pad0", np.int32), ("pad1", np.int32),
 ], align=True))
 HEAD_WORDS = TILE_GRID.itemsize // 4
 
@@ -83,11 +84,16 @@ class TileGrid:
         ``items`` and the ``keys``' float32 bits, at the offsets (in words) the record
         holds, so a kernel threads one parameter through instead of four."""
         rec = self.record.copy()
+        rec["faces"] = max(int(rec["faces"]), 1)
         rec["starts_at"] = HEAD_WORDS
         rec["items_at"] = HEAD_WORDS + len(self.starts)
         rec["keys_at"] = HEAD_WORDS + len(self.starts) + len(self.items)
-        return np.concatenate([rec.reshape(1).view(np.int32), self.starts.astype(np.int32),
-                               self.items.astype(np.int32), self.keys.astype(np.float32).view(np.int32)])
+        out = np.concatenate([rec.reshape(1).view(np.int32), self.starts.astype(np.int32),
+                              self.items.astype(np.int32),
+                              self.keys.astype(np.float32).view(np.int32)])
+        # a whole number of 16-byte words, so a grid packed after this one (a cube's next
+        # face) starts aligned for the record's float4 fields
+        return np.concatenate([out, np.zeros(-len(out) % 4, np.int32)])
 
 
 def tiles_for(res: int) -> int:
@@ -110,8 +116,10 @@ def build_grid(bvh: BVH, origin, s1, s2, direction, rect, nx: int, ny: int,
     ``perspective``: the rays all start at ``origin`` (a pinhole camera) and the plane
     coordinates are ``(q.s1 / q.dir, q.s2 / q.dir)`` for ``q = p - origin``; the key is
     the triangle's smallest depth ``q.dir``, a lower bound of the distance to any of its
-    points for unit rays. A triangle wholly behind the origin is left out, one that
-    crosses the plane ``q.dir = 0`` is listed in every tile."""
+    points for unit rays. A triangle wholly behind the origin is left out; one that
+    crosses the plane ``q.dir = 0`` is clipped to its part in front
+    (:func:`_perspective_rows`), or listed in every tile when its plane passes near the
+    origin."""
     origin, s1, s2, d = (np.asarray(a, np.float64)[:3] for a in (origin, s1, s2, direction))
     lo1, lo2, hi1, hi2 = (float(x) for x in rect)
     w1, w2 = max(hi1 - lo1, 1e-30), max(hi2 - lo2, 1e-30)
@@ -120,16 +128,9 @@ def build_grid(bvh: BVH, origin, s1, s2, direction, rect, nx: int, ny: int,
     x1, x2, z = v @ s1, v @ s2, v @ d
     scale = max(float(np.abs(v).max()) if n else 0.0, w1, w2, 1.0)
     pad = PAD * scale
-    crossing = np.zeros(n, bool)
+    slot, whole = np.arange(n), np.zeros(n, bool)
     if perspective:
-        zmin = z.min(axis=1)
-        front = zmin > pad
-        crossing = ~front & (z.max(axis=1) > 0.0)
-        zs = np.where(front[:, None], z, 1.0)
-        x1, x2 = x1 / zs, x2 / zs
-        x1[crossing] = [lo1, hi1, lo1]            # the whole rectangle's rows and columns
-        x2[crossing] = [lo2, hi2, hi2]
-        x2[~front & ~crossing] = hi2 + 2.0 * w2    # behind: beyond the rectangle, no tile
+        x1, x2, slot, whole = _perspective_rows(v, x1, x2, z, pad, (lo1, lo2, hi1, hi2))
         pad = PAD * max(w1, w2, 1.0)
     fx = (x1 - lo1) * (nx / w1)                   # vertices in tile units
     fy = (x2 - lo2) * (ny / w2)
@@ -138,12 +139,12 @@ def build_grid(bvh: BVH, origin, s1, s2, direction, rect, nx: int, ny: int,
     j0 = np.clip(np.floor(fy.min(axis=1) - py), 0, ny - 1).astype(np.int64)
     j1 = np.clip(np.floor(fy.max(axis=1) + py), -1, ny - 1).astype(np.int64)
     rows = np.maximum(j1 - j0 + 1, 0)
-    tri = np.repeat(np.arange(n), rows)
+    tri = np.repeat(np.arange(len(slot)), rows)
     row = np.arange(len(tri)) - np.repeat(np.cumsum(rows) - rows, rows) + j0[tri]
     # ... and the columns the triangle covers in that row's (padded) strip
     xmin, xmax = _strip_extent(fx[tri], fy[tri], row - py, row + 1.0 + py)
-    whole = crossing[tri]
-    xmin[whole], xmax[whole] = 0.0, float(nx)
+    everywhere = whole[tri]
+    xmin[everywhere], xmax[everywhere] = 0.0, float(nx)
     i0 = np.clip(np.floor(xmin - px), 0, nx - 1).astype(np.int64)
     i1 = np.clip(np.floor(xmax + px), -1, nx - 1).astype(np.int64)
     i1[(xmax + px < 0) | (xmin - px >= nx)] = -1
@@ -154,12 +155,18 @@ def build_grid(bvh: BVH, origin, s1, s2, direction, rect, nx: int, ny: int,
     pair = np.repeat(np.arange(len(tri)), cols)
     ti = np.arange(total) - np.repeat(np.cumsum(cols) - cols, cols) + i0[pair]
     tile = row[pair] * nx + ti
-    owner = tri[pair]
+    owner = slot[tri[pair]]
     near = z.min(axis=1) - PAD * scale
     # one sort: by tile, then by near within a tile (near scaled into [0, 0.5))
     lo_near = float(near.min()) if n else 0.0
     span = max(float(near.max()) - lo_near if n else 0.0, 1e-30)
     order = np.argsort(tile + 0.5 * (near[owner] - lo_near) / span, kind="stable")
+    tile, owner = tile[order], owner[order]
+    if len(slot) > n:               # clipped triangles come in two parts: list them once
+        keep = np.ones(len(tile), bool)
+        keep[1:] = (tile[1:] != tile[:-1]) | (owner[1:] != owner[:-1])
+        tile, owner = tile[keep], owner[keep]
+        total = len(tile)
     starts = np.zeros(nx * ny + 1, np.int32)
     np.cumsum(np.bincount(tile, minlength=nx * ny), out=starts[1:])
     rec = np.zeros((), TILE_GRID)
@@ -170,8 +177,64 @@ def build_grid(bvh: BVH, origin, s1, s2, direction, rect, nx: int, ny: int,
     rec["rect"] = (lo1, lo2, hi1, hi2)
     rec["nx"], rec["ny"], rec["items"] = nx, ny, total
     rec["perspective"], rec["light"] = int(perspective), -1
-    return TileGrid(rec, starts, owner[order].astype(np.int32),
-                    near[owner[order]].astype(np.float32))
+    return TileGrid(rec, starts, owner.astype(np.int32), near[owner].astype(np.float32))
+
+
+def _perspective_rows(v, x1, x2, z, pad: float, rect):
+    """The rows a perspective grid bins, from triangles ``v`` (n, 3, 3; relative to the
+    origin) with plane coordinates ``x1``, ``x2`` and depths ``z`` (n, 3): projected
+    triangles ``(x1 / z, x2 / z)``, each row's triangle slot, and which rows cover the
+    whole rectangle.
+
+    - In front (every depth above ``zc = pad``): projected as they are.
+    - Behind (no depth above 0): left out, as rays of the grid go forwards.
+    - Crossing: clipped to ``z >= zc`` (a triangle or a quad, binned as one or two
+      triangles). The part left out, at depths below ``zc``, projects into the rectangle
+      only within ``zc (1 + sqrt(2) R)`` of the origin (R: the rectangle's largest
+      tangent), so a crossing triangle whose plane passes that close is listed everywhere
+      instead. A camera inside a room sees its walls and floor clipped, not everywhere.
+    """
+    lo1, lo2, hi1, hi2 = rect
+    zc = pad
+    zmin, zmax = z.min(axis=1), z.max(axis=1)
+    front = zmin > zc
+    crossing = ~front & (zmax > 0.0)
+    nrm = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        plane = np.abs(np.einsum("ij,ij->i", nrm, v[:, 0])) / np.linalg.norm(nrm, axis=1)
+    reach = 2.0 * zc * (1.0 + math.sqrt(2.0) * max(abs(lo1), abs(hi1), abs(lo2), abs(hi2)))
+    everywhere = crossing & ~(plane > reach)
+    clip = np.nonzero(crossing & ~everywhere)[0]
+    # Sutherland-Hodgman against z >= zc: up to 4 vertices per clipped triangle, in order
+    P = np.stack([x1[clip], x2[clip], z[clip]], axis=-1)                 # (m, 3, 3)
+    pts = np.zeros((len(clip), 6, 3))
+    ok = np.zeros((len(clip), 6), bool)
+    for e in range(3):
+        a, b = P[:, e], P[:, (e + 1) % 3]
+        ina, inb = a[:, 2] >= zc, b[:, 2] >= zc
+        pts[:, 2 * e], ok[:, 2 * e] = a, ina
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (zc - a[:, 2]) / (b[:, 2] - a[:, 2])
+        t = np.where(ina != inb, t, 0.0)               # used only where the edge crosses
+        pts[:, 2 * e + 1] = a + t[:, None] * (b - a)
+        pts[:, 2 * e + 1, 2] = zc
+        ok[:, 2 * e + 1] = ina != inb
+    first = np.argsort(~ok, axis=1, kind="stable")[:, :4]               # valid ones, in order
+    poly = np.take_along_axis(pts, first[:, :, None], axis=1)           # (m, 4, 3)
+    quad = ok.sum(axis=1) == 4
+    sub = np.concatenate([poly[:, [0, 1, 2]], poly[quad][:, [0, 2, 3]]])  # fan
+    sub_slot = np.concatenate([clip, clip[quad]])
+    keep = np.nonzero(front)[0]
+    wide = np.nonzero(everywhere)[0]
+    zs = np.concatenate([z[keep], sub[:, :, 2]])
+    rx1 = np.concatenate([x1[keep], sub[:, :, 0]]) / zs
+    rx2 = np.concatenate([x2[keep], sub[:, :, 1]]) / zs
+    # everywhere: a triangle spanning the whole rectangle's rows and columns
+    rx1 = np.concatenate([rx1, np.tile([lo1, hi1, lo1], (len(wide), 1))])
+    rx2 = np.concatenate([rx2, np.tile([lo2, hi2, hi2], (len(wide), 1))])
+    slot = np.concatenate([keep, sub_slot, wide])
+    whole = np.concatenate([np.zeros(len(keep) + len(sub), bool), np.ones(len(wide), bool)])
+    return rx1, rx2, slot, whole
 
 
 def _strip_extent(fx: np.ndarray, fy: np.ndarray, ylo: np.ndarray, yhi: np.ndarray):
@@ -235,10 +298,20 @@ def light_grid(bvh: BVH, lights: np.ndarray) -> TileGrid | None:
     else:
         cone = [i for i, k in enumerate(kinds) if k == structs.LIGHT_SPOT
                 and float(lights[i]["cos_cutoff"]) >= SPOT_GRID_COS]
-        if not cone:
-            return None
-        li = cone[0]
-        grid = _cone_grid(bvh, lights[li])
+        if cone:
+            li = cone[0]
+            grid = _cone_grid(bvh, lights[li])
+        else:
+            point = [i for i, k in enumerate(kinds) if k in (structs.LIGHT_POINT, structs.LIGHT_SPOT)]
+            if not point:
+                return None
+            li = point[0]
+            faces = _cube_grids(bvh, lights[li])
+            if faces is None:
+                return None
+            for f in faces:
+                f.record["light"] = li
+            return CubeGrid(faces)
     if not worth_it(grid):
         return None
     grid.record["light"] = li
@@ -262,6 +335,50 @@ def _parallel_grid(bvh: BVH, d: np.ndarray) -> TileGrid | None:
     return build_grid(bvh, centre, s1, s2, d, (c1.min() - m1, c2.min() - m2,
                                                c1.max() + m1, c2.max() + m2),
                       SCENE_TILES, SCENE_TILES)
+
+
+CUBE_TILES = 64    # tiles along each side of a cube face (a point light's grid)
+_CUBE_AXES = np.eye(3)
+
+
+def _cube_grids(bvh: BVH, light) -> list[TileGrid] | None:
+    """Six perspective grids from a point light, one per cube face (face ``2 k + s``: axis
+    ``k``, ``s = 1`` the negative side; each a thousandth wider than 90 degrees), or None
+    when one would not pay."""
+    faces = []
+    for k in range(3):
+        s1, s2 = _CUBE_AXES[(k + 1) % 3], _CUBE_AXES[(k + 2) % 3]
+        for sign in (1.0, -1.0):
+            g = build_grid(bvh, light["position"][:3], s1, s2, sign * _CUBE_AXES[k],
+                           (-1.001, -1.001, 1.001, 1.001), CUBE_TILES, CUBE_TILES,
+                           perspective=True)
+            if not worth_it(g):
+                return None
+            faces.append(g)
+    return faces
+
+
+@dataclass
+class CubeGrid:
+    """A point light's six face grids, packed one after another (each record's ``next``
+    is the offset in words to the following face; ``faces`` = 6 in the first)."""
+
+    faces: list[TileGrid]
+
+    def stats(self) -> dict:
+        st = [f.stats() for f in self.faces]
+        return {"faces": len(st), "tiles": sum(x["tiles"] for x in st),
+                "entries": sum(x["entries"] for x in st),
+                "mean_list": round(sum(x["entries"] for x in st) / max(sum(x["tiles"] for x in st), 1), 2),
+                "max_list": max(x["max_list"] for x in st)}
+
+    def packed(self) -> np.ndarray:
+        parts = [f.packed() for f in self.faces]
+        for i, p in enumerate(parts):
+            rec = p[:HEAD_WORDS].view(TILE_GRID)
+            rec["faces"] = len(parts) if i == 0 else 1
+            rec["next"] = len(p) if i + 1 < len(parts) else 0
+        return np.concatenate(parts)
 
 
 def _cone_grid(bvh: BVH, light) -> TileGrid | None:
@@ -302,7 +419,7 @@ def empty_packed() -> np.ndarray:
     return rec.reshape(1).view(np.int32).copy()
 
 
-def upload(engine, grid: TileGrid | None):
+def upload(engine, grid: TileGrid | CubeGrid | None):
     """A device buffer of ``grid`` packed (:meth:`TileGrid.packed`); None gives an empty
     grid (the kernels then use the BVH). The caller frees it."""
     return engine.to_device(grid.packed() if grid is not None else empty_packed())
@@ -334,7 +451,8 @@ def trace_grid(engine, bvh: BVH, grid: TileGrid, origins: np.ndarray, tmin: floa
     return t == 1.0 if any_hit else (t, slot)
 
 
-def trace_toward(engine, bvh: BVH, grid: TileGrid, origins: np.ndarray, tmin: float = 0.0):
+def trace_toward(engine, bvh: BVH, grid: TileGrid | CubeGrid, origins: np.ndarray,
+                 tmin: float = 0.0):
     """Shadow rays from ``origins`` (N, 3) to a perspective grid's origin through the
     ``grid_toward_hit`` test kernel: int array, 1 blocked, 0 clear, -1 outside the grid."""
     o = np.zeros((len(origins), 4), np.float32)
