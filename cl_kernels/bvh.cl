@@ -7,6 +7,12 @@
 #include "bvh.h"
 #include "tile_grid.h"
 
+/* t and slot of a closest hit (found) or of a miss (INFINITY, -1) */
+void write_hit(int found, const Hit *h, int i, __global float *t_out, __global int *tri_out) {
+    t_out[i] = found ? h->t : INFINITY;
+    tri_out[i] = found ? h->tri : -1;
+}
+
 __kernel void closest_hit(__global const BVHNode *nodes, __global const float4 *tris,
                           __global const float4 *orig, __global const float4 *dir,
                           float tmin, float tmax, int n, __global float *t_out,
@@ -14,13 +20,7 @@ __kernel void closest_hit(__global const BVHNode *nodes, __global const float4 *
     int i = get_global_id(0);
     if (i >= n) return;
     Hit h;
-    if (bvh_closest(nodes, tris, orig[i], dir[i], tmin, tmax, &h)) {
-        t_out[i] = h.t;
-        tri_out[i] = h.tri;
-    } else {
-        t_out[i] = INFINITY;
-        tri_out[i] = -1;
-    }
+    write_hit(bvh_closest(nodes, tris, orig[i], dir[i], tmin, tmax, &h), &h, i, t_out, tri_out);
 }
 
 /* closest_hit plus the barycentrics (u, v) of v1, v2; NaN on a miss */
@@ -31,15 +31,9 @@ __kernel void closest_hit_uv(__global const BVHNode *nodes, __global const float
     int i = get_global_id(0);
     if (i >= n) return;
     Hit h;
-    if (bvh_closest(nodes, tris, orig[i], dir[i], tmin, tmax, &h)) {
-        t_out[i] = h.t;
-        tri_out[i] = h.tri;
-        uv_out[i] = (float2)(h.u, h.v);
-    } else {
-        t_out[i] = INFINITY;
-        tri_out[i] = -1;
-        uv_out[i] = (float2)(NAN, NAN);
-    }
+    int found = bvh_closest(nodes, tris, orig[i], dir[i], tmin, tmax, &h);
+    write_hit(found, &h, i, t_out, tri_out);
+    uv_out[i] = found ? (float2)(h.u, h.v) : (float2)(NAN, NAN);
 }
 
 __kernel void any_hit(__global const BVHNode *nodes, __global const float4 *tris,
@@ -68,13 +62,7 @@ __kernel void grid_hit(__global const float4 *tris, __global const int *grid,
         return;
     }
     Hit h;
-    if (grid_closest(tris, grid, tile, orig[i], d, tmin, tmax, &h)) {
-        t_out[i] = h.t;
-        tri_out[i] = h.tri;
-    } else {
-        t_out[i] = INFINITY;
-        tri_out[i] = -1;
-    }
+    write_hit(grid_closest(tris, grid, tile, orig[i], d, tmin, tmax, &h), &h, i, t_out, tri_out);
 }
 
 /* Test hook for grid_any_toward: any hit on the ray from orig[i] towards the grid's
