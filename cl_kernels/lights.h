@@ -33,32 +33,23 @@ float4 light_medium_fraction(__global const Medium *m, float4 x, float4 wi, floa
     return len > 0.0f ? transmittance(m->kappa, len) : (float4)(1.0f, 1.0f, 1.0f, 0.0f);
 }
 
-/* Fraction of that light reaching x: 0 when a surface blocks the way (every surface,
- * glass included, occludes direct light; caustics are the caustic methods' job), else
- * the medium's transmittance along the part of the light path inside its bounds. */
+/* Fraction of light li's light reaching x: 0 when a surface blocks the way (every
+ * surface, glass included, occludes direct light; caustics are the caustic methods' job),
+ * else the medium's transmittance along the part of the light path inside its bounds.
+ * The shadow ray goes through the scene's light grid (tile_grid.h; packed) when that
+ * grid serves light li, with the BVH's answer: parallel rays for a directional light,
+ * rays towards the light for a spot or point light (a point light's grid is a cube of
+ * six faces); otherwise, or where x lies outside the grid, through the BVH. */
 float4 light_transmission(__global const BVHNode *nodes, __global const float4 *tris,
-                          __global const Medium *m, float4 x, float4 wi, float dist, float tmin) {
+                          __global const int *light_grid, int li, __global const Medium *m,
+                          float4 x, float4 wi, float dist, float tmin) {
     float tmax = dist < T_INF ? dist * (1.0f - 1e-5f) : T_INF;
-    if (bvh_any(nodes, tris, x, wi, tmin, tmax)) return (float4)(0.0f);
-    return light_medium_fraction(m, x, wi, dist);
-}
-
-/* light_transmission for light li, with the scene's light grid (tile_grid.h; packed):
- * the shadow rays of the light the grid serves go through it, the same answer as the
- * BVH's (surface shading and ray marching, where a light's millions of shadow rays per
- * frame share a direction, or the light's position, and are worth a grid). */
-float4 light_transmission_grid(__global const BVHNode *nodes, __global const float4 *tris,
-                               __global const int *light_grid, int li,
-                               __global const Medium *m, float4 x, float4 wi, float dist,
-                               float tmin) {
     __global const TileGrid *g = GRID_HEAD(light_grid);
-    if (g->light != li) return light_transmission(nodes, tris, m, x, wi, dist, tmin);
-    float tmax = dist < T_INF ? dist * (1.0f - 1e-5f) : T_INF;
-    /* directional: parallel rays of the grid; spot or point (a cube of six): rays towards
-     * its origin, the light */
-    int blocked = g->perspective
-        ? grid_any_toward(tris, grid_cube_face(light_grid, x), x, wi, tmin, tmax)
-        : scene_any(nodes, tris, light_grid, x, wi, tmin, tmax);
+    int blocked = -1;
+    if (g->light == li)
+        blocked = g->perspective
+            ? grid_any_toward(tris, grid_cube_face(light_grid, x), x, wi, tmin, tmax)
+            : scene_any(nodes, tris, light_grid, x, wi, tmin, tmax);
     if (blocked < 0) blocked = bvh_any(nodes, tris, x, wi, tmin, tmax);
     if (blocked) return (float4)(0.0f);
     return light_medium_fraction(m, x, wi, dist);

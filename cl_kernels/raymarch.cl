@@ -75,8 +75,8 @@ __kernel void raymarch(__global const BVHNode *nodes, __global const float4 *tri
             float dist;
             float4 E = light_arrival(L, x, &wi, &dist);
             if (E.x == 0.0f && E.y == 0.0f && E.z == 0.0f) continue;
-            float4 T_light = light_transmission_grid(nodes, tris, light_grid, li, medium, x, wi,
-                                                     dist, 1e-5f);
+            float4 T_light = light_transmission(nodes, tris, light_grid, li, medium, x, wi, dist,
+                                                1e-5f);
             float cos_theta = dot3(-wi, -w);      /* light travels along -wi; camera is at -w */
             float ph = hg_phase(cos_theta, medium->g);
             acc += E * T_light * transmittance(medium->kappa, t) * (ph * dt);

@@ -105,8 +105,8 @@ float4 direct_irradiance(__global const BVHNode *nodes, __global const float4 *t
         float4 E = light_arrival(&lights[i], p, &wi, &dist);
         float c = dot3(n, wi);
         if (c <= 0.0f || dot3(gn, wi) <= 0.0f || (E.x == 0.0f && E.y == 0.0f && E.z == 0.0f)) continue;
-        sum += E * c * light_transmission_grid(nodes, tris, light_grid, i, medium, origin, wi,
-                                               dist, 0.0f);
+        sum += E * c * light_transmission(nodes, tris, light_grid, i, medium, origin, wi,
+                                          dist, 0.0f);
     }
     return sum;
 }
