@@ -22,6 +22,17 @@ def box_corners(lo, hi) -> np.ndarray:
     return np.where(bits == 1, hi, lo)
 
 
+def perpendicular_axes(d) -> tuple[np.ndarray, np.ndarray]:
+    """Unit ``s1``, ``s2`` completing unit ``d`` to a right-handed orthonormal frame
+    (``s1 = d x h / |d x h|`` with ``h`` the x axis, or the y axis when ``d`` is near x;
+    ``s2 = d x s1``): the frame of a light's maps, grids and emission rectangles."""
+    d = np.asarray(d, np.float64)
+    h = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    s1 = np.cross(d, h)
+    s1 = s1 / np.linalg.norm(s1)
+    return s1, np.cross(d, s1)
+
+
 def slab_interval(a: np.ndarray, d: np.ndarray, lo, hi, t_max) -> tuple[np.ndarray, np.ndarray]:
     """Row-wise parameters [enter, leave] of the part of ``a + t d``, t in [0, t_max], that
     lies in the closed box [lo, hi] (empty when enter > leave). Slab test in float64; a

@@ -31,6 +31,7 @@ import numpy as np
 
 from . import structs
 from .device import AppendBuffer
+from .geometry import box_corners, perpendicular_axes
 from .prepared import PreparedScene
 from .stats import Stats, progress
 from .emission import specular_spheres, targets as emission_targets
@@ -68,11 +69,9 @@ def emission(ps: PreparedScene, index: int) -> Emission:
         return Emission(2 * math.pi * (1 - float(L["cos_cutoff"])) * I, rect)
     d = L["direction"][:3].astype(np.float64)
     d /= np.linalg.norm(d)
-    e1 = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(d, e1)
+    e1, e2 = perpendicular_axes(d)
     lo, hi = _region(ps)
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    corners = box_corners(lo, hi)
     c1, c2, cd = corners @ e1, corners @ e2, corners @ d
     pad = 1e-3 * float(np.max(hi - lo))
     origin = (c1.min() - pad) * e1 + (c2.min() - pad) * e2 + (cd.min() - pad) * d

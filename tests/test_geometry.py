@@ -2,8 +2,9 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from clscatter.geometry import box_corners, slab_interval, unit
+from clscatter.geometry import box_corners, perpendicular_axes, slab_interval, unit
 
 
 def test_slab_interval_matches_dense_sampling():
@@ -34,3 +35,14 @@ def test_unit_and_corners():
     assert c.shape == (8, 3) and {tuple(x) for x in c} == {(x, y, z) for x in (0, 1)
                                                           for y in (0, 2) for z in (0, 3)}
     np.testing.assert_array_equal(c[5], [1, 0, 3])      # bits 0 and 2 set
+
+
+def test_perpendicular_axes_complete_a_right_handed_frame():
+    rng = np.random.default_rng(4)
+    dirs = unit(rng.normal(size=(200, 3)))
+    dirs = np.concatenate([dirs, np.eye(3), -np.eye(3), unit([[0.9, 0.1, 0.0], [0.89, 0.4, 0.2]])])
+    for d in dirs:
+        s1, s2 = perpendicular_axes(d)
+        frame = np.stack([s1, s2, d])
+        np.testing.assert_allclose(frame @ frame.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(frame) == pytest.approx(1.0)

@@ -9,21 +9,14 @@ import pytest
 from clscatter import structs
 from clscatter.accel import tile_grid
 from clscatter.accel.bvh import build_bvh, trace
+from clscatter.geometry import perpendicular_axes
 
 trimesh = pytest.importorskip("trimesh")
 
 DIR = np.array([0.3, -1.0, 0.2]) / np.linalg.norm([0.3, -1.0, 0.2])
 
 
-def _frame(d):
-    """Unit axes s1, s2 normal to d."""
-    h = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    s1 = np.cross(d, h)
-    s1 /= np.linalg.norm(s1)
-    return s1, np.cross(d, s1)
-
-
-S1, S2 = _frame(DIR)
+S1, S2 = perpendicular_axes(DIR)
 
 
 def _soup(seed=5, n=300):

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import structs
+from ..geometry import box_corners, perpendicular_axes
 from .bvh import BVH
 
 F4 = (np.float32, 4)
@@ -272,22 +273,15 @@ def worth_it(grid: TileGrid | None) -> bool:
 SCENE_TILES = 128     # tiles along each side of a light grid
 
 
-def _axes(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit axes s1, s2 completing unit ``d`` to an orthonormal frame."""
-    h = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    s1 = np.cross(d, h)
-    s1 /= np.linalg.norm(s1)
-    return s1, np.cross(d, s1)
-
-
 def light_grid(bvh: BVH, lights: np.ndarray) -> TileGrid | None:
     """The grid for the shadow rays of one light; its record's ``light`` is that light's
     index. The scene's first directional light gets an orthographic grid (rays from
     surface points towards the light are parallel) over the projection of the scene's
     bounding box, so every surface point falls in a tile. Without one, the first spot
-    light of at most 60 degrees gets a perspective grid from its position over its cone
-    (shadow rays all end at the light: ``grid_any_toward``). None otherwise, or where the
-    grid would not pay."""
+    light of at most 60 degrees gets a perspective grid from its position over its cone,
+    else the first point (or wider spot) light a cube of six (:class:`CubeGrid`); their
+    shadow rays all end at the light (``grid_any_toward``). None without lights, or where
+    the grid would not pay."""
     lights = np.atleast_1d(lights)
     kinds = [int(li["type"]) for li in lights]
     if int(bvh.n_valid) == 0:
@@ -324,12 +318,11 @@ SPOT_GRID_COS = 0.5 - 1e-6   # spot cones up to 60 degrees get a light grid (one
 def _parallel_grid(bvh: BVH, d: np.ndarray) -> TileGrid | None:
     """Orthographic grid along unit-ised ``d`` over the BVH's box."""
     d = d / np.linalg.norm(d)
-    s1, s2 = _axes(d)
+    s1, s2 = perpendicular_axes(d)
     lo = np.asarray(bvh.nodes[0]["bmin"], np.float64)
     hi = np.asarray(bvh.nodes[0]["bmax"], np.float64)
     centre = 0.5 * (lo + hi)
-    corners = np.array([[hi[k] if (i >> k) & 1 else lo[k] for k in range(3)]
-                        for i in range(8)]) - centre
+    corners = box_corners(lo, hi) - centre
     c1, c2 = corners @ s1, corners @ s2
     m1, m2 = 1e-3 * np.ptp(c1) + 1e-6, 1e-3 * np.ptp(c2) + 1e-6
     return build_grid(bvh, centre, s1, s2, d, (c1.min() - m1, c2.min() - m2,
@@ -385,7 +378,7 @@ def _cone_grid(bvh: BVH, light) -> TileGrid | None:
     """Perspective grid from a spot light over its cone (a hundredth wider)."""
     a = np.asarray(light["direction"][:3], np.float64)
     a /= np.linalg.norm(a)
-    s1, s2 = _axes(a)
+    s1, s2 = perpendicular_axes(a)
     c = float(np.clip(light["cos_cutoff"], 1e-6, 1.0))
     ext = 1.01 * math.sqrt(max(1.0 - c * c, 0.0)) / c + 1e-6
     return build_grid(bvh, light["position"][:3], s1, s2, a, (-ext, -ext, ext, ext),

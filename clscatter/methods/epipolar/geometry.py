@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ... import structs
+from ...geometry import perpendicular_axes
 
 F4 = (np.float32, 4)
 
@@ -171,9 +172,7 @@ def make_axis(light: np.ndarray, eye: np.ndarray) -> Axis:
         u = (pos - eye) / D
     else:
         raise ValueError("epipolar slices need a directional or spot light")
-    helper = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    b1 = _unit(np.cross(u, helper))
-    b2 = np.cross(u, b1)
+    b1, b2 = perpendicular_axes(u)
     cone = None
     cos_cut = -2.0
     if kind == structs.LIGHT_SPOT:

@@ -16,6 +16,7 @@ import numpy as np
 
 from ... import structs
 from ...accel import tile_grid
+from ...geometry import box_corners, perpendicular_axes
 from ...prepared import PreparedScene
 from .geometry import EPI_FACE, Axis, CameraGeom, medium_box
 
@@ -31,11 +32,7 @@ def _scene_corners(ps: PreparedScene) -> np.ndarray:
     box = medium_box(ps.medium)
     if box is not None:
         pts.append(box)
-    out = []
-    for lo, hi in pts:
-        for i in range(8):
-            out.append([hi[k] if (i >> k) & 1 else lo[k] for k in range(3)])
-    return np.array(out, np.float64).reshape(-1, 3)
+    return np.concatenate([box_corners(lo, hi) for lo, hi in pts]) if pts else np.zeros((0, 3))
 
 
 WIDE = math.radians(60.0)     # cones wider than this get five cube faces
@@ -73,10 +70,7 @@ def spot_faces(axis: Axis, res: int, cube_res: int | None = None) -> np.ndarray:
     instead of a single map whose pitch grows as 1 / cos^2 towards 90 degrees; ``n`` is
     ``cube_res`` (:func:`cube_resolution`, the image's need) or ``res``."""
     a = axis.cone_axis
-    helper = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    s1 = np.cross(a, helper)
-    s1 /= np.linalg.norm(s1)
-    s2 = np.cross(a, s1)
+    s1, s2 = perpendicular_axes(a)
     half = math.acos(max(min(axis.cos_cut, 1.0), -1.0))
     spec = []
     if half <= WIDE + 1e-5:            # cos_cut is float32: 60.0 must stay one map
@@ -122,8 +116,7 @@ def setup_shadow_map(frame: np.ndarray, axis: Axis, ps: PreparedScene, res: int)
         return faces
     box = medium_box(ps.medium)
     corners = _scene_corners(ps)
-    box_c = corners if box is None else np.array(
-        [[box[1][k] if (i >> k) & 1 else box[0][k] for k in range(3)] for i in range(8)])
+    box_c = corners if box is None else box_corners(*box)
     rel = box_c - axis.eye
     c1, c2 = rel @ axis.b1, rel @ axis.b2
     pad1 = 0.5 * (c1.max() - c1.min()) / res + 1e-6

@@ -34,6 +34,7 @@ import numpy as np
 from ... import primitives as prim
 from ... import structs
 from ...device import AppendBuffer, Engine
+from ...geometry import box_corners, perpendicular_axes
 from .grid import GridBox
 from .octree import Octree, build_octree
 from .voxelise import SMOOTH_TAPS, blur_buffers, gradient
@@ -110,13 +111,11 @@ def emitter(light: np.ndarray, box: GridBox, photons: int) -> Emitter:
     rect = np.zeros((3, 4), np.float32)
     axis = np.array([0.0, 0.0, 1.0, 0.0], np.float32)
     lo, hi = box.lo, box.hi
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    corners = box_corners(lo, hi)
     if light["type"] == structs.LIGHT_DIRECTIONAL:
         d = light["direction"][:3].astype(np.float64)
         d /= np.linalg.norm(d)
-        e1 = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(d, e1)
+        e1, e2 = perpendicular_axes(d)
         c1, c2, cd = corners @ e1, corners @ e2, corners @ d
         pad = 1e-4 * box.h
         rect[0, :3] = (c1.min() - pad) * e1 + (c2.min() - pad) * e2 + (cd.min() - box.h) * d
