@@ -453,7 +453,7 @@ void epi_bracket(__global const float *phis, int n, int full, __global const int
     float two_pi = 2.0f * PI_F;
     float base = full ? phis[0] : phis[0] - 0.5f * (two_pi - (phis[n - 1] - phis[0]));
     /* phi - base mod 2 pi in [0, 2 pi) by floor (the builtin fmod is a slow scalar
-     * routine on some drivers: PoCL's CPU device, 13.1 ns per work-item against 3.4,
+     * routine on some drivers: PoCL's CPU device, 14.0 ns per work-item against 2.0,
      * tools/bench_epipolar_costs.py) */
     float r = phi - base;
     r -= two_pi * floor(r / two_pi);
