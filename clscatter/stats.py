@@ -36,17 +36,25 @@ class Stats:
         self._t0 = time.perf_counter()
         self.stages: dict[str, float] = {}
         self.values: dict[str, Any] = {}
+        self._nested: list[float] = []     # seconds of stages inside each open stage
 
     @contextmanager
     def stage(self, name: str) -> Iterator[Timer]:
-        """Time a block as stage ``name`` (repeated stages of one name add up); the
-        :class:`Timer` it yields holds this block's own seconds afterwards."""
+        """Time a block as stage ``name`` (repeated stages of one name add up). A stage
+        opened inside another counts for itself only: the outer one records its block's
+        seconds less the inner ones (epipolar's fallback runs raymarch's stage), so the
+        stages sum to at most ``seconds_total``. The :class:`Timer` it yields holds the
+        whole block's seconds afterwards."""
         timer = Timer()
+        self._nested.append(0.0)
         try:
             with timer:
                 yield timer
         finally:
-            self.stages[name] = self.stages.get(name, 0.0) + timer.seconds
+            inner = self._nested.pop()
+            self.stages[name] = self.stages.get(name, 0.0) + timer.seconds - inner
+            if self._nested:
+                self._nested[-1] += timer.seconds
 
     def set(self, **values: Any) -> None:
         self.values.update(values)

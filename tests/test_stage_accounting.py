@@ -26,6 +26,8 @@ def test_stages_cover_the_render(method, tmp_path, capsys):
     st = json.loads(stats.read_text())
     covered = sum(st["stages"].values())
     assert covered >= 0.95 * st["seconds_total"], (covered, st["seconds_total"], st["stages"])
+    # nested stages count once (epipolar's fallback runs raymarch's stage inside its own)
+    assert covered <= 1.001 * st["seconds_total"], (covered, st["seconds_total"], st["stages"])
     assert {"startup", "load_scene", "configure", "device", "view_paths",
             "write_outputs"} <= set(st["stages"])
 
@@ -57,3 +59,19 @@ def test_start_up_loads_the_programs_the_render_uses(engine, monkeypatch):
     used = {(n, d) for p, n, d in loaded if p == "render"}
     assert {"view_paths", "primitives", "epipolar"} <= {n for n, _ in pre}
     assert used <= pre, used - pre
+
+
+def test_a_stage_inside_another_counts_once():
+    import time
+    from clscatter.stats import Stats
+    st = Stats()
+    with st.stage("outer") as outer:
+        time.sleep(0.02)
+        with st.stage("inner"):
+            time.sleep(0.05)
+        with st.stage("outer"):                 # the same name nested: still counted once
+            time.sleep(0.01)
+    assert st.stages["inner"] >= 0.05
+    assert st.stages["outer"] == pytest.approx(outer.seconds - st.stages["inner"], abs=1e-9)
+    assert 0.03 <= st.stages["outer"] < outer.seconds - 0.045
+    assert sum(st.stages.values()) == pytest.approx(outer.seconds, abs=1e-9)
