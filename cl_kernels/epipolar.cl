@@ -346,23 +346,37 @@ int epi_lower_bound(__global const float4 *ev, int n, float b) {
     return lo;
 }
 
-/* One work-item per slice (paper, Fig. 6). Events of slice k are
- * events[ev_off[k] .. ev_off[k+1]), sorted by beta, each
- * (beta, gamma0, gamma1, t_a); out gets, per event and channel,
+/* beta a sorts before beta b in the runs (the bucket sort's order: NaN last) */
+int epi_before(float a, float b) {
+    return a < b || (isnan(b) && !isnan(a));
+}
+
+/* One work-item per slice (paper, Fig. 6). The events are runs sorted by beta, each
+ * (beta, gamma0, gamma1, t_a); run r is events[ev_off[r] .. ev_off[r+1]). Slice k sweeps
+ * run k, and with two_runs also run k - 1 (run nslices - 1 for slice 0 of a full fan:
+ * wrap), merged by beta: the segment lookup's runs hold the samples by their first
+ * slice, whose second slice is the next. out gets, per event and channel,
  *   exp(kappa (t_a - t_ref(beta))) * sum_n B_n(beta) * (Q_n(gamma1) - Q_n(gamma0))
- * with Q_n the prefix sums of F * Gamma_n * dgamma over the light rays still lit.
+ * with Q_n the prefix sums of F * Gamma_n * dgamma over the light rays still lit, at
+ * out[p] for event p of a single run, at out[2 p + side] with two runs (side 0: the
+ * slice's own run, 1: the previous one).
  * The SVD tables come per group of slices (slice->group): gtab [group][n_g][EPI_NV] over
  * groups[group].xy (gamma), btab [group][n_b][EPI_NV] over groups[group].zw (beta), and
  * the references gref [group][n_g] = l_ref, bref [group][n_b] = t_ref on the same grids.
- * Scratch: tree/leaf [nbatch][d][EPI_NV], cnt [events of the batch + nbatch],
+ * term: the rectified termination modes (epi_rectify_shadow); the sweep overwrites their
+ * betas with the modes' buckets. Scratch: tree/leaf [nbatch][d][EPI_NV]; from
+ * cnt_off[k] - cnt_off[slice0] + kl on, the slice's cnt (one more than its events),
+ * merged (its events in sweep order, two_runs only) and dst (their places in out);
  * sorted [nbatch][d * EPI_MODES]. work[k] = (tree updates, tree queries) for --stats. */
 __kernel void epi_integrate(__global const EpiFrame *fr, __global const EpiSlice *slices,
-                            int slice0, int nbatch, __global const float2 *term,
-                            __global const int *ev_off, __global const float4 *events,
+                            int slice0, int nbatch, __global float2 *term,
+                            __global const int *ev_off, int two_runs, int wrap, int nslices,
+                            __global const int *cnt_off, __global const float4 *events,
                             __global const float *gtab_all, int n_g,
                             __global const float *btab_all, int n_b,
                             __global const float *gref_all, __global const float *bref_all,
                             __global const float4 *groups, __global float *tree, __global float *leaf, __global int *cnt_all,
+                            __global float4 *merged_all, __global int *dst_all,
                             __global int2 *sorted_all, __global float4 *out,
                             __global int2 *work) {
     int kl = get_global_id(0);
@@ -397,23 +411,50 @@ __kernel void epi_integrate(__global const EpiFrame *fr, __global const EpiSlice
     }
     fw_build(T, d);
 
-    /* ---- termination lists: bucket the modes by the first event at or after them ---- */
-    int e0 = ev_off[k];
-    int ne = ev_off[k + 1] - ev_off[k];
-    __global const float4 *ev = events + e0;
-    __global int *cnt = cnt_all + (ev_off[k] - ev_off[slice0]) + kl;     /* ne + 1 buckets */
+    /* ---- the events: run A (this slice's) and run B (the previous slice's, or none),
+     * merged by beta into ev (A first on equal betas), dst[q] where event q's result goes */
+    int ea = ev_off[k], na = ev_off[k + 1] - ea, eb = 0, nb = 0;
+    if (two_runs && (k > 0 || wrap)) {
+        int pk = k > 0 ? k - 1 : nslices - 1;
+        eb = ev_off[pk];
+        nb = ev_off[pk + 1] - eb;
+    }
+    int ne = na + nb;
+    size_t base = (size_t)(cnt_off[k] - cnt_off[slice0]) + kl;
+    __global int *cnt = cnt_all + base;                  /* ne + 1 buckets */
+    __global const float4 *ev = events + ea;
+    __global int *dst = dst_all + base;
+    if (two_runs) {
+        __global const float4 *A = events + ea, *B = events + eb;
+        __global float4 *mev = merged_all + base;
+        int ia = 0, ib = 0;
+        for (int q = 0; q < ne; ++q) {
+            int side = ib < nb && (ia == na || epi_before(B[ib].x, A[ia].x));
+            mev[q] = side ? B[ib] : A[ia];
+            dst[q] = 2 * (side ? eb + ib : ea + ia) + side;
+            if (side) ++ib; else ++ia;
+        }
+        ev = mev;
+    } else {
+        for (int q = 0; q < ne; ++q) dst[q] = ea + q;
+    }
+
+    /* ---- termination lists: bucket the modes by the first event at or after them, once
+     * per mode ---- */
     __global int2 *srt = sorted_all + (size_t)kl * d * EPI_MODES;
-    __global const float2 *tm = term + (size_t)kl * d * EPI_MODES;
+    __global float2 *tm = term + (size_t)kl * d * EPI_MODES;
     for (int q = 0; q <= ne; ++q) cnt[q] = 0;
-    for (int i = 0; i < d * EPI_MODES; ++i)
-        if (tm[i].y > 0.0f) cnt[epi_lower_bound(ev, ne, tm[i].x)] += 1;
+    for (int i = 0; i < d * EPI_MODES; ++i)      /* the bucket replaces the mode's beta */
+        if (tm[i].y > 0.0f) {
+            int q = epi_lower_bound(ev, ne, tm[i].x);
+            cnt[q] += 1;
+            tm[i].x = as_float(q);
+        }
     int run = 0;
     for (int q = 0; q <= ne; ++q) { int c = cnt[q]; cnt[q] = run; run += c; }
     for (int i = 0; i < d * EPI_MODES; ++i)     /* stable: modes of a ray stay in beta order */
-        if (tm[i].y > 0.0f) {
-            int q = epi_lower_bound(ev, ne, tm[i].x);
-            srt[cnt[q]++] = (int2)(i / EPI_MODES, as_int(tm[i].y));
-        }
+        if (tm[i].y > 0.0f)
+            srt[cnt[as_int(tm[i].x)]++] = (int2)(i / EPI_MODES, as_int(tm[i].y));
     /* now cnt[q] is the end of bucket q */
 
     /* ---- the sweep over view rays, away from the light ---- */
@@ -422,23 +463,23 @@ __kernel void epi_integrate(__global const EpiFrame *fr, __global const EpiSlice
         for (int end = cnt[q]; p < end; ++p)
             fw_scale_leaf(T, L, d, srt[p].x, as_float(srt[p].y));
         float4 e = ev[q];
-        float a0[EPI_NV], a1[EPI_NV], B[EPI_NV];
+        float a0[EPI_NV], a1[EPI_NV], Bt[EPI_NV];
         for (int c = 0; c < EPI_NV; ++c) { a0[c] = 0.0f; a1[c] = 0.0f; }
         if (e.z > e.y && dg > 0.0f) {
             fw_query(T, L, d, (e.y - sl->gamma_lo) / dg, a0);
             fw_query(T, L, d, (e.z - sl->gamma_lo) / dg, a1);
             queries += 2;
         }
-        epi_table(btab, n_b, b_lo, b_hi, e.x, B);
+        epi_table(btab, n_b, b_lo, b_hi, e.x, Bt);
         float dt = e.w - epi_table1(bref, n_b, b_lo, b_hi, e.x);    /* t_a - t_ref(beta) */
         float r[3] = {0.0f, 0.0f, 0.0f};
         for (int c = 0; c < EPI_NCH; ++c) {
             float s = 0.0f;
-            for (int n = 0; n < EPI_NT; ++n) s += B[c * EPI_NT + n] * (a1[c * EPI_NT + n] - a0[c * EPI_NT + n]);
+            for (int n = 0; n < EPI_NT; ++n) s += Bt[c * EPI_NT + n] * (a1[c * EPI_NT + n] - a0[c * EPI_NT + n]);
             /* radiance is >= 0; float cancellation of the signed SVD terms is not */
             r[c] = fmax(s, 0.0f) * exp(clamp(epi_kappa(fr, c) * dt, -EPI_EXP_MAX, EPI_EXP_MAX));
         }
-        out[e0 + q] = (float4)(r[0], r[1], r[2], 0.0f);
+        out[dst[q]] = (float4)(r[0], r[1], r[2], 0.0f);
     }
     work[k] = (int2)(p, queries);
 }
@@ -678,52 +719,45 @@ __kernel void epi_view_nodes(__global const float4 *geo, __global const int4 *id
     }
 }
 
-/* Event keys: event e = which * L + j of live sample i = live[j] lies in slice k0
- * (which = 0, weight 1 - f) or k1 (which = 1, weight f); a weight-0 event goes to the
- * dummy bucket nslices, after every slice. beta orders the events within a slice. */
+/* Event keys, one per live sample j (sample i = live[j]): the sample's run is that of
+ * its first slice k0; beta orders a run. Slice k sweeps its own run (the samples' k0
+ * side) merged with run k - 1 (their k1 side, k1 = k0 + 1; epi_bracket), so each sample
+ * is sorted once and read by both slices (epi_integrate). */
 __kernel void epi_event_keys(__global const float4 *geo, __global const int4 *idx,
                              __global const int *live, int L, int nslices,
                              __global const EpiSlice *slices, int bins,
                              __global int *keys, __global float *beta) {
-    int e = get_global_id(0);
-    if (e >= 2 * L) return;
-    int which = e >= L, j = which ? e - L : e;
+    int j = get_global_id(0);
+    if (j >= L) return;
     int i = live[j];
-    int4 x = idx[i];
-    float f = as_float(x.z);
-    float w = which ? f : 1.0f - f;
     float b = geo[i].x;
-    beta[e] = b;
-    if (!(w > 0.0f)) {
-        keys[e] = nslices * bins;            /* dropped: the bucket after every slice's */
-        return;
-    }
+    beta[j] = b;
     /* bin of beta in the slice's beta range: non-decreasing in beta (every step of it
      * rounds monotonically, clamped), so sorting by (bucket, beta) is sorting by (slice,
      * beta); NaN sorts last, as in the bucket sort's float order */
-    int k = which ? x.y : x.x;
+    int k = clamp(idx[i].x, 0, nslices - 1);
     float lo = slices[k].beta_lo, span = slices[k].beta_hi - lo;
     float u = span > 0.0f ? (b - lo) / span * (float)bins : 0.0f;
     int s = isnan(u) ? bins - 1 : (int)clamp(floor(u), 0.0f, (float)(bins - 1));
-    keys[e] = k * bins + s;
+    keys[j] = k * bins + s;
 }
 
-/* The sweep's events in sorted order (perm from the bucket sort): event p = (beta,
- * gamma_a, gamma_b, t_a) of its sample; inv[e] = p (inv is -1 for dummy events). */
+/* The runs in sorted order (perm from the bucket sort): event p = (beta, gamma_a,
+ * gamma_b, t_a) of its sample; inv[j] = p. */
 __kernel void epi_events(__global const float4 *geo, __global const int *live, int L,
-                         __global const int *perm, int n_ev, __global float4 *events,
+                         __global const int *perm, __global float4 *events,
                          __global int *inv) {
     int p = get_global_id(0);
-    if (p >= n_ev) return;
-    int e = perm[p];
-    int j = e >= L ? e - L : e;
+    if (p >= L) return;
+    int j = perm[p];
     events[p] = geo[live[j]];
-    inv[e] = p;
+    inv[j] = p;
 }
 
-/* Back to the samples: the blend of a live sample's two event results (weights 1 - f
- * and f), times the light's colour (sigma_s x power) and the sweep's share 1 - w_ring,
- * into values[i] (the caller zeroes values: samples not live stay 0). With one channel
+/* Back to the samples: the blend of a live sample's two results (res[2 p]: its first
+ * slice, weight 1 - f; res[2 p + 1]: its second, weight f; p = inv[j], its place in the
+ * runs; a weight-0 side is not read), times the light's colour (sigma_s x power) and
+ * the sweep's share 1 - w_ring, into values[i] (the caller zeroes values: samples not live stay 0). With one channel
  * in the sweep (grey extinction), its result serves all three. `acc` given per live
  * sample instead (grid lookup: use_acc = 1) skips the event blend. */
 __kernel void epi_sample_values(__global const float4 *res, __global const int *inv,
@@ -740,9 +774,9 @@ __kernel void epi_sample_values(__global const float4 *res, __global const int *
     } else {
         float f = as_float(idx[i].z);
         s = (float4)(0.0f);
-        int p0 = inv[j], p1 = inv[L + j];
-        if (p0 >= 0) s += (1.0f - f) * res[p0];
-        if (p1 >= 0) s += f * res[p1];
+        size_t p = (size_t)inv[j];
+        if (1.0f - f > 0.0f) s += (1.0f - f) * res[2 * p];
+        if (f > 0.0f) s += f * res[2 * p + 1];
     }
 #if EPI_NCH == 1
     s = (float4)(s.x, s.x, s.x, 0.0f);

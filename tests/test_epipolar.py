@@ -614,13 +614,16 @@ def _prefix(b: np.ndarray, m: float) -> np.ndarray:
     return b[:i].sum(0) + ((m - i) * b[i] if i < d else 0.0)
 
 
-@pytest.mark.parametrize("kind", ["dir", "spot"])
-def test_integrate_kernel_matches_bruteforce(engine, kind):
+@pytest.mark.parametrize("kind,two_runs,wrap", [("dir", 0, 0), ("spot", 0, 0), ("dir", 1, 0),
+                                                ("spot", 1, 1), ("dir", 1, 1)])
+def test_integrate_kernel_matches_bruteforce(engine, kind, two_runs, wrap):
     """epi_integrate against the O(events x d) Riemann sum of Eq. (3): each light ray's
     value F Gamma dgamma scaled by its termination modes with beta <= the event's beta,
     summed over [gamma0, gamma1] with fractional end cells, times B(beta)
     exp(kappa (t_a - t_ref(beta))); F relative to the light-side reference l_ref(gamma),
-    tables per SVD group of the slice."""
+    tables per SVD group of the slice. One run per slice (out[p]), or two (the segment
+    lookup: slice k sweeps run k merged with run k - 1, wrapping to the last run for
+    slice 0 of a full fan; out[2 p + side]), with equal betas across the two runs."""
     *_, axis, slices, frame = _setup(kind, d=53)
     S, d, nt = 5, 53, 4
     valid = np.flatnonzero(slices.table["gamma_hi"] > slices.table["gamma_lo"] + 1e-3)
@@ -647,6 +650,18 @@ def test_integrate_kernel_matches_bruteforce(engine, kind):
         e[:, 2] = a + rng.uniform(0.0, hi - lo, n_ev[k])
         e[:, 3] = rng.uniform(0.0, 0.5, n_ev[k])
     e[-1, 2] = e[-1, 1]                       # an empty interval
+    ev[off[1], 0] = ev[off[0], 0]             # a beta in two runs (ties in the merge)
+    ev[off[1]:off[2], 0] = np.sort(ev[off[1]:off[2], 0])
+    # what each slice sweeps: (event, side) pairs of its own run, and of the previous one
+    sweeps = []
+    for k in range(S):
+        pairs = [(q, 0) for q in range(off[k], off[k + 1])]
+        if two_runs and (k > 0 or wrap):
+            pk = k - 1 if k > 0 else S - 1
+            pairs += [(q, 1) for q in range(off[pk], off[pk + 1])]
+        sweeps.append(pairs)
+    cnt_off = np.concatenate([[0], np.cumsum([len(p) for p in sweeps])]).astype(np.int32)
+    n_out = 2 * off[-1] if two_runs else off[-1]
     # two SVD groups (slices alternate between them), each with signed terms as from an
     # SVD (the first dominant; the kernel clamps results at 0), its own ranges and its
     # references l_ref (light side, gtab's grid) and t_ref (view side, btab's grid)
@@ -667,18 +682,23 @@ def test_integrate_kernel_matches_bruteforce(engine, kind):
             "gr": engine.to_device(gref), "br": engine.to_device(bref),
             "rg": engine.to_device(ranges),
             "tree": engine.empty(4 * S * d * nt), "leaf": engine.empty(4 * S * d * nt),
-            "cnt": engine.empty(4 * (off[-1] + S)), "srt": engine.empty(8 * S * d * 4),
-            "out": engine.empty(16 * off[-1]), "work": engine.empty(8 * S)}
-    k = engine.kernel("epipolar", "epi_integrate", DEF1)
-    k(engine.queue, (S,), (1,), bufs["fr"], bufs["sl"], np.int32(0), np.int32(S), bufs["term"],
-      bufs["off"], bufs["ev"], bufs["gt"], np.int32(n_g), bufs["bt"], np.int32(n_b),
-      bufs["gr"], bufs["br"], bufs["rg"], bufs["tree"], bufs["leaf"],
-      bufs["cnt"], bufs["srt"], bufs["out"], bufs["work"])
-    got = engine.read(bufs["out"], (off[-1], 4), np.float32)[:, 0]
+            "cnt_off": engine.to_device(cnt_off),
+            "cnt": engine.empty(4 * (cnt_off[-1] + S)), "srt": engine.empty(8 * S * d * 4),
+            "mev": engine.empty(16 * (cnt_off[-1] + S)), "dst": engine.empty(4 * (cnt_off[-1] + S)),
+            "out": engine.zeros(16 * n_out), "work": engine.empty(8 * S)}
+    engine.call("epipolar", "epi_integrate", S, DEF1, fr=bufs["fr"], slices=bufs["sl"],
+                slice0=0, nbatch=S, term=bufs["term"], ev_off=bufs["off"], two_runs=two_runs,
+                wrap=wrap, nslices=S, cnt_off=bufs["cnt_off"], events=bufs["ev"],
+                gtab_all=bufs["gt"], n_g=n_g, btab_all=bufs["bt"], n_b=n_b,
+                gref_all=bufs["gr"], bref_all=bufs["br"], groups=bufs["rg"], tree=bufs["tree"],
+                leaf=bufs["leaf"], cnt_all=bufs["cnt"], merged_all=bufs["mev"],
+                dst_all=bufs["dst"], sorted_all=bufs["srt"], out=bufs["out"], work=bufs["work"])
+    got = engine.read(bufs["out"], (n_out, 4), np.float32)[:, 0]
     work = engine.read(bufs["work"], (S, 2), np.int32)
     engine.free(*bufs.values())
     kap = float(frame["kappa"][0])
-    ref = np.zeros(off[-1])
+    ref = np.zeros(n_out)
+    written = np.zeros(n_out, bool)
     for k_ in range(S):
         sl = tab[k_]
         q_ = int(sl["group"])
@@ -689,7 +709,9 @@ def test_integrate_kernel_matches_bruteforce(engine, kind):
         G = np.stack([np.interp(gi, gx, gtab[q_, :, n]) for n in range(nt)], 1)
         lref = np.interp(gi, gx, gref[q_])
         b0 = G * (_np_light_factor(frame, axis, sl, gi, dg, lref) * dg)[:, None]
-        for q in range(off[k_], off[k_ + 1]):
+        for q, side in sweeps[k_]:
+            o = 2 * q + side if two_runs else q
+            written[o] = True
             beta, g0, g1, ta = (float(x) for x in ev[q])
             frac = np.ones(d)
             for m in range(4):
@@ -702,11 +724,13 @@ def test_integrate_kernel_matches_bruteforce(engine, kind):
             B = np.array([np.interp(beta, bx, btab[q_, :, n]) for n in range(nt)])
             tref = float(np.interp(beta, bx, bref[q_]))
             dq = _prefix(b, (g1 - lo) / dg) - _prefix(b, (g0 - lo) / dg)
-            ref[q] = max((B * dq).sum(), 0.0) * math.exp(kap * (ta - tref)) if g1 > g0 else 0.0
+            ref[o] = max((B * dq).sum(), 0.0) * math.exp(kap * (ta - tref)) if g1 > g0 else 0.0
     scale = np.abs(ref).max()
-    assert scale > 0 and (ref > 0).mean() > 0.5
-    assert np.allclose(got, ref, atol=2e-5 * scale, rtol=1e-4)
-    assert work[:, 1].sum() == 2 * int((ev[:, 2] > ev[:, 1]).sum())
+    assert scale > 0 and (ref[written] > 0).mean() > 0.5
+    assert np.allclose(got[written], ref[written], atol=2e-5 * scale, rtol=1e-4)
+    assert np.all(got[~written] == 0.0)          # no stray writes
+    swept = [q for pairs in sweeps for q, _ in pairs]
+    assert work[:, 1].sum() == 2 * int((ev[swept, 2] > ev[swept, 1]).sum())
 
 
 # ---------------------------------------------------------------------------------------

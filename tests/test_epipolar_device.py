@@ -12,7 +12,8 @@ import pytest
 from clscatter import structs
 from clscatter.methods.epipolar import geometry as geo_mod
 from clscatter.methods.epipolar.pipeline import (DeviceViews, HostViews, LiveSamples,
-                                                 _segment_events, ring_weights)
+                                                 _segment_events, merged_offsets,
+                                                 ring_weights)
 from clscatter.methods.epipolar.svd import REF_NODES
 
 DEFS = {"EPI_NT": 4, "EPI_NCH": 3}
@@ -105,19 +106,14 @@ def test_split_and_weighted(engine):
 
 
 def _host_events(geo, idx, live, S):
-    """The events as the host built them before (two per live sample, weight-0 dropped,
-    ordered by slice then beta; ties by event index e = which * L + j)."""
+    """The runs as NumPy builds them: the live samples ordered by first slice k0, then
+    beta (NaN last), then live index; each slice's run offsets."""
     L = len(live)
-    f = idx[live, 2].view(np.float32)
-    k = np.concatenate([idx[live, 0], idx[live, 1]])
-    wgt = np.concatenate([1.0 - f, f])
-    beta = np.tile(geo[live, 0], 2)
-    e = np.arange(2 * L)
-    order = np.lexsort((e, beta, k))
-    order = order[wgt[order] > 0.0]
+    k0 = idx[live, 0]
+    order = np.lexsort((np.arange(L), geo[live, 0], k0))
     off = np.zeros(S + 1, np.int64)
-    off[1:] = np.cumsum(np.bincount(k[order], minlength=S))
-    return geo[live[order % L]], off, order
+    off[1:] = np.cumsum(np.bincount(k0, minlength=S))
+    return geo[live[order]], off, order
 
 
 @pytest.mark.parametrize("n,S,L,equal,bins", [(2000, 37, 1500, False, None), (1, 3, 1, False, None),
@@ -125,11 +121,11 @@ def _host_events(geo, idx, live, S):
                                               (1025, 1, 700, False, 1), (4000, 9, 3900, False, 97),
                                               (2000, 37, 1500, False, 1024)])
 def test_events_match_host_sort(engine, n, S, L, equal, bins):
-    """epi_event_keys + bucket_sort + epi_events give the host's events in the host's
-    order, the slice offsets, and inv (the position of each (which, sample) event, -1 for
-    dropped ones): empty, one sample, one slice, all betas equal, sizes not powers of 2,
-    one bin per slice up to 1024 (betas beyond a slice's range, a zero range, +-inf and
-    NaN betas land in its first or last bin)."""
+    """epi_event_keys + bucket_sort + epi_events give the host's runs in the host's
+    order, the run offsets, and inv (the place of each live sample in the runs): empty,
+    one sample, one slice, all betas equal, sizes not powers of 2, one bin per slice up to
+    1024 (betas beyond a slice's range, a zero range, +-inf and NaN betas land in its
+    first or last bin)."""
     rng = np.random.default_rng(n + S)
     geo, idx = _samples(rng, n, S, equal)
     if n > 100 and not equal:
@@ -144,18 +140,28 @@ def test_events_match_host_sort(engine, n, S, L, equal, bins):
     bufs: list = []
     try:
         ev, offs, inv, off = _segment_events(engine, gb, ib, lv, S, DEFS, bufs, sb, bins)
-        n_ev = int(off[S])
-        got = engine.read(ev, (n_ev, 4), np.float32)
-        inv_h = engine.read(inv, 2 * L, np.int32)
+        got = engine.read(ev, (L, 4), np.float32)
+        inv_h = engine.read(inv, L, np.int32)
         off_dev = engine.read(offs, S + 1, np.int32)
     finally:
         engine.free(gb, ib, sb, lv.buf, *bufs)
     ref, ref_off, order = _host_events(geo, idx, live, S)
     assert np.array_equal(off, ref_off) and np.array_equal(off_dev, ref_off)
     assert np.array_equal(got, ref, equal_nan=True)
-    want = np.full(2 * L, -1)
-    want[order] = np.arange(len(order))
+    want = np.zeros(L, np.int64)
+    want[order] = np.arange(L)
     assert np.array_equal(inv_h, want)
+
+
+@pytest.mark.parametrize("full", [False, True])
+def test_merged_offsets(full):
+    """Where each slice's sweep starts: slice k sweeps run k and run k - 1 (the last run
+    for slice 0 of a full fan, none for an open one)."""
+    off = np.array([0, 3, 3, 10, 12])
+    runs = np.diff(off)
+    per = [runs[k] + (runs[k - 1] if k > 0 else (runs[-1] if full else 0)) for k in range(4)]
+    assert np.array_equal(merged_offsets(off, full), np.concatenate([[0], np.cumsum(per)]))
+    assert np.array_equal(merged_offsets(np.zeros(1, np.int32), full), [0])
 
 
 @pytest.mark.parametrize("G", [1, 16])
@@ -189,9 +195,10 @@ def test_view_reductions_match_host(engine, G):
 
 @pytest.mark.parametrize("nch", [1, 3])
 def test_sample_values_blend(engine, nch):
-    """epi_sample_values: (1 - f) res[inv0] + f res[inv1] (a dropped event counts 0), one
-    channel spread to three when nch = 1, times colour and 1 - ring weight; samples not
-    live stay 0; with use_acc the given per-sample value replaces the blend."""
+    """epi_sample_values: (1 - f) res[2 p] + f res[2 p + 1] with p = inv[j] (a weight-0
+    side is not read: NaN there stays out), one channel spread to three when nch = 1,
+    times colour and 1 - ring weight; samples not live stay 0; with use_acc the given
+    per-sample value replaces the blend."""
     rng = np.random.default_rng(nch)
     n, S = 3001, 9
     geo, idx = _samples(rng, n, S)
@@ -199,8 +206,10 @@ def test_sample_values_blend(engine, nch):
     L = len(live)
     wr = rng.uniform(0.0, 1.0, n).astype(np.float32)
     res = rng.uniform(0.0, 3.0, (2 * L, 4)).astype(np.float32)
-    inv = rng.permutation(2 * L).astype(np.int32)
-    inv[rng.random(2 * L) < 0.1] = -1
+    inv = rng.permutation(L).astype(np.int32)
+    f = idx[live, 2].view(np.float32).astype(np.float64)
+    res[2 * inv[f == 1.0]] = np.nan                # unread sides
+    res[2 * inv[f == 0.0] + 1] = np.nan
     acc = rng.uniform(0.0, 1.0, (L, 4)).astype(np.float32)
     colour = np.array([0.5, 1.5, 2.0, 0.0], np.float32)
     defs = {"EPI_NT": 4, "EPI_NCH": nch}
@@ -215,10 +224,10 @@ def test_sample_values_blend(engine, nch):
             got[use_acc] = engine.read(out, (n, 4), np.float32)
     finally:
         engine.free(out, *bufs)
-    f = idx[live, 2].view(np.float32).astype(np.float64)[:, None]
-    r = res.astype(np.float64)
-    s = np.where(inv[:L, None] >= 0, (1 - f) * r[np.maximum(inv[:L], 0)], 0.0) + \
-        np.where(inv[L:, None] >= 0, f * r[np.maximum(inv[L:], 0)], 0.0)
+    assert (f == 0.0).any() and (f == 1.0).any()
+    r = np.nan_to_num(res.astype(np.float64))
+    f = f[:, None]
+    s = (1 - f) * r[2 * inv] + f * r[2 * inv + 1]
     for use_acc, base in ((0, s), (1, acc.astype(np.float64))):
         if nch == 1:
             base = np.repeat(base[:, :1], 3, axis=1)

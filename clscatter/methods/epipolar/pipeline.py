@@ -179,8 +179,9 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
     Per-sample work stays on the device: the samples' slice coordinates (``epi_samples``),
     ring weights and the live list (``epi_ring``, compaction), the views' beta ranges and
     t_a envelopes for the SVD's references (``epi_view_ranges``/``epi_view_nodes``), the
-    sweep's events (keys, bucket sort by slice then beta, ``epi_events``) and the blend
-    back to the samples (``epi_sample_values``). The host reads back: a few hundred
+    sweep's events (each sample once, bucket-sorted by its first slice then beta; a slice
+    sweeps its run merged with the previous slice's) and the blend back to the samples
+    (``epi_sample_values``). The host reads back: a few hundred
     held-out rows for the error estimate, the slices' event offsets (S + 1 ints: batch
     sizes), per-group ranges and envelope nodes, and counters. The grid lookup (not the
     default) reads the live segments back to trace its direction table on the host."""
@@ -291,15 +292,18 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
             if st.lookup == "segment":
                 ev_buf, off_buf, inv_buf, off = _segment_events(eng, geo_buf, idx_buf, live, S,
                                                                 defines, bufs, slice_buf)
-                n_ev = int(off[S])
+                cnt_off = merged_offsets(off, slices.full)
+                n_out = 2 * live.count                  # two results per sample
                 b_range = views.ranges(1)[0] or (0.0, 0.0)
             else:
-                off = (np.arange(S + 1) * R).astype(np.int32)
-                n_ev = S * R
-                ev_buf = scratch(16 * n_ev)
+                off = cnt_off = (np.arange(S + 1) * R).astype(np.int32)
+                n_out = S * R
+                ev_buf = scratch(16 * n_out)
                 off_buf = up(off)
                 tab = slices.table
                 b_range = (float(tab["beta_lo"].min()), float(tab["beta_hi"].max()))
+            n_ev = int(cnt_off[S])
+            cnt_off_buf = up(cnt_off)
             g_range = (float(slices.table["gamma_lo"].min()), float(slices.table["gamma_hi"].max()))
         with stats.stage("epipolar_svd"):
             sv, tried = _svd(axis, box, ps, kappa[:nch], slices, views, live, segs, st, R,
@@ -330,13 +334,15 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
         nv = int(sv.terms) * nch
         # at most ~32 MB of tree per batch (more light rays in thick media)
         batch = max(1, min(int(st.batch_slices), S, (1 << 23) // max(d * nv, 1)))
-        max_ev = int(max(off[min(s + batch, S)] - off[s] for s in range(0, S, batch)))
+        max_ev = int(max(cnt_off[min(s + batch, S)] - cnt_off[s] for s in range(0, S, batch)))
         term = scratch(8 * batch * d * 4)
         tree = scratch(4 * batch * d * nv)
         leaf = scratch(4 * batch * d * nv)
         cnt = scratch(4 * (max_ev + batch))
+        merged = scratch(16 * (max_ev + batch) if st.lookup == "segment" else 16)
+        dst = scratch(4 * (max_ev + batch))
         srt = scratch(8 * batch * d * 4)
-        out = scratch(16 * max(n_ev, 1))
+        out = scratch(16 * max(n_out, 1))
         work = scratch(8 * S)
         with progress(S, "epipolar slices", show_progress) as bar:
             for s0 in range(0, S, batch):
@@ -353,10 +359,13 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
                 with stats.stage("epipolar_integrate"):
                     _launch_slices(eng, "epi_integrate", nb, defines, fr=frame_buf,
                                    slices=slice_buf, slice0=s0, nbatch=nb, term=term,
-                                   ev_off=off_buf, events=ev_buf, gtab_all=gtab_buf,
+                                   ev_off=off_buf, two_runs=int(st.lookup == "segment"),
+                                   wrap=int(slices.full), nslices=S, cnt_off=cnt_off_buf,
+                                   events=ev_buf, gtab_all=gtab_buf,
                                    n_g=sv.gtab.shape[1], btab_all=btab_buf, n_b=sv.btab.shape[1],
                                    gref_all=gref_buf, bref_all=bref_buf, groups=grp_buf,
-                                   tree=tree, leaf=leaf, cnt_all=cnt, sorted_all=srt, out=out,
+                                   tree=tree, leaf=leaf, cnt_all=cnt, merged_all=merged,
+                                   dst_all=dst, sorted_all=srt, out=out,
                                    work=work)
                     eng.finish()
                 bar.update(nb)
@@ -541,40 +550,50 @@ EVENTS_PER_BIN = 32      # the event sort's buckets: about this many events each
 
 def _segment_events(eng, geo_buf, idx_buf, live: LiveSamples, S: int, defines: dict,
                     bufs: list, slice_buf, bins: int | None = None):
-    """The sweep's events, two per live sample (its two neighbouring slices, weights
-    1 - f and f; weight-0 ones dropped), bucket-sorted on the device by slice and then
-    beta. Returns the events, the slice offsets (device, and the S + 1 of them on the
-    host for the batch sizes) and ``inv`` (event of each (which, sample) pair, -1 when
-    dropped).
+    """The sweep's events: the live samples bucket-sorted on the device by their first
+    slice ``k0`` and then by beta (ties by live index), one run per slice. Slice k sweeps
+    run k (the k0 side of its samples) merged with run k - 1 (the k1 = k0 + 1 side of
+    those), so each sample is sorted once (``epi_integrate``). Returns the events (live
+    order permuted), the run offsets (device, and the S + 1 of them on the host for the
+    batch sizes) and ``inv`` (place of each live sample in the runs).
 
-    Each slice's events are bucketed further by beta into ``bins`` bins of its beta range
-    (``slice_buf``: the EPI_SLICE table; default: about :data:`EVENTS_PER_BIN` events a
+    Each run is bucketed further by beta into ``bins`` bins of its slice's beta range
+    (``slice_buf``: the EPI_SLICE table; default: about :data:`EVENTS_PER_BIN` samples a
     bin), so that the per-bucket sorts are short; the order is the same."""
     L = live.count
     if bins is None:
-        bins = int(min(max(round(2 * L / max(S, 1) / EVENTS_PER_BIN), 1), 1024))
-    keys, beta = eng.empty(8 * max(L, 1)), eng.empty(8 * max(L, 1))
+        bins = int(min(max(round(L / max(S, 1) / EVENTS_PER_BIN), 1), 1024))
+    keys, beta = eng.empty(4 * max(L, 1)), eng.empty(4 * max(L, 1))
     starts = eng.to_device((np.arange(S + 1) * bins).astype(np.int32))
     fine = None
     try:
-        eng.call("epipolar", "epi_event_keys", 2 * L, defines, geo=geo_buf, idx=idx_buf,
+        eng.call("epipolar", "epi_event_keys", L, defines, geo=geo_buf, idx=idx_buf,
                  live=live.buf, L=L, nslices=S, slices=slice_buf, bins=bins, keys=keys,
                  beta=beta)
-        perm, fine = prim.bucket_sort(eng, keys, 2 * L, S * bins + 1, fkey=beta)
+        perm, fine = prim.bucket_sort(eng, keys, L, S * bins, fkey=beta)
         bufs.append(perm)
         offs = prim.gather(eng, fine, starts, S + 1, 4)     # each slice's first bin
     finally:
         eng.free(keys, beta, starts, *([fine] if fine is not None else []))
     bufs.append(offs)
-    off = eng.read(offs, S + 1, np.int32)
-    n_ev = int(off[S])
-    ev = eng.empty(16 * max(n_ev, 1))
-    inv = eng.empty(8 * max(L, 1))
+    ev = eng.empty(16 * max(L, 1))
+    inv = eng.empty(4 * max(L, 1))
     bufs += [ev, inv]
-    prim.fill_int(eng, inv, 2 * L, -1)
-    eng.call("epipolar", "epi_events", n_ev, defines, geo=geo_buf, live=live.buf, L=L,
-             perm=perm, n_ev=n_ev, events=ev, inv=inv)
+    eng.call("epipolar", "epi_events", L, defines, geo=geo_buf, live=live.buf, L=L,
+             perm=perm, events=ev, inv=inv)
+    off = eng.read(offs, S + 1, np.int32)
     return ev, offs, inv, off
+
+
+def merged_offsets(off: np.ndarray, full: bool) -> np.ndarray:
+    """Where each slice's sweep starts in the merged order (``epi_integrate``'s
+    ``cnt_off``): slice k sweeps run k and run k - 1 (run S - 1 for slice 0 of a full
+    fan); ``off`` holds the S + 1 run offsets."""
+    runs = np.diff(np.asarray(off, np.int64))
+    prev = np.roll(runs, 1)
+    if not full and len(prev):
+        prev[0] = 0
+    return np.concatenate([[0], np.cumsum(runs + prev)]).astype(np.int32)
 
 
 def _views(axis: geo.Axis, box, ps: PreparedScene, slices: geo.Slices, idx: np.ndarray,
