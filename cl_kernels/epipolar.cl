@@ -336,9 +336,23 @@ float epi_table1(__global const float *tab, int n, float lo, float hi, float x) 
     return (1.0f - f) * tab[i] + f * tab[j];
 }
 
-/* lower bound: first event of [0, n) whose beta is >= b */
-int epi_lower_bound(__global const float4 *ev, int n, float b) {
-    int lo = 0, hi = n;
+/* lower bound: first event of [0, n) whose beta is >= b, searched from the hint h
+ * outwards in doubling steps, then by halving (galloping): a few steps when the answer
+ * is near h (the modes of neighbouring light rays), about 2 log2 n at worst */
+int epi_lower_bound(__global const float4 *ev, int n, float b, int h) {
+    h = clamp(h, 0, n);
+    int lo, hi, step = 1;
+    if (h < n && ev[h].x < b) {                   /* the answer is past h */
+        lo = h + 1;
+        hi = lo;
+        while (hi < n && ev[hi].x < b) { lo = hi + 1; hi += step; step <<= 1; }
+        hi = min(hi, n);
+    } else {                                      /* the answer is h or before */
+        hi = h;
+        lo = h - 1;
+        while (lo >= 0 && !(ev[lo].x < b)) { hi = lo; lo -= step; step <<= 1; }
+        lo = max(lo + 1, 0);
+    }
     while (lo < hi) {
         int mid = (lo + hi) >> 1;
         if (ev[mid].x < b) lo = mid + 1; else hi = mid;
@@ -444,9 +458,12 @@ __kernel void epi_integrate(__global const EpiFrame *fr, __global const EpiSlice
     __global int2 *srt = sorted_all + (size_t)kl * d * EPI_MODES;
     __global float2 *tm = term + (size_t)kl * d * EPI_MODES;
     for (int q = 0; q <= ne; ++q) cnt[q] = 0;
+    int hint[EPI_MODES];                         /* mode m of the last ray with one */
+    for (int m = 0; m < EPI_MODES; ++m) hint[m] = 0;
     for (int i = 0; i < d * EPI_MODES; ++i)      /* the bucket replaces the mode's beta */
         if (tm[i].y > 0.0f) {
-            int q = epi_lower_bound(ev, ne, tm[i].x);
+            int q = epi_lower_bound(ev, ne, tm[i].x, hint[i % EPI_MODES]);
+            hint[i % EPI_MODES] = q;
             cnt[q] += 1;
             tm[i].x = as_float(q);
         }
@@ -801,6 +818,13 @@ __kernel void sincos_test(__global const float *x, int n, __global float *out) {
     float c, s = sincos_fast(x[i], &c);
     out[2 * i] = s;
     out[2 * i + 1] = c;
+}
+
+/* Test hook: epi_lower_bound of beta b[i] from hint h[i] in the n events (tests/test_epipolar.py). */
+__kernel void epi_lower_bound_test(__global const float4 *ev, int n, __global const float *b,
+                                   __global const int *h, int m, __global int *out) {
+    int i = get_global_id(0);
+    if (i < m) out[i] = epi_lower_bound(ev, n, b[i], h[i]);
 }
 
 /* Test hook: atan2_fast (common.h) over arrays (tests/test_fast_math.py). */

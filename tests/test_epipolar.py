@@ -614,6 +614,36 @@ def _prefix(b: np.ndarray, m: float) -> np.ndarray:
     return b[:i].sum(0) + ((m - i) * b[i] if i < d else 0.0)
 
 
+@pytest.mark.parametrize("n", [0, 1, 2, 7, 1000, 4097])
+def test_lower_bound_from_a_hint_matches_searchsorted(engine, n):
+    """epi_lower_bound (galloping from a hint) equals np.searchsorted(side="left") on the
+    events' betas for every hint (before, at and past the answer, out of range), betas
+    below, between, equal to and above the events, runs of equal betas, and NaN betas
+    sorted last (never below a number)."""
+    rng = np.random.default_rng(n)
+    beta = np.sort(rng.choice(np.linspace(0.0, 3.0, max(n // 3, 1) + 1), n)).astype(np.float32)
+    if n > 10:
+        beta[-3:] = np.nan
+    ev = np.zeros((max(n, 1), 4), np.float32)
+    ev[:n, 0] = beta
+    finite = beta[np.isfinite(beta)]
+    qs = np.concatenate([rng.uniform(-0.5, 3.5, 400), finite[::max(len(finite) // 50, 1)],
+                         [-np.inf, np.inf]]).astype(np.float32)
+    hints = rng.integers(-3, n + 4, len(qs))
+    qs = np.repeat(qs, 3)
+    hints = np.concatenate([hints, np.searchsorted(finite, qs[::3]), np.full(len(hints), n)])
+    hints = hints.reshape(3, -1).T.ravel().astype(np.int32)
+    bufs = [engine.to_device(ev), engine.to_device(qs), engine.to_device(hints),
+            engine.empty(4 * len(qs))]
+    try:
+        engine.call("epipolar", "epi_lower_bound_test", len(qs), DEF1, ev=bufs[0], n=n,
+                    b=bufs[1], h=bufs[2], m=len(qs), out=bufs[3])
+        got = engine.read(bufs[3], len(qs), np.int32)
+    finally:
+        engine.free(*bufs)
+    assert np.array_equal(got, np.searchsorted(finite, qs, side="left"))
+
+
 @pytest.mark.parametrize("kind,two_runs,wrap", [("dir", 0, 0), ("spot", 0, 0), ("dir", 1, 0),
                                                 ("spot", 1, 1), ("dir", 1, 1)])
 def test_integrate_kernel_matches_bruteforce(engine, kind, two_runs, wrap):
