@@ -4,12 +4,15 @@
  * The grid (clscatter/accel/tile_grid.py) lists, per tile of a rectangle normal to its
  * direction, the triangles whose padded projection overlaps the tile, sorted by a key
  * that bounds their distance from below: the nearest axial coordinate along the
- * direction. A ray of the grid tests its tile's triangles with the BVH's watertight test
- * (bvh_triangle) in order and stops once a key is past its closest hit: the same hit
- * distance the BVH gives.
+ * direction. A ray of the grid tests its tile's triangles in order and stops once a key
+ * is past its closest hit. A perspective grid tests with the BVH's watertight test
+ * (bvh_triangle): the same hit distance the BVH gives. An orthographic grid's triangles
+ * come projected onto its plane (raster_triangles), so its rays run the same watertight
+ * test from the stored edges (grid_raster_try): distances within float rounding.
  *
  * The grid is one int buffer (TileGrid.packed): the TileGrid record, then the tiles'
- * starts, the listed triangles' slots and the keys' float bits, at the record's offsets.
+ * starts, the listed triangles' slots, the keys' float bits and (orthographic) the
+ * projected triangles, at the record's offsets.
  *
  * Interface (g: the packed grid):
  *   int grid_tile(g, o, d)      tile of the ray (o, d), or -1 (no grid, or outside it)
@@ -35,7 +38,8 @@ typedef struct {
     int starts_at, items_at, keys_at;   /* offsets in words of the three arrays */
     int faces;       /* 6: a point light's cube, six perspective grids one after another */
     int next;        /* offset in words from this record to the next face's (0: last) */
-    int pad0, pad1;
+    int raster_at;   /* orthographic: offset in words of the projected triangles, or 0 */
+    int pad1;
 } TileGrid;
 
 #define GRID_HEAD(g) ((__global const TileGrid *)(g))
@@ -53,22 +57,58 @@ int grid_tile(__global const int *g, float4 o, float4 d) {
     return min((int)fy, h->ny - 1) * h->nx + min((int)fx, h->nx - 1);
 }
 
+/* The watertight test for a ray of an orthographic grid at plane coordinates (p1, p2)
+ * and axial coordinate base, against triangle record R (raster_triangles in
+ * tile_grid.py: the projection every ray of the grid shares, done on the host): the
+ * edge functions U, V, W (weights of v0, v1, v2) from the stored canonical edges, a hit
+ * when they agree in sign (zero counts as inside) and their sum is not 0, at the
+ * weighted depth. On a hit with t in (tmin, *best), writes *best (and hit). */
+int grid_raster_try(__global const float4 *R, int tri, float p1, float p2, float base,
+                    float tmin, float *best, Hit *hit) {
+#pragma OPENCL FP_CONTRACT OFF
+    __global const float4 *r = R + 5 * tri;
+    float4 e0 = r[0], e1 = r[1], e2 = r[2], sg = r[3], z = r[4];
+    float U = sg.x * (e0.z * (p2 - e0.y) - e0.w * (p1 - e0.x));
+    float V = sg.y * (e1.z * (p2 - e1.y) - e1.w * (p1 - e1.x));
+    float W = sg.z * (e2.z * (p2 - e2.y) - e2.w * (p1 - e2.x));
+    if ((U < 0.0f || V < 0.0f || W < 0.0f) && (U > 0.0f || V > 0.0f || W > 0.0f)) return 0;
+    float det = U + V + W;
+    if (det == 0.0f) return 0;
+    float inv_det = 1.0f / det;
+    float t = (U * z.x + V * z.y + W * z.z) * inv_det - base;
+    if (!(t > tmin && t < *best)) return 0;
+    *best = t;
+    if (hit) {
+        hit->t = t;
+        hit->tri = tri;
+        hit->u = V * inv_det;
+        hit->v = W * inv_det;
+    }
+    return 1;
+}
+
 int grid_traverse(__global const float4 *tris, __global const int *g, int tile, float4 o,
                   float4 d, float tmin, float tmax, int any_hit, Hit *hit) {
     __global const TileGrid *h = GRID_HEAD(g);
+    /* an orthographic grid's rays share the projection: its triangles come projected */
+    __global const float4 *R = h->raster_at > 0 && !h->perspective
+                               ? (__global const float4 *)(g + h->raster_at) : 0;
     BvhRay r;
-    if (!bvh_ray_setup(o, d, &r)) return 0;
+    if (!R && !bvh_ray_setup(o, d, &r)) return 0;
     /* axial coordinate of the origin (0 for a perspective grid's own rays) */
-    float base = h->perspective ? 0.0f : dot3(o - h->origin, h->dir);
+    float4 q = o - h->origin;
+    float base = h->perspective ? 0.0f : dot3(q, h->dir);
     __global const int *starts = g + h->starts_at;
     __global const int *items = g + h->items_at;
     __global const float *keys = (__global const float *)(g + h->keys_at);
+    float p1 = dot3(q, h->s1), p2 = dot3(q, h->s2);
     float best = tmax;
     int found = 0;
     int end = starts[tile + 1];
     for (int k = starts[tile]; k < end; ++k) {
         if (keys[k] - base >= best) break;        /* this and every later one is farther */
-        if (bvh_try_triangle(&r, tris, items[k], tmin, &best, hit)) {
+        if (R ? grid_raster_try(R, items[k], p1, p2, base, tmin, &best, hit)
+              : bvh_try_triangle(&r, tris, items[k], tmin, &best, hit)) {
             found = 1;
             if (any_hit) return 1;
         }

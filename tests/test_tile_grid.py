@@ -1,6 +1,9 @@
 """Tile grid (clscatter/accel/tile_grid.py, cl_kernels/tile_grid.h): the host binning
 against a float64 point-in-triangle reference, the grid_hit kernel against the BVH for
-rays along the grid's direction, and the directional shadow map traced both ways."""
+rays along the grid's direction (an orthographic grid tests its triangles projected once
+on the host: the same hits, distances to float rounding) or from its origin (a
+perspective grid runs the BVH's own test: the same bits), and the shadow maps traced
+both ways."""
 from __future__ import annotations
 
 import numpy as np
@@ -135,17 +138,37 @@ def test_grid_hits_equal_the_bvh(engine):
     assert np.mean(np.isfinite(t_bvh)) > 0.3           # the rays do meet the soup
     assert np.array_equal(np.isfinite(t_grid), np.isfinite(t_bvh))
     hit = np.isfinite(t_bvh)
-    # same test on the same ray: the same distance, up to which of two triangles at one
-    # distance is reported
-    np.testing.assert_allclose(t_grid[hit], t_bvh[hit], rtol=1e-6)
-    assert np.mean(t_grid[hit] == t_bvh[hit]) > 0.999
+    # the same watertight test, its projection done once on the host: the distances
+    # agree to float rounding, which the soup's near-edge-on slivers amplify in both
+    # (a steep depth across a thin projected triangle: measured against float64, at
+    # most 1.1e-5 relative through the grid and 3.6e-6 through the BVH, medians 4e-8)
+    np.testing.assert_allclose(t_grid[hit], t_bvh[hit], rtol=2e-5)
+    assert np.median(np.abs(t_grid[hit] / t_bvh[hit] - 1.0)) < 2e-7
     # any hit, and a window that starts inside the soup
     any_grid = tile_grid.trace_grid(engine, bvh, grid, o, tmin=1.2, tmax=1.9, any_hit=True)
     any_bvh = trace(engine, bvh, o, np.tile(DIR, (m, 1)), tmin=1.2, tmax=1.9, closest=False)
     assert np.array_equal(any_grid, any_bvh)
     t_win, _ = tile_grid.trace_grid(engine, bvh, grid, o, tmin=1.2, tmax=1.9)
     t_ref, _ = trace(engine, bvh, o, np.tile(DIR, (m, 1)), tmin=1.2, tmax=1.9)
-    np.testing.assert_allclose(t_win, t_ref, rtol=1e-6)
+    np.testing.assert_allclose(t_win, t_ref, rtol=2e-5)
+
+
+def test_big_orthographic_grids_run_the_bvh_test(engine, monkeypatch):
+    """Past MAX_RASTER triangles an orthographic grid stores no projection and its rays
+    run the BVH's own test: the BVH's distances to the bit."""
+    monkeypatch.setattr(tile_grid, "MAX_RASTER", 10)
+    bvh = build_bvh(_soup())
+    grid = _grid(bvh)
+    assert grid.raster is None and grid.packed()[:tile_grid.HEAD_WORDS].view(
+        tile_grid.TILE_GRID)["raster_at"] == 0
+    rng = np.random.default_rng(3)
+    m = 5000
+    o = rng.uniform(-0.7, 0.7, (m, 1)) * S1 + rng.uniform(-0.7, 0.7, (m, 1)) * S2 - 1.5 * DIR
+    t_bvh, _ = trace(engine, bvh, o, np.tile(DIR, (m, 1)))
+    t_grid, _ = tile_grid.trace_grid(engine, bvh, grid, o)
+    hit = np.isfinite(t_bvh)
+    assert hit.mean() > 0.3 and np.array_equal(np.isfinite(t_grid), hit)
+    assert np.mean(t_grid[hit] == t_bvh[hit]) > 0.999
 
 
 def test_perspective_grid_hits_equal_the_bvh(engine):
@@ -284,6 +307,14 @@ def test_watertight_through_shared_edges_and_vertices(engine):
     t, _ = tile_grid.trace_grid(engine, bvh, grid, o)
     assert np.all(np.isfinite(t))
     np.testing.assert_allclose(t, 1.2, rtol=1e-5)
+    # and densely along every quad's diagonal (shared by its two triangles): on or
+    # within rounding of the edge, never between them
+    s = (np.arange(1, 40) / 40.0)[None, :, None]
+    a, c = tris[::2, 0][:, None, :], tris[::2, 2][:, None, :]
+    p = (a + s * (c - a)).reshape(-1, 2)
+    o = p[:, :1] * S1 + p[:, 1:] * S2 - DIR
+    t, _ = tile_grid.trace_grid(engine, bvh, grid, o)
+    assert np.all(np.isfinite(t)), int(np.sum(~np.isfinite(t)))
 
 
 def test_outside_and_empty_grids(engine):
@@ -338,7 +369,8 @@ def test_shadow_map_through_the_grid_equals_the_bvh(engine, name, kind):
     assert 0.05 < lit.mean()
     assert np.array_equal(a < maps.T_INF, lit)
     np.testing.assert_allclose(a[lit], b[lit], rtol=1e-6, atol=1e-6)
-    assert np.mean(a == b) > 0.999
+    if axis.spot:           # a perspective grid runs the BVH's own test: the same bits
+        assert np.mean(a == b) > 0.999
 
 
 @pytest.mark.parametrize("name,method", [("shafts", "epipolar"), ("epi_grille", "raymarch"),

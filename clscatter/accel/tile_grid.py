@@ -14,10 +14,11 @@ that culling once per light instead of once per ray, as a rasteriser's binning d
   ``(v - origin).dir`` of their vertices (minus the pad): a ray from ``o`` along ``dir``
   stops testing once ``near - (o - origin).dir`` is past its closest hit so far.
 
-A ray in the tile meets exactly the triangle tests the BVH would find a hit in (same
-watertight test, :c:func:`bvh_triangle`), so the closest distance, and any-hit answers,
-are the BVH's to the bit; only which of two triangles at exactly the same distance is
-reported may differ. The lists are built here in NumPy, row by row of tiles (2-12 ms for
+The rays of such a grid all share the watertight test's projection (Woop et al.: a
+permutation and shear that depend on the direction only), so it is done once per triangle
+here (:func:`raster_triangles`) and a ray evaluates three edge functions in the plane and
+a weighted depth (``grid_raster_try``): watertight as the BVH's test, hit distances within
+float rounding of the BVH's. The lists are built here in NumPy, row by row of tiles (2-12 ms for
 the built-in scenes' 1280-texel maps, which then take 0.06-0.12 s against 0.21-0.41 s
 through the BVH: ``tools/bench_tile_grids.py``); :func:`worth_it` says when a grid beats
 the BVH.
@@ -26,7 +27,10 @@ A *perspective* grid serves rays that share an origin instead (a pinhole camera,
 light): plane coordinates are divided by the depth along ``dir`` and the key is a
 triangle's least depth, a lower bound of its distance along any unit ray from the
 origin. Rays that *end* at the origin (a spot light's shadow rays) use the same lists
-from the other side (``grid_any_toward``). The grids of a scene: :func:`camera_grid`,
+from the other side (``grid_any_toward``). Perspective grids test with the BVH's own
+function (:c:func:`bvh_triangle`), so the closest distance, and any-hit answers, are the
+BVH's to the bit; only which of two triangles at exactly the same distance is reported may
+differ. The grids of a scene: :func:`camera_grid`,
 :func:`light_grid` (kept in ``SceneBuffers`` and rebuilt when the camera or the lights
 change); the shadow maps' own are built in ``methods/epipolar/maps.py``.
 """
@@ -47,25 +51,30 @@ TILE_GRID = structs.register_struct("tile_grid.h", "TileGrid", np.dtype([
     ("origin", *F4), ("s1", *F4), ("s2", *F4), ("dir", *F4), ("rect", *F4),
     ("nx", np.int32), ("ny", np.int32), ("items", np.int32), ("perspective", np.int32),
     ("light", np.int32), ("starts_at", np.int32), ("items_at", np.int32), ("keys_at", np.int32),
-    ("faces", np.int32), ("next", np.int32), ("pad0", np.int32), ("pad1", np.int32),
+    ("faces", np.int32), ("next", np.int32), ("raster_at", np.int32), ("pad1", np.int32),
 ], align=True))
 HEAD_WORDS = TILE_GRID.itemsize // 4
 
 PAD = 1e-4          # bounding boxes and near keys are widened by this much of the extent
 MAX_ITEMS = 1 << 20  # a grid with more (triangle, tile) entries is not built
 MAX_MEAN_LIST = 16   # ... nor used when its tiles list more triangles than this on average
+MAX_RASTER = 1 << 18  # orthographic grids of more triangles test them as the BVH does
+RASTER_WORDS = 20     # per triangle: three edges, their signs, the vertices' depths
 
 
 @dataclass
 class TileGrid:
     """Host side of a tile grid: the TILE_GRID record, per-tile ``starts`` (nx ny + 1,
     int32: tile k lists ``items[starts[k]:starts[k+1]]``), the listed triangles' slots in
-    the BVH's reordered array (int32) and their ``keys`` (float32 near coordinates)."""
+    the BVH's reordered array (int32) and their ``keys`` (float32 near coordinates); an
+    orthographic grid also has ``raster``, each slot's triangle projected on the grid's
+    plane (:func:`raster_triangles`)."""
 
     record: np.ndarray
     starts: np.ndarray
     items: np.ndarray
     keys: np.ndarray
+    raster: np.ndarray | None = None
 
     @property
     def tiles(self) -> int:
@@ -83,16 +92,24 @@ class TileGrid:
 
     def packed(self) -> np.ndarray:
         """The one int32 buffer the kernels take: the TILE_GRID record, then ``starts``,
-        ``items`` and the ``keys``' float32 bits, at the offsets (in words) the record
-        holds, so a kernel threads one parameter through instead of four."""
+        ``items``, the ``keys``' float32 bits and the raster's (16-byte aligned, for
+        float4 loads; ``raster_at`` 0 without one), at the offsets (in words) the record
+        holds, so a kernel threads one parameter through instead of five."""
         rec = self.record.copy()
         rec["faces"] = max(int(rec["faces"]), 1)
         rec["starts_at"] = HEAD_WORDS
         rec["items_at"] = HEAD_WORDS + len(self.starts)
         rec["keys_at"] = HEAD_WORDS + len(self.starts) + len(self.items)
+        end = int(rec["keys_at"]) + len(self.keys)
+        gap = np.zeros(-end % 4, np.int32)
+        raster = np.zeros(0, np.int32)
+        rec["raster_at"] = 0
+        if self.raster is not None:
+            rec["raster_at"] = end + len(gap)
+            raster = self.raster.astype(np.float32).ravel().view(np.int32)
         out = np.concatenate([rec.reshape(1).view(np.int32), self.starts.astype(np.int32),
                               self.items.astype(np.int32),
-                              self.keys.astype(np.float32).view(np.int32)])
+                              self.keys.astype(np.float32).view(np.int32), gap, raster])
         # a whole number of 16-byte words, so a grid packed after this one (a cube's next
         # face) starts aligned for the record's float4 fields
         return np.concatenate([out, np.zeros(-len(out) % 4, np.int32)])
@@ -179,7 +196,38 @@ def build_grid(bvh: BVH, origin, s1, s2, direction, rect, nx: int, ny: int,
     rec["rect"] = (lo1, lo2, hi1, hi2)
     rec["nx"], rec["ny"], rec["items"] = nx, ny, total
     rec["perspective"], rec["light"] = int(perspective), -1
-    return TileGrid(rec, starts, owner.astype(np.int32), near[owner].astype(np.float32))
+    raster = None if perspective or n > MAX_RASTER else raster_triangles(x1, x2, z)
+    return TileGrid(rec, starts, owner.astype(np.int32), near[owner].astype(np.float32),
+                    raster)
+
+
+def raster_triangles(x1: np.ndarray, x2: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """An orthographic grid's triangles as its rays see them (``grid_raster_try``):
+    float32 (n, :data:`RASTER_WORDS`) from the vertices' plane coordinates ``x1``,
+    ``x2`` and axial coordinates ``z`` (n, 3), relative to the grid's origin.
+
+    Rays along the grid's direction all share the watertight test's projection, so it is
+    done once here: the edge opposite vertex i (from vertex i + 1 to i + 2) is stored as
+    a start point and a direction in the plane, in a canonical order (the lesser end
+    first, as ``bvh_edge`` orders its operands) with the sign that restores the
+    triangle's orientation. Two triangles sharing an edge store it identically, with
+    opposite signs, so their edge functions at any ray are exact negatives and a ray
+    through the edge meets one of them (or both, exactly on it). Words: the three edges
+    (start x, start y, direction x, direction y), then the three signs and 0, then the
+    three vertex depths and 0."""
+    n = len(x1)
+    a1, a2 = x1.astype(np.float32), x2.astype(np.float32)
+    out = np.zeros((n, RASTER_WORDS), np.float32)
+    for e in range(3):
+        i, j = (e + 1) % 3, (e + 2) % 3
+        ax, ay, bx, by = a1[:, i], a2[:, i], a1[:, j], a2[:, j]
+        swap = (ax > bx) | ((ax == bx) & (ay > by))
+        px, py = np.where(swap, bx, ax), np.where(swap, by, ay)
+        qx, qy = np.where(swap, ax, bx), np.where(swap, ay, by)
+        out[:, 4 * e:4 * e + 4] = np.stack([px, py, qx - px, qy - py], 1)
+        out[:, 12 + e] = np.where(swap, -1.0, 1.0)
+    out[:, 16:19] = z
+    return out
 
 
 def _perspective_rows(v, x1, x2, z, pad: float, rect):
