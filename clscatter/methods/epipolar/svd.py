@@ -278,21 +278,23 @@ def core(axis: Axis, kappa: float, g: float, gam: np.ndarray, bet: np.ndarray,
     the module docstring; ``refs=None``: the plain formulation, :meth:`Refs.zero`)."""
     gam = np.asarray(gam, np.float64)
     bet = np.asarray(bet, np.float64)
-    G, Bt = np.meshgrid(gam, bet, indexing="ij")
+    # what depends on one coordinate is computed on its axis and broadcast (the same
+    # values as on the full grid, at a fraction of the trigonometry)
+    G = gam[:, None]
     tr = np.zeros_like(bet) if refs is None else refs.t_at(bet)
     lr = np.zeros_like(gam) if refs is None else refs.l_at(gam)
     sf = soft if (refs is not None and refs.soft) else (lambda y: y)
     with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
         if axis.spot:
-            s = np.minimum(G + Bt, math.pi - 1e-4)       # beyond pi - beta no view ray reaches
+            s = np.minimum(G + bet[None, :], math.pi - 1e-4)   # beyond pi - beta no view ray reaches
             ss = np.sin(s)
-            t = axis.D * np.sin(G) / ss
-            r = axis.D * np.sin(Bt) / ss
+            t = (axis.D * np.sin(gam))[:, None] / ss
+            r = (axis.D * np.sin(bet))[None, :] / ss
             e = sf(kappa * (t - tr[None, :])) + sf(kappa * (r - lr[:, None]))
             return hg(np.cos(s), g) * np.exp(-np.minimum(e, 700.0))
-        sb = np.maximum(np.sin(Bt), 1e-12)
+        sb = np.maximum(np.sin(bet), 1e-12)[None, :]
         t = G / sb
-        z = G * np.cos(Bt) / sb
+        z = G * np.cos(bet)[None, :] / sb
         e = sf(kappa * (t - tr[None, :])) + sf(kappa * (lr[:, None] - z))
         return np.exp(-np.minimum(np.nan_to_num(e, nan=700.0), 700.0))
 
