@@ -9,7 +9,9 @@ none (``tile_grid.worth_it`` forced false, so every ray traverses the BVH):
 - ``shadow_map``: epipolar's 1280-texel shadow map of the first light (directional, or a
   spot's single face), seconds, and the grid's host build time;
 - ``raymarch``: the ``raymarch`` stage of a whole ``--method raymarch`` render, seconds,
-  and the relMSE of its image against the BVH-only one (expected ~0: the same hits);
+  and the relMSE of its image against the BVH-only one (expected ~0: the same hits; an
+  orthographic grid's distances agree with the BVH's to float rounding, a perspective
+  grid's to the bit);
 - the grids' list statistics (``tile_grids`` of ``--stats``).
 
 Each time is the best of two runs after a warm-up. Writes ``bench_out/tile_grids.json``
