@@ -774,9 +774,9 @@ __kernel void epi_events(__global const float4 *geo, __global const int *live, i
 /* Back to the samples: the blend of a live sample's two results (res[2 p]: its first
  * slice, weight 1 - f; res[2 p + 1]: its second, weight f; p = inv[j], its place in the
  * runs; a weight-0 side is not read), times the light's colour (sigma_s x power) and
- * the sweep's share 1 - w_ring, into values[i] (the caller zeroes values: samples not live stay 0). With one channel
- * in the sweep (grey extinction), its result serves all three. `acc` given per live
- * sample instead (grid lookup: use_acc = 1) skips the event blend. */
+ * the sweep's share 1 - w_ring, into values[i] (the caller zeroes values: samples not
+ * live stay 0). With one channel in the sweep (grey extinction), its result serves all
+ * three. `acc` given per live sample instead (grid lookup: use_acc = 1) skips the blend. */
 __kernel void epi_sample_values(__global const float4 *res, __global const int *inv,
                                 __global const int4 *idx, __global const int *live, int L,
                                 __global const float4 *acc, int use_acc,

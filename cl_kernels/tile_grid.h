@@ -101,7 +101,7 @@ int grid_traverse(__global const float4 *tris, __global const int *g, int tile, 
     __global const int *starts = g + h->starts_at;
     __global const int *items = g + h->items_at;
     __global const float *keys = (__global const float *)(g + h->keys_at);
-    float p1 = dot3(q, h->s1), p2 = dot3(q, h->s2);
+    float p1 = R ? dot3(q, h->s1) : 0.0f, p2 = R ? dot3(q, h->s2) : 0.0f;
     float best = tmax;
     int found = 0;
     int end = starts[tile + 1];

@@ -545,7 +545,7 @@ class DeviceViews:
         return out.view(np.float32).astype(np.float64)
 
 
-EVENTS_PER_BIN = 32      # the event sort's buckets: about this many events each
+EVENTS_PER_BIN = 32      # the event sort's buckets: about this many samples each
 
 
 def _segment_events(eng, geo_buf, idx_buf, live: LiveSamples, S: int, defines: dict,
