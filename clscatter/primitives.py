@@ -171,7 +171,8 @@ def gather(eng: Engine, src, index, n: int, itemsize: int):
     """``dst[i] = src[index[i]]`` for ``n`` records of ``itemsize`` bytes (a multiple of 4).
 
     Records are copied as 32-bit words, so any struct layout works (e.g. 64-byte
-    segments permuted by a :func:`bucket_sort` ``perm``). An index outside the records
+    segments permuted by a :func:`bucket_sort` ``perm``); records of whole 16-byte quads
+    go one record per work-item (``gather_quads``, ~3x faster on the CPU device). An index outside the records
     that ``src`` holds (its byte size // ``itemsize``) gives an all-zero record. Returns a
     new buffer of ``n * itemsize`` bytes.
     """
@@ -181,8 +182,12 @@ def gather(eng: Engine, src, index, n: int, itemsize: int):
     words = itemsize // 4
     nsrc = min(int(src.size) // itemsize, 2**31 - 1)
     dst = eng.empty(max(n * itemsize, 4))
-    eng.call(PROGRAM, "gather_words", _padded(n * words), src=src, nsrc=nsrc, index=index,
-             n=n, words=words, dst=dst)
+    if itemsize % 16 == 0:
+        eng.call(PROGRAM, "gather_quads", _padded(n), src=src, nsrc=nsrc,
+                 index=index, n=n, quads=itemsize // 16, dst=dst)
+    else:
+        eng.call(PROGRAM, "gather_words", _padded(n * words), src=src, nsrc=nsrc, index=index,
+                 n=n, words=words, dst=dst)
     return dst
 
 
