@@ -101,11 +101,18 @@ __kernel void epi_shadow_map(__global const BVHNode *nodes, __global const float
         float4 rect = fr->sm_rect;
         float x1 = rect.x + ((gid % res) + 0.5f) * (rect.z - rect.x) / res;
         float x2 = rect.y + ((gid / res) + 0.5f) * (rect.w - rect.y) / res;
-        /* the map stores the blocker's axial coordinate z = (x - eye).u */
-        float4 o = fr->eye + x1 * fr->sm_s1 + x2 * fr->sm_s2 + fr->z_start * fr->u;
-        o.w = 0.0f;
-        out[gid] = scene_closest(nodes, tris, grid, o, -fr->u, 0.0f, T_INF, &hit)
-                   ? fr->z_start - hit.t : T_INF;
+        /* the map stores the blocker's axial coordinate z = (x - eye).u; a grid with
+         * projected triangles (origin eye, axes sm_s1, sm_s2, direction -u) takes the
+         * texel's plane coordinates as they are */
+        float t;
+        int got = grid_closest_plane(grid, x1, x2, -fr->z_start, 0.0f, T_INF, &t);
+        if (got < 0) {
+            float4 o = fr->eye + x1 * fr->sm_s1 + x2 * fr->sm_s2 + fr->z_start * fr->u;
+            o.w = 0.0f;
+            got = scene_closest(nodes, tris, grid, o, -fr->u, 0.0f, T_INF, &hit);
+            t = hit.t;
+        }
+        out[gid] = got ? fr->z_start - t : T_INF;
         return;
     }
     if (gid >= ntex) return;

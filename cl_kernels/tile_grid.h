@@ -18,6 +18,8 @@
  *   int grid_tile(g, o, d)      tile of the ray (o, d), or -1 (no grid, or outside it)
  *   int grid_closest(tris, g, tile, o, d, tmin, tmax, &hit)
  *   int grid_any(tris, g, tile, o, d, tmin, tmax)
+ *   int grid_closest_plane(g, p1, p2, base, tmin, tmax, &t)   an orthographic grid's ray
+ *                               by its plane and axial coordinates; -1: ask the BVH
  * Orthographic: d must be the grid's unit direction. Perspective: o must be the grid's
  * origin and d a unit vector. t is a distance. Portable OpenCL 1.2 C.
  */
@@ -44,17 +46,23 @@ typedef struct {
 
 #define GRID_HEAD(g) ((__global const TileGrid *)(g))
 
+/* the tile at plane coordinates (x1, x2) (perspective: already divided by the depth), or
+ * -1 outside the rectangle */
+int grid_tile_at(__global const TileGrid *h, float x1, float x2) {
+    float4 rect = h->rect;
+    float fx = (x1 - rect.x) / (rect.z - rect.x) * h->nx;
+    float fy = (x2 - rect.y) / (rect.w - rect.y) * h->ny;
+    if (!(fx >= 0.0f && fx < (float)h->nx && fy >= 0.0f && fy < (float)h->ny)) return -1;
+    return min((int)fy, h->ny - 1) * h->nx + min((int)fx, h->nx - 1);
+}
+
 int grid_tile(__global const int *g, float4 o, float4 d) {
     __global const TileGrid *h = GRID_HEAD(g);
     if (h->nx <= 0) return -1;
     float4 q = h->perspective ? d : o - h->origin;
     float depth = h->perspective ? dot3(q, h->dir) : 1.0f;
     if (!(depth > 0.0f)) return -1;
-    float4 rect = h->rect;
-    float fx = (dot3(q, h->s1) / depth - rect.x) / (rect.z - rect.x) * h->nx;
-    float fy = (dot3(q, h->s2) / depth - rect.y) / (rect.w - rect.y) * h->ny;
-    if (!(fx >= 0.0f && fx < (float)h->nx && fy >= 0.0f && fy < (float)h->ny)) return -1;
-    return min((int)fy, h->ny - 1) * h->nx + min((int)fx, h->nx - 1);
+    return grid_tile_at(h, dot3(q, h->s1) / depth, dot3(q, h->s2) / depth);
 }
 
 /* The watertight test for a ray of an orthographic grid at plane coordinates (p1, p2)
@@ -87,6 +95,29 @@ int grid_raster_try(__global const float4 *R, int tri, float p1, float p2, float
     return 1;
 }
 
+/* The tile's list in order, up to the first key past the closest hit *best: with the
+ * projected triangles R when given (p1, p2, base: the ray's plane and axial coordinates),
+ * else the BVH's test on ray r. any_hit != 0 returns at the first hit. */
+int grid_list(__global const float4 *tris, __global const int *g, int tile,
+              __global const float4 *R, const BvhRay *r, float p1, float p2, float base,
+              float tmin, float *best, int any_hit, Hit *hit) {
+    __global const TileGrid *h = GRID_HEAD(g);
+    __global const int *starts = g + h->starts_at;
+    __global const int *items = g + h->items_at;
+    __global const float *keys = (__global const float *)(g + h->keys_at);
+    int found = 0;
+    int end = starts[tile + 1];
+    for (int k = starts[tile]; k < end; ++k) {
+        if (keys[k] - base >= *best) break;       /* this and every later one is farther */
+        if (R ? grid_raster_try(R, items[k], p1, p2, base, tmin, best, hit)
+              : bvh_try_triangle(r, tris, items[k], tmin, best, hit)) {
+            found = 1;
+            if (any_hit) return 1;
+        }
+    }
+    return found;
+}
+
 int grid_traverse(__global const float4 *tris, __global const int *g, int tile, float4 o,
                   float4 d, float tmin, float tmax, int any_hit, Hit *hit) {
     __global const TileGrid *h = GRID_HEAD(g);
@@ -98,27 +129,32 @@ int grid_traverse(__global const float4 *tris, __global const int *g, int tile, 
     /* axial coordinate of the origin (0 for a perspective grid's own rays) */
     float4 q = o - h->origin;
     float base = h->perspective ? 0.0f : dot3(q, h->dir);
-    __global const int *starts = g + h->starts_at;
-    __global const int *items = g + h->items_at;
-    __global const float *keys = (__global const float *)(g + h->keys_at);
     float p1 = R ? dot3(q, h->s1) : 0.0f, p2 = R ? dot3(q, h->s2) : 0.0f;
     float best = tmax;
-    int found = 0;
-    int end = starts[tile + 1];
-    for (int k = starts[tile]; k < end; ++k) {
-        if (keys[k] - base >= best) break;        /* this and every later one is farther */
-        if (R ? grid_raster_try(R, items[k], p1, p2, base, tmin, &best, hit)
-              : bvh_try_triangle(&r, tris, items[k], tmin, &best, hit)) {
-            found = 1;
-            if (any_hit) return 1;
-        }
-    }
-    return found;
+    return grid_list(tris, g, tile, R, &r, p1, p2, base, tmin, &best, any_hit, hit);
 }
 
 int grid_closest(__global const float4 *tris, __global const int *g, int tile, float4 o,
                  float4 d, float tmin, float tmax, Hit *hit) {
     return grid_traverse(tris, g, tile, o, d, tmin, tmax, 0, hit);
+}
+
+/* Closest hit distance (*t, T_INF for none) of the ray of an orthographic grid with
+ * projected triangles given by its plane coordinates (p1, p2) and axial coordinate base
+ * (relative to the grid's origin), for callers that hold those already (a shadow map's
+ * texels): no ray origin to project. Returns -1 where the grid cannot answer (no
+ * projected triangles, or outside it): the caller asks the BVH. */
+int grid_closest_plane(__global const int *g, float p1, float p2, float base, float tmin,
+                       float tmax, float *t) {
+    __global const TileGrid *h = GRID_HEAD(g);
+    if (h->nx <= 0 || h->perspective || h->raster_at <= 0) return -1;
+    int tile = grid_tile_at(h, p1, p2);
+    if (tile < 0) return -1;
+    float best = tmax;
+    int found = grid_list(0, g, tile, (__global const float4 *)(g + h->raster_at), 0, p1, p2,
+                          base, tmin, &best, 0, 0);
+    *t = found ? best : T_INF;
+    return found;
 }
 
 int grid_any(__global const float4 *tris, __global const int *g, int tile, float4 o,
