@@ -19,7 +19,7 @@ permutation and shear that depend on the direction only), so it is done once per
 here (:func:`raster_triangles`) and a ray evaluates three edge functions in the plane and
 a weighted depth (``grid_raster_try``): watertight as the BVH's test, hit distances within
 float rounding of the BVH's. The lists are built here in NumPy, row by row of tiles (2-12 ms
-for the built-in scenes' 1280-texel maps, which then take 0.05-0.09 s against 0.19-0.35 s
+for the built-in scenes' 1280-texel maps, which then take 0.04-0.09 s against 0.22-0.39 s
 through the BVH: ``tools/bench_tile_grids.py``); :func:`worth_it` says when a grid beats
 the BVH.
 
