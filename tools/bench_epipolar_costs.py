@@ -21,8 +21,6 @@ Writes ``bench_out/epipolar_costs.json`` and copies it to ``docs/bench/``::
 from __future__ import annotations
 
 import argparse
-import json
-import shutil
 import statistics
 import sys
 import time
@@ -32,7 +30,9 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "tools"))
 
+from bench_output import publish  # noqa: E402
 from clscatter.device import get_engine, kernel_dir  # noqa: E402
 from clscatter.image import relmse  # noqa: E402
 from clscatter.render import render  # noqa: E402
@@ -108,13 +108,7 @@ def main() -> None:
     print("ns per work-item:", {k: round(v, 2) for k, v in costs.items()}, flush=True)
     result = {"device": get_engine().name, "ns_per_item": costs,
               "relmse_vs_default": sensitivity(args.scenes)}
-    out = REPO / "bench_out"
-    out.mkdir(exist_ok=True)
-    path = out / "epipolar_costs.json"
-    path.write_text(json.dumps(result, indent=2))
-    if not args.no_copy:
-        shutil.copy(path, REPO / "docs" / "bench" / path.name)
-    print(f"wrote {path}")
+    publish(result, "epipolar_costs", copy=not args.no_copy)
 
 
 if __name__ == "__main__":

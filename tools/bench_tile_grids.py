@@ -22,15 +22,15 @@ and copies it to ``docs/bench/``::
 from __future__ import annotations
 
 import argparse
-import json
-import shutil
 import sys
 import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "tools"))
 
+from bench_output import publish  # noqa: E402
 from clscatter import view_paths  # noqa: E402
 from clscatter.accel import tile_grid  # noqa: E402
 from clscatter.device import get_engine  # noqa: E402
@@ -141,13 +141,7 @@ def main() -> None:
               f"{g['raymarch']:.2f} ({b['raymarch']:.2f}) | {err:.1e} | "
               f"{lg['mean_list'] if lg else '-'} |", flush=True)
     result = {"device": get_engine().name, "settings": SETTINGS, "scenes": rows}
-    out = REPO / "bench_out"
-    out.mkdir(exist_ok=True)
-    path = out / "tile_grids.json"
-    path.write_text(json.dumps(result, indent=2))
-    if not args.no_copy:
-        shutil.copy(path, REPO / "docs" / "bench" / path.name)
-    print(f"wrote {path}")
+    publish(result, "tile_grids", copy=not args.no_copy)
 
 
 if __name__ == "__main__":
