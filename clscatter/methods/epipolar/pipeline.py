@@ -45,8 +45,9 @@ from ...prepared import PreparedScene
 from ...stats import Stats, progress
 from . import geometry as geo
 from .maps import setup_shadow_map, trace_depth_map, trace_shadow_map
-from .svd import (REF_NODES, accepts, decompose, float32_error, heldout_error, node_extremes,
-                  references, riemann_error, slice_error, summarize, view_entry)
+from .svd import (REF_NODES, accepts, decompose, float32_bound, float32_error, heldout_error,
+                  node_extremes, references, riemann_error, rms, slice_error, summarize,
+                  view_entry)
 
 LOOKUPS = ("segment", "grid")
 MIN_LIGHT_RAYS = 256       # the automatic light rays per slice never go below this
@@ -640,6 +641,8 @@ RAY_MULTS = (1, 2, 4)     # light rays tried: light_rays x these (thick media ne
 HELD_OUT = 400            # camera samples of the error estimate (SVD, float32)
 HELD_RIEMANN = 80         # ... of its light-ray part (a sum over light rays each)
 HELD_F32 = 40             # ... of its float32 part (the tree's sums emulated)
+F32_BOUND_ENOUGH = 0.1    # a float32 bound under this x tolerance is used as it is ...
+F32_BOUND_DEPTH = 15.0    # ... up to this optical depth across the medium (tested there)
 
 
 def _slice_check(axis, box, kappas, g, slices, eye, rows):
@@ -713,19 +716,24 @@ def _svd_groups(axis, box, ps, kappas, slices, views, held, st: Settings, G: int
         hc = (cone_all[0][hk[hs]], cone_all[1][hk[hs]]) if cone_all is not None else None
         tabs, cache = {}, {}
         rs32 = np.flatnonzero(hs)[:max(1, (HELD_F32 * int(hs.sum())) // max(len(hk), 1))]
+        extent = float(np.linalg.norm(box[1] - box[0])) if box is not None else float(ps.medium["t_far"])
+        bound_ok = float(np.max(kappas)) * extent <= F32_BOUND_DEPTH
         for T in terms_list:
             t = _truncate(full, nch, T)
             e = heldout_error(axis, box, kappas, g, t, refs, hw[hs], hb[hs], hga[hs], hgb[hs], hc,
                               cache=cache)
-            # the tree's float32 error, emulated on a few of them, added to each
+            # the tree's float32 error, added to each: bounded on a few held-out samples
+            # (svd.float32_bound); where that does not settle it (or the medium is thicker
+            # than where the bound was checked against the emulation), emulated on them
             f32 = 0.0
             if len(rs32) and e["rms"] <= st.svd_tolerance:   # else it fails anyway
                 rc32 = (cone_all[0][hk[rs32]], cone_all[1][hk[rs32]]) if cone_all is not None else None
-                f32e = float32_error(axis, box, kappas, t, refs, hw[rs32], hb[rs32], hga[rs32],
-                                     hgb[rs32], tab["gamma_lo"][hk[rs32]].astype(np.float64),
-                                     tab["gamma_hi"][hk[rs32]].astype(np.float64),
-                                     int(st.light_rays), rc32)
-                f32 = float(np.sqrt(np.mean(f32e ** 2)))
+                g0_32 = tab["gamma_lo"][hk[rs32]].astype(np.float64)
+                args32 = (axis, box, kappas, t, refs, hw[rs32], hb[rs32], hga[rs32], hgb[rs32], g0_32)
+                f32 = 0.0 if not bound_ok else rms(float32_bound(*args32, int(st.light_rays), rc32))
+                if not (bound_ok and f32 <= F32_BOUND_ENOUGH * st.svd_tolerance):
+                    f32 = rms(float32_error(*args32, tab["gamma_hi"][hk[rs32]].astype(np.float64),
+                                            int(st.light_rays), rc32))
             e = summarize(np.sqrt(e["errors"] ** 2 + f32 ** 2))
             errs[T].append(e["errors"])
             tabs[T] = t
