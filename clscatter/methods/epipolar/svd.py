@@ -109,8 +109,55 @@ def hg(cos: np.ndarray, g: float) -> np.ndarray:
 
 def soft(y: np.ndarray) -> np.ndarray:
     """``y`` for ``y >= 0``, ``expm1(y)`` below: C1, bounded below by -1."""
-    y = np.asarray(y, np.float64)
-    return np.where(y >= 0.0, y, np.expm1(np.minimum(y, 0.0)))
+    return _soft_in_place(np.array(y, np.float64))
+
+
+def _soft_in_place(y: np.ndarray) -> np.ndarray:
+    """:func:`soft` of a float64 array the caller owns, overwritten (expm1 only where
+    negative: most of a grid is not)."""
+    neg = y < 0.0
+    if neg.any():
+        y[neg] = np.expm1(y[neg])
+    return y
+
+
+def _k_values(axis: Axis, kap: float, g: float, gam: np.ndarray, bet: np.ndarray,
+              tr: np.ndarray, lr: np.ndarray, use_soft: bool) -> np.ndarray:
+    """``K`` at broadcastable ``gam`` and ``bet`` (an outer grid ``(G, 1) x (1, B)``, or
+    nodes ``(N, Q)`` with ``(N, 1)``), ``tr`` = t_ref broadcast like ``bet``, ``lr`` =
+    l_ref like ``gam``: the one evaluation behind :func:`core` and :func:`k_at`. What
+    depends on one coordinate is computed on its own axis; the grid is worked in place."""
+    sf = _soft_in_place if use_soft else (lambda y: y)
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        if axis.spot:
+            s = np.minimum(gam + bet, math.pi - 1e-4)    # beyond pi - beta no view ray reaches
+            ss = np.sin(s)
+            t = (axis.D * np.sin(gam)) / ss
+            r = (axis.D * np.sin(bet)) / ss
+            t -= tr
+            t *= kap
+            r -= lr
+            r *= kap
+            e = sf(t)
+            e += sf(r)
+            np.minimum(e, 700.0, out=e)
+            np.negative(e, out=e)
+            np.exp(e, out=e)
+            e *= hg(np.cos(s), g)
+            return e
+        sb = np.maximum(np.sin(bet), 1e-12)
+        t = gam / sb                                    # distance from the eye
+        z = gam * (np.cos(bet) / sb)                    # axial coordinate
+        t -= tr
+        t *= kap
+        np.subtract(lr, z, out=z)
+        z *= kap
+        e = sf(t)
+        e += sf(z)
+        np.nan_to_num(e, copy=False, nan=700.0)
+        np.minimum(e, 700.0, out=e)
+        np.negative(e, out=e)
+        return np.exp(e, out=e)
 
 
 # --------------------------------------------------------------------------------------
@@ -280,25 +327,10 @@ def core(axis: Axis, kappa: float, g: float, gam: np.ndarray, bet: np.ndarray,
     the module docstring; ``refs=None``: the plain formulation, :meth:`Refs.zero`)."""
     gam = np.asarray(gam, np.float64)
     bet = np.asarray(bet, np.float64)
-    # what depends on one coordinate is computed on its axis and broadcast (the same
-    # values as on the full grid, at a fraction of the trigonometry)
-    G = gam[:, None]
     tr = np.zeros_like(bet) if refs is None else refs.t_at(bet)
     lr = np.zeros_like(gam) if refs is None else refs.l_at(gam)
-    sf = soft if (refs is not None and refs.soft) else (lambda y: y)
-    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
-        if axis.spot:
-            s = np.minimum(G + bet[None, :], math.pi - 1e-4)   # beyond pi - beta no view ray reaches
-            ss = np.sin(s)
-            t = (axis.D * np.sin(gam))[:, None] / ss
-            r = (axis.D * np.sin(bet))[None, :] / ss
-            e = sf(kappa * (t - tr[None, :])) + sf(kappa * (r - lr[:, None]))
-            return hg(np.cos(s), g) * np.exp(-np.minimum(e, 700.0))
-        sb = np.maximum(np.sin(bet), 1e-12)[None, :]
-        t = G / sb
-        z = G * np.cos(bet)[None, :] / sb
-        e = sf(kappa * (t - tr[None, :])) + sf(kappa * (lr[:, None] - z))
-        return np.exp(-np.minimum(np.nan_to_num(e, nan=700.0), 700.0))
+    return _k_values(axis, kappa, g, gam[:, None], bet[None, :], tr[None, :], lr[:, None],
+                     refs is not None and refs.soft)
 
 
 def pure_beta(axis: Axis, g: float, bet: np.ndarray) -> np.ndarray:
@@ -366,11 +398,9 @@ def decompose(axis: Axis, kappas: np.ndarray, g: float, g_range, b_range, terms:
         n_use = min(terms, len(S))
         Kg = core(axis, float(kap), g, gf, bs, refs)          # (n_g, samples)
         Kb = core(axis, float(kap), g, gs, bf, refs)          # (samples, n_b)
-        for n in range(n_use):
-            if S[n] <= 1e-12 * S[0]:
-                break
-            gtab[:, c * terms + n] = Kg @ Vt[n] / S[n]
-            btab[:, c * terms + n] = (U[:, n] @ Kb) * pb
+        n_use = int(np.count_nonzero(S[:n_use] > 1e-12 * S[0]))   # S falls: a prefix
+        gtab[:, c * terms:c * terms + n_use] = (Kg @ Vt[:n_use].T) / S[:n_use]
+        btab[:, c * terms:c * terms + n_use] = (U[:, :n_use].T @ Kb).T * pb[:, None]
     r = refs if refs is not None else Refs.zero((g_lo, g_hi), (b_lo, b_hi))
     return Tables(gtab.astype(np.float32), btab.astype(np.float32), g_lo, g_hi, b_lo, b_hi,
                   singular, terms, r.l_at(gf).astype(np.float32), r.t_at(bf).astype(np.float32),
@@ -409,20 +439,9 @@ F32_TINY = 2.0 ** -126     # the smallest normal float32
 def k_at(axis: Axis, kap: float, g: float, gq: np.ndarray, beta: np.ndarray,
          refs: Refs) -> np.ndarray:
     """``K`` elementwise at ``(gq (N, Q), beta (N,))`` (the diagonal of :func:`core`)."""
-    sf = soft if refs.soft else (lambda y: y)
-    tr = refs.t_at(beta)[:, None]
-    lr = refs.l_at(gq)
-    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
-        if axis.spot:
-            s = np.minimum(gq + beta[:, None], math.pi - 1e-4)
-            ss = np.sin(s)
-            t = axis.D * np.sin(gq) / ss
-            r = axis.D * np.sin(beta)[:, None] / ss
-            e = sf(kap * (t - tr)) + sf(kap * (r - lr))
-            return hg(np.cos(s), g) * np.exp(-np.minimum(e, 700.0))
-        sb = np.maximum(np.sin(beta), 1e-12)[:, None]
-        e = sf(kap * (gq / sb - tr)) + sf(kap * (lr - gq * np.cos(beta)[:, None] / sb))
-        return np.exp(-np.minimum(np.nan_to_num(e, nan=700.0), 700.0))
+    beta = np.asarray(beta, np.float64)
+    return _k_values(axis, kap, g, np.asarray(gq, np.float64), beta[:, None],
+                     refs.t_at(beta)[:, None], refs.l_at(gq), refs.soft)
 
 
 def float32_error(axis: Axis, box, kappas, tables: Tables, refs: Refs, w, beta, g_a, g_b,
@@ -644,24 +663,10 @@ def heldout_error(axis: Axis, box, kappas, g: float, tables: Tables, refs: Refs,
     pb = pure_beta(axis, g, beta)
     tr = refs.t_at(beta)
     worst = np.zeros(len(beta))
-    sf = soft if refs.soft else (lambda y: y)
     for c, kap in enumerate(kappas):
         F = _light_factor(axis, refs, le, hit, lr, kap)
         # the exact K at each node (the core on the diagonal of an outer grid)
-        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
-            if axis.spot:
-                s = np.minimum(gq + beta[:, None], math.pi - 1e-4)
-                ss = np.sin(s)
-                t = axis.D * np.sin(gq) / ss
-                r = axis.D * np.sin(beta)[:, None] / ss
-                e = sf(kap * (t - tr[:, None])) + sf(kap * (r - lr))
-                K = hg(np.cos(s), g) * np.exp(-np.minimum(e, 700.0))
-            else:
-                sb = np.maximum(np.sin(beta), 1e-12)[:, None]
-                t = gq / sb
-                z = gq * np.cos(beta)[:, None] / sb
-                e = sf(kap * (t - tr[:, None])) + sf(kap * (lr - z))
-                K = np.exp(-np.minimum(np.nan_to_num(e, nan=700.0), 700.0))
+        K = _k_values(axis, kap, g, gq, beta[:, None], tr[:, None], lr, refs.soft)
         sl = slice(c * nt, (c + 1) * nt)
         Ka = (Gt[..., sl] * Bt[:, None, sl]).sum(-1) / pb[:, None]
         exact = (wgt * F * K).sum(1)
