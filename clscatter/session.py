@@ -257,7 +257,7 @@ class RenderSession:
         from .render import RenderResult
         engine = ps.engine
         cam = scene.camera
-        surface = paths.surface.copy()
+        surface = paths.surface            # never written in place: each pass adds a new one
         medium = np.zeros((cam.height, cam.width, 3), np.float32)
         for k, p in enumerate(req.passes):
             if only is not None and k not in only:
@@ -292,8 +292,9 @@ class RenderSession:
                   device=engine.name, width=cam.width, height=cam.height, spp=cam.spp,
                   peak_bytes=int(engine.bytes_peak), stages_run=ran, reused=reused,
                   preview=bool(preview))
-        return RenderResult(image.astype(np.float32), stats.to_dict(),
-                            surface.astype(np.float32), medium.astype(np.float32))
+        # the surface part is returned as a copy: paths.surface stays the session's own
+        return RenderResult(image.astype(np.float32, copy=False), stats.to_dict(),
+                            np.array(surface, np.float32), medium.astype(np.float32, copy=False))
 
     def view_surface(self) -> np.ndarray:
         """The surface image of the last render's view paths (direct light on diffuse
