@@ -311,8 +311,8 @@ __kernel void epi_rectify_depth(__global const EpiFrame *fr, __global const EpiS
  * measured over the light rays that meet the medium (fr->lspan): a ray that misses the
  * box has an arbitrary entry, and an unbounded value would swamp the float32 prefix sums
  * of its slice (it is never integrated: no view segment of the slice reaches it). */
-void epi_light_factor(__global const EpiFrame *fr, __global const EpiSlice *sl, float gamma,
-                      float dg, float lref, float *F) {
+void epi_light_factor_span(__global const EpiFrame *fr, __global const EpiSlice *sl,
+                           float gamma, float dg, float lref, float span, float *F) {
     float x = 0.0f, cov = 1.0f;
     float t0, t1;
     if (fr->type == LIGHT_DIRECTIONAL) {
@@ -328,9 +328,14 @@ void epi_light_factor(__global const EpiFrame *fr, __global const EpiSlice *sl, 
             x = t0 - lref;                           /* r_enter - r_ref */
         }
     }
-    x = clamp(x, -fr->lspan, fr->lspan);
+    x = clamp(x, -span, span);
     for (int c = 0; c < EPI_NCH; ++c)
         F[c] = cov * exp(clamp(epi_kappa(fr, c) * x, -EPI_EXP_MAX, EPI_EXP_MAX));
+}
+
+void epi_light_factor(__global const EpiFrame *fr, __global const EpiSlice *sl, float gamma,
+                      float dg, float lref, float *F) {
+    epi_light_factor_span(fr, sl, gamma, dg, lref, fr->lspan, F);
 }
 
 /* linear interpolation in a table of n floats sampled uniformly on [lo, hi] */
@@ -365,6 +370,83 @@ int epi_lower_bound(__global const float4 *ev, int n, float b, int h) {
         if (ev[mid].x < b) lo = mid + 1; else hi = mid;
     }
     return lo;
+}
+
+/* ---- the error estimate's light-ray sums (svd.riemann_sums on the device) ---- */
+
+/* svd.soft: y for y >= 0, expm1(y) below */
+float epi_soft(float y) { return y >= 0.0f ? y : expm1(y); }
+
+/* K of svd.py at one (gamma, beta) with the references tr = t_ref(beta), lr = l_ref(gamma),
+ * exactly (not from the SVD's tables); soft: the referenced formulation's soft branch.
+ * sb, cb: sin and cos of beta (a sample's, computed once). */
+float epi_k_exact(__global const EpiFrame *fr, float kap, float g, float gam, float beta,
+                  float sb, float cb, float tr, float lr, int soft) {
+    float a, b, ph = 1.0f;
+    if (fr->type == LIGHT_SPOT) {
+        float cs, cg;
+        float s = fmin(gam + beta, PI_F - 1e-4f);      /* beyond pi - beta no view ray reaches */
+        float ss = sincos_fast(s, &cs), sg = sincos_fast(gam, &cg);
+        a = kap * (fr->D * sg / ss - tr);
+        b = kap * (fr->D * sb / ss - lr);
+        ph = hg_phase(cs, g);
+    } else {
+        float isb = 1.0f / fmax(sb, 1e-12f);
+        a = kap * (gam * isb - tr);                     /* distance from the eye */
+        b = kap * (lr - gam * (cb * isb));              /* light path from the reference */
+    }
+    float e = soft ? epi_soft(a) + epi_soft(b) : a + b;
+    if (isnan(e)) e = 700.0f;
+    return ph * exp(-fmin(e, 700.0f));
+}
+
+/* One work-item per (held-out sample j, light-ray count dlist[w]), gid = w * n + j: what
+ * the sweep computes for the sample without occluders, with the exact K (svd.riemann_sums,
+ * float32 with compensated sums): over the d light rays of the sample's slice kidx[j]
+ * (cells of dg = (gamma_hi - gamma_lo) / d, values at the centres, a spot cone as the
+ * cell's coverage), the overlap of each cell with [g_a, g_b] times F K, per channel. F as
+ * epi_light_factor with the references' span; the references l_ref (nl nodes over
+ * [l_lo, l_hi]) and t_ref (nt nodes over [t_lo, t_hi]). held[j] = (beta, g_a, g_b, -).
+ * A sample spanning more than max_cells cells gets NaN (as the host's). */
+__kernel void epi_riemann(__global const EpiFrame *fr, __global const EpiSlice *slices,
+                          __global const int *kidx, __global const float4 *held, int n,
+                          __global const int *dlist, int nd,
+                          __global const float *lref, int nl, float l_lo, float l_hi,
+                          __global const float *tref, int nt, float t_lo, float t_hi,
+                          float span, int soft, float g, int max_cells,
+                          __global float4 *out) {
+    int gid = get_global_id(0);
+    if (gid >= n * nd) return;
+    int j = gid % n, d = dlist[gid / n];
+    __global const EpiSlice *sl = &slices[kidx[j]];
+    float4 h = held[j];
+    float beta = h.x;
+    float dg = fmax((sl->gamma_hi - sl->gamma_lo) / d, 1e-30f);
+    float ma = clamp((h.y - sl->gamma_lo) / dg, 0.0f, (float)d);
+    float mb = clamp((h.z - sl->gamma_lo) / dg, 0.0f, (float)d);
+    int i0 = (int)floor(ma), i1 = min((int)ceil(mb), d);
+    if (i1 - i0 > max_cells) {
+        out[gid] = (float4)(NAN);
+        return;
+    }
+    float tr = epi_table1(tref, nt, t_lo, t_hi, beta);
+    float cb, sb = sincos_fast(beta, &cb);
+    float sum[3] = {0.0f, 0.0f, 0.0f}, err[3] = {0.0f, 0.0f, 0.0f};
+    for (int i = i0; i < i1; ++i) {
+        float ov = clamp(fmin((float)(i + 1), mb) - fmax((float)i, ma), 0.0f, 1.0f);
+        float gc = sl->gamma_lo + (i + 0.5f) * dg;
+        float lr = epi_table1(lref, nl, l_lo, l_hi, gc);
+        float F[EPI_NCH];
+        epi_light_factor_span(fr, sl, gc, dg, lr, span, F);
+        for (int c = 0; c < EPI_NCH; ++c) {
+            float v = ov * dg * F[c] * epi_k_exact(fr, epi_kappa(fr, c), g, gc, beta, sb, cb, tr, lr,
+                                                  soft);
+            float y = v - err[c], t = sum[c] + y;     /* Kahan */
+            err[c] = (t - sum[c]) - y;
+            sum[c] = t;
+        }
+    }
+    out[gid] = (float4)(sum[0], sum[1], sum[2], 0.0f);
 }
 
 /* beta a sorts before beta b in the runs (the bucket sort's order: NaN last) */
