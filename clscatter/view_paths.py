@@ -8,6 +8,7 @@ buffer of view segments in the medium, which every medium method consumes.
 from __future__ import annotations
 
 import weakref
+from collections.abc import Callable
 
 import numpy as np
 
@@ -34,7 +35,19 @@ class DeviceSegments:
     def __init__(self, engine: Engine, buf, count: int, pix_off, width: int, height: int):
         self.engine, self.buf, self.count, self.pix_off = engine, buf, int(count), pix_off
         self.width, self.height = int(width), int(height)
-        self._free = weakref.finalize(self, engine.free, buf, pix_off)
+        self._owned = [buf, pix_off]          # freed together (derived buffers join them)
+        self._derived: dict = {}
+        self._free = weakref.finalize(self, _free_all, engine, self._owned)
+
+    def derived(self, key: str, build: Callable[[], tuple[list, object]]):
+        """What a method derives from these segments alone (no light, no parameter), built
+        once: ``build()`` returns ``(device buffers, value)``; the buffers live as long as
+        the segments (a warm re-render after a light change reuses them)."""
+        if key not in self._derived:
+            bufs, value = build()
+            self._owned.extend(bufs)
+            self._derived[key] = value
+        return self._derived[key]
 
     def accumulate(self, values) -> np.ndarray:
         """Sum a device buffer of ``count`` float4 (one per segment) into an (H, W, 3)
@@ -55,6 +68,12 @@ class DeviceSegments:
 
     def release(self) -> None:
         self._free()
+        self._derived.clear()
+
+
+def _free_all(engine: Engine, bufs: list) -> None:
+    engine.free(*bufs)
+    bufs.clear()
 
 
 class ViewPaths:

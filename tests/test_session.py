@@ -100,3 +100,48 @@ def test_light_moves_reshade_hits_like_a_fresh_render(engine, spec, moves):
             assert fresh.surface.max() > 0.0
             np.testing.assert_allclose(warm.surface, fresh.surface, rtol=1e-5, atol=1e-7)
             np.testing.assert_allclose(warm.image, fresh.image, rtol=1e-5, atol=1e-7)
+
+
+def test_segment_derivations_are_built_once_and_freed_with_the_segments(engine):
+    """DeviceSegments.derived builds what a method derives from the segments alone once;
+    its buffers are freed with the segments."""
+    from clscatter import structs
+    from clscatter.view_paths import ViewPaths
+    segs = np.zeros(10, structs.VIEW_SEGMENT)
+    segs["pixel"] = np.arange(10) % 4
+    live0 = engine.bytes_live
+    dev = ViewPaths(None, None, segs).on_device(engine, 2, 2)
+    builds = []
+
+    def build():
+        builds.append(1)
+        return [engine.empty(4096)], "value"
+
+    assert dev.derived("k", build) == "value"
+    assert dev.derived("k", build) == "value"
+    assert len(builds) == 1
+    assert engine.bytes_live >= live0 + 4096
+    dev.release()
+    assert engine.bytes_live == live0
+
+
+def test_light_moves_split_the_view_segments_once(engine, monkeypatch):
+    """epipolar's split of the view segments into primary and deeper ones depends on the
+    segments alone: a warm re-render after a light move reuses it (and the image still
+    equals a fresh render's, test_light_moves_reshade_hits_like_a_fresh_render)."""
+    sets = ["camera.resolution=[32,24]", "camera.spp=2"]
+    launched = []
+    orig = type(engine).launch
+
+    def launch(self, kernel, *a, **k):
+        launched.append(kernel.function_name)
+        return orig(self, kernel, *a, **k)
+
+    monkeypatch.setattr(type(engine), "launch", launch)
+    with RenderSession.from_source("builtin:shafts", sets, engine=engine, method="epipolar") as s:
+        s.render(show_progress=False)
+        assert launched.count("epi_split") == 1
+        s.set(["lights[0].direction=[0.45,-0.85,0.3]"])
+        s.render(show_progress=False)
+        assert launched.count("epi_split") == 1
+        assert launched.count("epi_integrate") >= 2

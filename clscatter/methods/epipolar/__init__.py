@@ -16,6 +16,24 @@ from ...errors import SceneError
 from ..raymarch import march_segments
 
 
+def _split(eng, segs, defines: dict):
+    """Which view segments are primary (depth 0) and which lie behind mirrors and glass, as
+    two per-segment weights (1 or 0, the scale of a ray-marched part), and the count of
+    deeper ones: ``epi_split``, once per set of view segments (:meth:`DeviceSegments.derived`:
+    a warm re-render reuses them)."""
+    n = segs.count
+    primary, deeper, cnt = eng.empty(4 * n), eng.empty(4 * n), eng.zeros(4)
+    try:
+        eng.call("epipolar", "epi_split", n, defines, segs=segs.buf, n=n, primary=primary,
+                 deeper=deeper, counts=cnt)
+        n_deep = int(eng.read(cnt, 1, np.int32)[0])
+    except BaseException:
+        eng.free(primary, deeper, cnt)
+        raise
+    eng.free(cnt)
+    return [primary, deeper], (primary, deeper, n_deep)
+
+
 @register
 class Epipolar(Method):
     """``epipolar``: single scattering of directional and spot lights by epipolar sweeps.
@@ -204,14 +222,12 @@ class Epipolar(Method):
         handled = [i for i in range(ps.num_lights)
                    if types[i] in (structs.LIGHT_DIRECTIONAL, structs.LIGHT_SPOT)]
         others = [i for i in range(ps.num_lights) if i not in handled]
-        primary, deeper, cnt = eng.empty(4 * n), eng.empty(4 * n), eng.zeros(4)
         weighted = eng.empty(16 * n)
         defines = start_defines(self.settings.svd_terms, ps.medium["kappa"][:3])
         try:
             with stats.stage("epipolar_rectify"):
-                eng.call("epipolar", "epi_split", n, defines, segs=segs.buf, n=n, primary=primary,
-                         deeper=deeper, counts=cnt)
-                n_deep = int(eng.read(cnt, 1, np.int32)[0])
+                primary, deeper, n_deep = segs.derived(
+                    "epipolar_split", lambda: _split(eng, segs, defines))
             with stats.stage("epipolar_fallback"):
                 if n_deep:
                     img += self._raymarch(ps, segs, deeper, range(ps.num_lights), stats,
@@ -254,7 +270,7 @@ class Epipolar(Method):
                     out.release()
                 per_light.append({"light": li, **out.info})
         finally:
-            eng.free(primary, deeper, cnt, weighted)
+            eng.free(weighted)
         stats.set(epipolar_fallback=fallback, epipolar_lights=per_light,
                   epipolar_ring_steps=self.raymarch_steps)
         swept = [x for x in per_light if "fallback" not in x]
