@@ -181,10 +181,11 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
     ring weights and the live list (``epi_ring``, compaction), the views' beta ranges and
     t_a envelopes for the SVD's references (``epi_view_ranges``/``epi_view_nodes``), the
     sweep's events (each sample once, bucket-sorted by its first slice then beta; a slice
-    sweeps its run merged with the previous slice's) and the blend back to the samples
-    (``epi_sample_values``). The host reads back: a few hundred
-    held-out rows for the error estimate, the slices' event offsets (S + 1 ints: batch
-    sizes), per-group ranges and envelope nodes, and counters. The grid lookup (not the
+    sweeps its run merged with the previous slice's), the blend back to the samples
+    (``epi_sample_values``) and the error estimate's light-ray sums (``epi_riemann``).
+    The host reads back: a few hundred held-out rows for the error estimate and their
+    light-ray sums, the slices' event offsets (S + 1 ints: batch sizes), per-group ranges
+    and envelope nodes, and counters. The grid lookup (not the
     default) reads the live segments back to trace its direction table on the host."""
     eng = ps.engine
     cam = geo.CameraGeom.from_struct(ps.camera)
