@@ -742,6 +742,10 @@ def _svd_groups(axis, box, ps, kappas, slices, views, held, st: Settings, G: int
            (float(tab["beta_lo"][group == j].min()), float(tab["beta_hi"][group == j].max()))
            for j, r in enumerate(views.ranges(G))]
     nodes = None if zero else views.nodes(G, brs)
+    # the float32 bound stands in for the emulation only where it was checked against it
+    extent = float(np.linalg.norm(box[1] - box[0])) if box is not None \
+        else float(ps.medium["t_far"])
+    bound_ok = float(np.max(kappas)) * extent <= F32_BOUND_DEPTH
     for j in range(G):
         sel = group == j
         gr = (float(tab["gamma_lo"][sel].min()), float(tab["gamma_hi"][sel].max()))
@@ -757,8 +761,6 @@ def _svd_groups(axis, box, ps, kappas, slices, views, held, st: Settings, G: int
         hc = (cone_all[0][hk[hs]], cone_all[1][hk[hs]]) if cone_all is not None else None
         tabs, cache = {}, {}
         rs32 = np.flatnonzero(hs)[:max(1, (HELD_F32 * int(hs.sum())) // max(len(hk), 1))]
-        extent = float(np.linalg.norm(box[1] - box[0])) if box is not None else float(ps.medium["t_far"])
-        bound_ok = float(np.max(kappas)) * extent <= F32_BOUND_DEPTH
         for T in terms_list:
             t = _truncate(full, nch, T)
             e = heldout_error(axis, box, kappas, g, t, refs, hw[hs], hb[hs], hga[hs], hgb[hs], hc,
@@ -770,7 +772,8 @@ def _svd_groups(axis, box, ps, kappas, slices, views, held, st: Settings, G: int
             if len(rs32) and e["rms"] <= st.svd_tolerance:   # else it fails anyway
                 rc32 = (cone_all[0][hk[rs32]], cone_all[1][hk[rs32]]) if cone_all is not None else None
                 g0_32 = tab["gamma_lo"][hk[rs32]].astype(np.float64)
-                args32 = (axis, box, kappas, t, refs, hw[rs32], hb[rs32], hga[rs32], hgb[rs32], g0_32)
+                args32 = (axis, box, kappas, t, refs, hw[rs32], hb[rs32], hga[rs32], hgb[rs32],
+                          g0_32)
                 f32 = 0.0 if not bound_ok else rms(float32_bound(*args32, int(st.light_rays), rc32))
                 if not (bound_ok and f32 <= F32_BOUND_ENOUGH * st.svd_tolerance):
                     f32 = rms(float32_error(*args32, tab["gamma_hi"][hk[rs32]].astype(np.float64),
