@@ -152,8 +152,8 @@ float4 normalize3(float4 a) {
 }
 /* atan2 for hot kernels: the builtin is a slow scalar routine on some drivers (PoCL's
  * CPU device: 26.4 ns per work-item against 8.6 for this one and 4.9 for exp,
- * tools/bench_epipolar_costs.py, docs/bench/epipolar_costs.json). Reduced to a = min/max in [0, 1], then to
- * |z| <= tan(pi/8), then Cephes' atanf polynomial (relative error ~2e-7); measured
+ * tools/bench_epipolar_costs.py, docs/bench/epipolar_costs.json). Reduced to
+ * a = min/max in [0, 1], then to |z| <= tan(pi/8), then Cephes' atanf polynomial (relative error ~2e-7); measured
  * within 4e-7 rad of float64 atan2 over all quadrants (tests/test_fast_math.py).
  * NaN in gives NaN; both arguments infinite is not handled (no caller passes it). */
 float atan2_fast(float y, float x) {
@@ -172,9 +172,9 @@ float atan2_fast(float y, float x) {
 }
 
 /* sin(x), with cos(x) in *c, for hot kernels (the builtins are slow scalar routines on
- * some drivers, as atan2 is: sin + cos 32.1 ns per work-item on PoCL's CPU device against
- * 3.9 for this, tools/bench_epipolar_costs.py): x reduced by multiples of pi/2 with a three-part pi/2
- * (Cody & Waite), then Cephes' sinf/cosf polynomials on |r| <= pi/4 and the quadrant's
+ * some drivers, as atan2 is: sin + cos 32.1 ns per work-item on PoCL's CPU device
+ * against 3.9 for this, tools/bench_epipolar_costs.py): x reduced by multiples of pi/2
+ * with a three-part pi/2 (Cody & Waite), then Cephes' sinf/cosf polynomials on |r| <= pi/4 and the quadrant's
  * swap. Within 2e-7 of float64 for |x| <= 1e3 (tests/test_fast_math.py; the epipolar
  * kernels pass light-ray angles within +-pi); NaN and inf give NaN; sin(-0) is +0. */
 float sincos_fast(float x, float *c) {

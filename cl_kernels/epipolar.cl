@@ -439,8 +439,8 @@ __kernel void epi_riemann(__global const EpiFrame *fr, __global const EpiSlice *
         float F[EPI_NCH];
         epi_light_factor_span(fr, sl, gc, dg, lr, span, F);
         for (int c = 0; c < EPI_NCH; ++c) {
-            float v = ov * dg * F[c] * epi_k_exact(fr, epi_kappa(fr, c), g, gc, beta, sb, cb, tr, lr,
-                                                  soft);
+            float k = epi_k_exact(fr, epi_kappa(fr, c), g, gc, beta, sb, cb, tr, lr, soft);
+            float v = ov * dg * F[c] * k;
             float y = v - err[c], t = sum[c] + y;     /* Kahan */
             err[c] = (t - sum[c]) - y;
             sum[c] = t;
@@ -581,7 +581,8 @@ __kernel void epi_integrate(__global const EpiFrame *fr, __global const EpiSlice
         float r[3] = {0.0f, 0.0f, 0.0f};
         for (int c = 0; c < EPI_NCH; ++c) {
             float s = 0.0f;
-            for (int n = 0; n < EPI_NT; ++n) s += Bt[c * EPI_NT + n] * (a1[c * EPI_NT + n] - a0[c * EPI_NT + n]);
+            for (int n = 0; n < EPI_NT; ++n)
+                s += Bt[c * EPI_NT + n] * (a1[c * EPI_NT + n] - a0[c * EPI_NT + n]);
             /* radiance is >= 0; float cancellation of the signed SVD terms is not */
             r[c] = fmax(s, 0.0f) * exp(clamp(epi_kappa(fr, c) * dt, -EPI_EXP_MAX, EPI_EXP_MAX));
         }
@@ -909,7 +910,8 @@ __kernel void sincos_test(__global const float *x, int n, __global float *out) {
     out[2 * i + 1] = c;
 }
 
-/* Test hook: epi_lower_bound of beta b[i] from hint h[i] in the n events (tests/test_epipolar.py). */
+/* Test hook: epi_lower_bound of beta b[i] from hint h[i] in the n events
+ * (tests/test_epipolar.py). */
 __kernel void epi_lower_bound_test(__global const float4 *ev, int n, __global const float *b,
                                    __global const int *h, int m, __global int *out) {
     int i = get_global_id(0);

@@ -172,8 +172,8 @@ def gather(eng: Engine, src, index, n: int, itemsize: int):
 
     Records are copied as 32-bit words, so any struct layout works (e.g. 64-byte
     segments permuted by a :func:`bucket_sort` ``perm``); records of whole 16-byte quads
-    go one record per work-item (``gather_quads``, ~3x faster on the CPU device). An index outside the records
-    that ``src`` holds (its byte size // ``itemsize``) gives an all-zero record. Returns a
+    go one record per work-item (``gather_quads``, ~3x faster on the CPU device). An index
+    outside the records that ``src`` holds (its byte size // ``itemsize``) gives an all-zero record. Returns a
     new buffer of ``n * itemsize`` bytes.
     """
     n, itemsize = int(n), int(itemsize)

@@ -133,8 +133,8 @@ def main() -> None:
         g, b = measure(name, True), measure(name, False)
         err = float(relmse(g.pop("image"), b.pop("image")))
         rows[name] = {"grid": g, "bvh": b, "raymarch_relmse_grid_vs_bvh": err}
-        sm = (f"{g['shadow_map']:.3f} ({b['shadow_map']:.3f}; {1e3 * g['shadow_map_grid_build']:.1f} ms)"
-              if g["shadow_map"] is not None else "-")
+        sm = (f"{g['shadow_map']:.3f} ({b['shadow_map']:.3f}; "
+              f"{1e3 * g['shadow_map_grid_build']:.1f} ms)" if g["shadow_map"] is not None else "-")
         lg = g["grids"]["light"]
         print(f"| {name} | {g['trace_view']:.3f} ({b['trace_view']:.3f}) | "
               f"{g['shade_hits']:.3f} ({b['shade_hits']:.3f}) | {sm} | "

@@ -444,6 +444,21 @@ def k_at(axis: Axis, kap: float, g: float, gq: np.ndarray, beta: np.ndarray,
                      refs.t_at(beta)[:, None], refs.l_at(gq), refs.soft)
 
 
+def _entry_factor(axis: Axis, refs: Refs, le, lr, kap: float) -> np.ndarray:
+    """The kernel's ``F`` without the cone (epi_light_factor): the light's entry ``le``
+    relative to the reference ``lr = l_ref(gamma)``, its exponent clamped to the span."""
+    with np.errstate(over="ignore", invalid="ignore"):    # a miss: le may be +-max float
+        ex = kap * (le - lr) if axis.spot else kap * (lr - le)
+    return np.exp(np.clip(ex, -refs.span * kap, refs.span * kap))
+
+
+def _cone_coverage(gc, dg, lo, hi):
+    """The fraction of each light-ray cell ``[gc - dg/2, gc + dg/2]`` inside a spot cone's
+    gamma interval ``[lo, hi]`` (epi_light_factor's ``cov``)."""
+    return np.clip((np.minimum(gc + 0.5 * dg, hi) - np.maximum(gc - 0.5 * dg, lo)) / dg,
+                   0.0, 1.0)
+
+
 def float32_error(axis: Axis, box, kappas, tables: Tables, refs: Refs, w, beta, g_a, g_b,
                   g0, g1, d: int, cone=None) -> np.ndarray:
     """The tree's float32 error per sample (worst channel), emulated: the leaves
@@ -466,16 +481,11 @@ def float32_error(axis: Axis, box, kappas, tables: Tables, refs: Refs, w, beta, 
         else:
             le, _ = light_entry(axis, box, w[j:j + 1], gc[None, :])
             le = np.nan_to_num(le[0])
-        cov = np.ones(k_b)
-        if cone is not None:
-            cov = np.clip((np.minimum(gc + 0.5 * dg, cone[1][j])
-                           - np.maximum(gc - 0.5 * dg, cone[0][j])) / dg, 0.0, 1.0)
+        cov = 1.0 if cone is None else _cone_coverage(gc, dg, cone[0][j], cone[1][j])
         G = _table_at(tables.gtab, tables.g_lo, tables.g_hi, gc)
         lr = refs.l_at(gc)
         for c, kap in enumerate(kappas):
-            with np.errstate(over="ignore", invalid="ignore"):   # a miss: le = +-max float
-                ex = kap * (le - lr) if axis.spot else kap * (lr - le)
-            F = cov * np.exp(np.clip(ex, -refs.span * kap, refs.span * kap))
+            F = cov * _entry_factor(axis, refs, le, lr, kap)
             leaf = (F[:, None] * G[:, c * nt:(c + 1) * nt] * dg)
             leaf32 = leaf.astype(np.float32)
 
@@ -524,15 +534,10 @@ def riemann_sums(axis: Axis, box, kap: float, g: float, refs: Refs, w, beta, g_a
         le, hit = np.zeros_like(gc), np.ones(gc.shape, bool)
     else:
         le, hit = light_entry(axis, box, np.asarray(w)[row], gc)
-    cov = np.ones_like(gc)
-    if cone is not None:
-        a = np.maximum(gc - 0.5 * dgr, cone[0][row, None])
-        b = np.minimum(gc + 0.5 * dgr, cone[1][row, None])
-        cov = np.clip((b - a) / dgr, 0.0, 1.0)
-    lr = refs.l_at(gc)
-    ex = kap * (le - lr) if axis.spot else kap * (lr - le)
+    cov = 1.0 if cone is None else _cone_coverage(gc, dgr, cone[0][row, None],
+                                                  cone[1][row, None])
     # as the kernel: the entry is used for near misses too, clamped to the span
-    F = cov * np.exp(np.clip(ex, -refs.span * kap, refs.span * kap))
+    F = cov * _entry_factor(axis, refs, le, refs.l_at(gc), kap)
     vals = (ov * dgr * F * k_at(axis, kap, g, gc, np.asarray(beta)[row], refs))[:, 0]
     out = np.bincount(row, weights=vals, minlength=len(nc))
     return np.where(ncell <= max_cells, out, np.nan)
@@ -623,9 +628,9 @@ def _held_light(axis: Axis, box, w, gq, cone):
 
 
 def _light_factor(axis: Axis, refs: Refs, le, hit, lr, kap: float) -> np.ndarray:
-    """The kernel's ``F`` (light entry relative to ``l_ref``, clamped to the span)."""
-    ex = kap * (le - lr) if axis.spot else kap * (lr - le)
-    return np.where(hit, np.exp(np.clip(ex, -refs.span * kap, refs.span * kap)), 0.0)
+    """:func:`_entry_factor` where the light ray meets the medium (and its cone), else 0:
+    the exact light factor of a held-out integral."""
+    return np.where(hit, _entry_factor(axis, refs, le, lr, kap), 0.0)
 
 
 def _gauss_rule(a: np.ndarray, b: np.ndarray, nodes: int):
