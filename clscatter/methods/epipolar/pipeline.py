@@ -46,7 +46,7 @@ from ...stats import Stats, progress
 from . import geometry as geo
 from .maps import setup_shadow_map, trace_depth_map, trace_shadow_map
 from .svd import (REF_NODES, accepts, decompose, float32_bound, float32_error, heldout_error,
-                  node_extremes, references, riemann_error, riemann_rel, rms, slice_error,
+                  node_extremes, references, riemann_rel, rms, slice_error,
                   summarize, view_entry)
 
 LOOKUPS = ("segment", "grid")
@@ -309,8 +309,8 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
             g_range = (float(slices.table["gamma_lo"].min()), float(slices.table["gamma_hi"].max()))
         with stats.stage("epipolar_svd"):
             sv, tried = _svd(axis, box, ps, kappa[:nch], slices, views, live, segs, st, R,
-                             extra=slice_err["rms"],
-                             riemann=DeviceRiemann(eng, frame_buf, slice_buf, defines, g_hg))
+                             DeviceRiemann(eng, frame_buf, slice_buf, defines, g_hg),
+                             extra=slice_err["rms"])
             err = {k: v for k, v in sv.error.items() if k != "errors"}
             info.update(svd_error=err, svd_tried=tried, svd_terms=sv.terms,
                         light_ray_factor=sv.ray_mult,
@@ -719,10 +719,10 @@ def _truncate(t, nch: int, terms: int):
 
 
 def _svd_groups(axis, box, ps, kappas, slices, views, held, st: Settings, G: int,
-                terms_list, n_tab: int, zero: bool = False, riemann: DeviceRiemann | None = None):
+                terms_list, n_tab: int, riemann: DeviceRiemann, zero: bool = False):
     """References and SVD with the slices cut into ``G`` arcs (decomposed once with the
     most terms; truncations are nested). Returns an SVDSet per entry of ``terms_list``.
-    ``riemann``: the light-ray sums on the device (else svd.riemann_error, on the host)."""
+    ``riemann``: the light-ray sums on the device (svd.riemann_sums is their reference)."""
     tab = slices.table
     S = len(tab)
     group = (np.arange(S) * G) // S
@@ -790,23 +790,16 @@ def _svd_groups(axis, box, ps, kappas, slices, views, held, st: Settings, G: int
         # light-ray discretisation, per light-ray multiplier, on at most 100 samples
         rs = np.flatnonzero(hs)[:max(1, (HELD_RIEMANN * int(hs.sum())) // max(len(hk), 1))]
         if len(rs):
-            rc = (cone_all[0][hk[rs]], cone_all[1][hk[rs]]) if cone_all is not None else None
             e, sums = None, {}
-            g0r = tab["gamma_lo"][hk[rs]].astype(np.float64)
-            g1r = tab["gamma_hi"][hk[rs]].astype(np.float64)
             for mult in RAY_MULTS:
                 # more light rays only matter where fewer are not clearly good enough
                 if e is None or rms(e) > 0.25 * st.svd_tolerance:
                     dd = int(st.light_rays) * mult
-                    if riemann is None:
-                        e = riemann_error(axis, box, kappas, g, refs, hw[rs], hb[rs], hga[rs],
-                                          hgb[rs], g0r, g1r, dd, rc)
-                    else:
-                        need = [x for x in (dd, 2 * dd) if x not in sums]
-                        if need:
-                            sums.update(zip(need, riemann.sums(refs, hk[rs], hb[rs], hga[rs],
-                                                               hgb[rs], need)))
-                        e = riemann_rel(sums[dd], sums[2 * dd])
+                    need = [x for x in (dd, 2 * dd) if x not in sums]
+                    if need:
+                        sums.update(zip(need, riemann.sums(refs, hk[rs], hb[rs], hga[rs],
+                                                           hgb[rs], need)))
+                    e = riemann_rel(sums[dd], sums[2 * dd])
                 disc[mult].append(e)
     out = {}
     for T in terms_list:
@@ -822,7 +815,7 @@ def _svd_groups(axis, box, ps, kappas, slices, views, held, st: Settings, G: int
 
 
 def _svd(axis, box, ps, kappas, slices, views, live: LiveSamples, segs, st: Settings, R,
-         extra: float = 0.0, riemann: DeviceRiemann | None = None):
+         riemann: DeviceRiemann, extra: float = 0.0):
     """The SVD set of one light with the fewest terms (device time) whose held-out error's
     RMS is within ``svd_tolerance``: terms ``svd_terms`` doubling up to ``svd_max_terms``,
     tried in the plain formulation, then referenced with the slices in 1 group, then 16
@@ -860,7 +853,7 @@ def _svd(axis, box, ps, kappas, slices, views, live: LiveSamples, segs, st: Sett
                         # when nothing is within the tolerance yet
         n_tab = 2048 if G == 1 else 512
         sets = _svd_groups(axis, box, ps, kappas, slices, views, held, st, G, terms_list, n_tab,
-                           zero, riemann)
+                           riemann, zero)
         for T in terms_list:
             sv = sets[T]
             sv.referenced = not zero

@@ -59,7 +59,7 @@ Neither formulation is bounded by a fixed number of terms for every optical dept
 is bounded is the error the method accepts: the estimate (:func:`heldout_error`: the SVD
 on held-out samples, :func:`float32_bound`: a bound on the tree's float32 sums, and where
 that is not small or the medium is thick, :func:`float32_error`: the sums emulated,
-:func:`riemann_error`: the light-ray sum,
+:func:`riemann_sums` / :func:`riemann_rel`: the light-ray sum (on the device),
 :func:`slice_error`: reading samples in neighbouring slices) must be within the
 tolerance, with more terms (4, 8, 16), the referenced formulation, 16 groups, 2 or 4 x
 the light rays and half or a quarter of the slice spacing tried in turn, else the light
@@ -513,8 +513,10 @@ def riemann_sums(axis: Axis, box, kap: float, g: float, refs: Refs, w, beta, g_a
     seen from outside the end cells are where it goes wrong: a cell centre before the
     medium entry carries the analytic continuation of the view transmittance (plain
     formulation: ``exp(+kappa (t_a - t))``); the interior is a midpoint rule whose error
-    grows as ``(kappa dt)^2``. Comparing ``d`` with ``2 d`` light rays estimates it.
-    Per sample (N,); samples spanning more than ``max_cells`` cells are NaN."""
+    grows as ``(kappa dt)^2``. Comparing ``d`` with ``2 d`` light rays estimates it
+    (:func:`riemann_rel`). Per sample (N,); samples spanning more than ``max_cells`` cells
+    are NaN. The method computes these sums on the device (``epi_riemann``,
+    ``pipeline.DeviceRiemann``); this is their reference."""
     dg = np.maximum((g1 - g0) / d, 1e-30)        # an empty slice (g1 = g0) has no cells
     ma = np.clip((g_a - g0) / dg, 0.0, d)
     mb = np.clip((g_b - g0) / dg, 0.0, d)
@@ -600,19 +602,6 @@ def riemann_rel(r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
         rel = np.where(r2 > 0, 4.0 / 3.0 * np.abs(r1 - r2) / r2, 0.0)
     rel = np.nan_to_num(rel, nan=0.0)
     return rel if rel.ndim == 1 else rel.max(axis=1, initial=0.0)
-
-
-def riemann_error(axis: Axis, box, kappas, g: float, refs: Refs, w, beta, g_a, g_b, g0, g1,
-                  d: int, cone=None) -> np.ndarray:
-    """:func:`riemann_rel` of :func:`riemann_sums` with ``d`` and ``2 d`` light rays, per
-    sample (worst channel). The method computes the sums on the device (``epi_riemann``);
-    this is their reference."""
-    worst = np.zeros(len(beta))
-    for kap in kappas:
-        r1 = riemann_sums(axis, box, kap, g, refs, w, beta, g_a, g_b, g0, g1, d, cone)
-        r2 = riemann_sums(axis, box, kap, g, refs, w, beta, g_a, g_b, g0, g1, 2 * d, cone)
-        worst = np.maximum(worst, riemann_rel(r1, r2))
-    return worst
 
 
 def _held_light(axis: Axis, box, w, gq, cone):
