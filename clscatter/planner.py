@@ -13,8 +13,9 @@ term                      needed when the scene has
 ========================  ==================================================================
 
 For every needed term the planner takes, among the implemented methods that declare an
-``AUTO`` role for it and whose assumptions hold for the scene (``Method.suits``), the one
-with the highest priority; no method name is written here. An explicit method runs alone
+``AUTO`` role for it, whose assumptions hold for the scene (``Method.suits``) and which
+is not expected to miss its accuracy bound there (``Method.unreliable``), the one with
+the highest priority; no method name is written here. An explicit method runs alone
 and computes its ``TERMS``; the notes say which needed terms that leaves out. A method
 that declares ``ALONE`` (the voxel pipeline) replaces every other pass once it is chosen.
 Every decision is recorded in ``--stats`` under ``plan``.
@@ -91,7 +92,7 @@ def plan(scene: Scene, requested: str) -> tuple[list[Pass], list[str]]:
             role = cls.AUTO.get(term)
             if role is None:
                 continue
-            why_not = cls.suits(scene)
+            why_not = cls.suits(scene) or cls.unreliable(scene)
             if why_not:
                 notes.append(f"{term}: not {name} ({why_not})")
                 continue

@@ -76,6 +76,53 @@ def test_spot_and_directional_lights_choose_epipolar():
     assert any("not epipolar" in n for n in notes)
 
 
+def _directional(direction, sigma, origin=(0.0, 1.0, 5.0)):
+    d = copy.deepcopy(BASE)
+    d["camera"]["origin"] = list(origin)
+    d["medium"]["sigma_s"] = sigma
+    d["lights"] = [{"type": "directional", "direction": direction, "irradiance": 1.0}]
+    return d
+
+
+@pytest.mark.parametrize("direction,sigma,origin,method,why", [
+    # the box is 6 wide: optical depth 6 sigma across
+    ([0.0, -0.3, -1.0], 0.5, (0.0, 1.0, 5.0), "epipolar", ""),           # 3: thin enough
+    ([0.0, -0.3, -1.0], 0.8, (0.0, 1.0, 5.0), "raymarch", "along the view"),   # 4.8
+    ([1.0, -0.3, 0.0], 0.8, (0.0, 1.0, 5.0), "epipolar", ""),            # across the view
+    ([0.0, -0.3, -1.0], 0.8, (0.0, 1.0, 2.0), "epipolar", ""),           # camera inside
+    ([1.0, -0.3, 0.0], 1.4, (0.0, 1.0, 2.0), "raymarch", "optical depth 8.4"),  # thick
+])
+def test_auto_passes_epipolar_over_where_its_estimate_fails(direction, sigma, origin, method,
+                                                            why):
+    """``Epipolar.unreliable``: thick media (optical depth >= 8 across), and lights along
+    the view through optical depth >= 4 seen from outside, go to raymarch with a note
+    that says why; an explicit ``epipolar`` still runs there."""
+    d = _directional(direction, sigma, origin)
+    scene = scene_from_dict(copy.deepcopy(d), HERE, "p")
+    inside = origin[2] < 3.0
+    assert scene.camera_in_medium() == inside
+    assert scene.optical_depth_across() == pytest.approx(6.0 * sigma)
+    passes, notes = _plan(d)
+    assert _roles(passes) == [(method, "direct")]
+    if why:
+        assert any(n.startswith("direct: not epipolar") and why in n for n in notes), notes
+    assert _roles(_plan(d, "epipolar")[0]) == [("epipolar", "all")]
+
+
+def test_a_spot_behind_the_camera_seen_from_outside_is_not_swept_by_auto():
+    """A spot light just behind the camera shining along the view, camera outside the
+    medium: the estimate fails at any optical depth (test_epipolar_regimes.py), so auto
+    ray marches it; the same spot in front of the camera is swept."""
+    d = copy.deepcopy(BASE)
+    d["lights"] = [{"type": "spot", "position": [0.0, 1.1, 6.5], "target": [0.0, 0.5, 0.0],
+                    "intensity": 5.0, "cutoff_angle": 30.0}]
+    passes, notes = _plan(d)
+    assert _roles(passes) == [("raymarch", "direct")]
+    assert any("spot light behind the camera" in n for n in notes), notes
+    d["lights"][0]["position"] = [0.0, 2.5, 2.0]
+    assert _roles(_plan(d)[0]) == [("epipolar", "direct")]
+
+
 def test_specular_objects_add_an_lsg_caustic_pass():
     d = copy.deepcopy(BASE)
     d["objects"][0]["material"] = {"type": "dielectric", "ior": 1.5}

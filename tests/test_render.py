@@ -206,13 +206,21 @@ def test_mirror_reflects_diffuse_quad(engine):
 
 
 # ---- kernel level: raymarch on hand-made segments against quadrature ----
-def test_raymarch_kernel_segments_against_quadrature(engine):
+@pytest.mark.parametrize("thick", [1.0, 12.0])
+def test_raymarch_kernel_segments_against_quadrature(engine, thick):
+    """A point light, random segments, 64 steps, per channel against
+    analytic.airlight_point: largest relative error <= 2e-3 (measured 1.0e-3). At 12 x the
+    extinction (0.6 .. 3 per unit, a coloured medium) the marcher splits the steps between
+    the equiangular and the transmittance strategy where the light's distance spans an
+    optical depth above three: <= 1e-2 (measured 6.0e-3; equiangular alone 2.2e-2)."""
     from clscatter.methods.raymarch import RayMarch
     from clscatter.prepared import prepare_scene
     from clscatter.view_paths import ViewPaths
     d = copy.deepcopy(AIRLIGHT)
     d["camera"]["resolution"] = [8, 1]
     d["medium"]["g"] = -0.4
+    d["medium"]["sigma_s"] = [thick * x for x in d["medium"]["sigma_s"]]
+    d["medium"]["sigma_a"] = [thick * x for x in d["medium"]["sigma_a"]]
     scene = _scene(d)
     ps = prepare_scene(scene, engine)
     rng = np.random.default_rng(3)
@@ -231,12 +239,14 @@ def test_raymarch_kernel_segments_against_quadrature(engine):
     ps.release()
     m, L = d["medium"], d["lights"][0]
     kappa = np.add(m["sigma_s"], m["sigma_a"])
+    rel = []
     for c in range(3):
         dirs = b - a
         ref = analytic.airlight_point(a, dirs, L["position"], L["intensity"][c], m["sigma_s"][c],
                                       kappa[c], m["g"], t_max=np.linalg.norm(dirs, axis=1))
-        got = img[0, :, c]
-        assert np.allclose(got, ref * weight[:, c], rtol=2e-3, atol=1e-7), c
+        rel.append(float(np.max(np.abs(img[0, :, c] / (ref * weight[:, c]) - 1.0))))
+    print(f"x{thick:g}: largest relative error per channel {np.round(rel, 5)}")
+    assert max(rel) <= (2e-3 if thick == 1.0 else 1e-2), rel
 
 
 def test_view_segments_follow_camera_rays(engine):
@@ -265,3 +275,53 @@ def test_view_segments_follow_camera_rays(engine):
     kmin = min(np.add(d["medium"]["sigma_s"], d["medium"]["sigma_a"]))
     assert np.allclose(length, np.log(1 / TRANSMITTANCE_CUTOFF) / kmin, rtol=1e-4)
     assert np.allclose(segs["weight"][:, :3], 1.0)
+
+
+def _thick_slab(direction):
+    """A 4 x 2.5 x 4 box of fog, optical depth ~15 across, lit by a directional light, seen
+    from outside (no occluders: analytic.directional_slab is exact)."""
+    return {
+        "camera": {"origin": [0.5, 1.2, 6.0], "target": [0.0, 1.0, 0.0], "fov": 60.0,
+                   "resolution": [48, 36], "spp": 1},
+        "medium": {"sigma_s": [3.0, 2.5, 2.0], "sigma_a": [0.5, 1.0, 2.0], "g": 0.3,
+                   "bounds": {"min": [-2.0, 0.0, -2.0], "max": [2.0, 2.5, 2.0]}},
+        "lights": [{"type": "directional", "direction": direction, "irradiance": [2.0, 1.5, 1.0]}],
+        "objects": [{"shape": "box", "min": [-2.0, -5.0, -2.0], "max": [2.0, -4.99, 2.0],
+                     "material": {"type": "black"}}],
+    }
+
+
+@pytest.mark.parametrize("direction", [[0.3, -0.5, -1.0], [-0.3, -0.35, 1.0], [1.0, -0.6, 0.1]],
+                         ids=["behind", "front", "beside"])
+def test_raymarch_thick_medium_against_closed_form(engine, direction):
+    """Thick fog (optical depth ~15 across) with 8 steps per segment: every camera sample
+    against analytic.directional_slab (exact). All the light of a thick segment comes from
+    its first optical depths, which uniform steps sample once or twice; the marcher's
+    transmittance strategy (MIS with the uniform one) keeps the image within relMSE 1e-3
+    and the mean within 2 %. Measured: behind 4.0e-4, front 1.0e-6, beside 8.9e-6 (with
+    uniform steps alone: 1.3e-2, 1.1e-6, 1.2e-5: the light behind the camera, whose
+    path in the fog grows with the view's, is where the strategy matters)."""
+    from clscatter.methods.raymarch import RayMarch
+    from clscatter.prepared import prepare_scene
+    from clscatter.stats import Stats
+    from clscatter.view_paths import trace_view_paths
+    ps = prepare_scene(_scene(_thick_slab(direction)), engine)
+    try:
+        paths = trace_view_paths(ps, show_progress=False)
+        img = RayMarch({"steps": 8}).render(ps, paths, Stats(), False).reshape(-1, 3)
+        segs = paths.segments
+        eye = ps.camera["origin"][:3].astype(np.float64)
+        v = segs["b"][:, :3].astype(np.float64) - eye
+        m, L = ps.medium, ps.lights[0]
+        ref = np.zeros_like(img, dtype=np.float64)
+        ref[segs["pixel"]] = np.stack([analytic.directional_slab(
+            eye, v, L["direction"][:3], float(L["power"][c]), float(m["sigma_s"][c]),
+            float(m["kappa"][c]), float(m["g"]), m["bmin"][:3], m["bmax"][:3])
+            for c in range(3)], axis=1)
+    finally:
+        ps.release()
+    lit = ref[:, 0] > 0
+    err, ratio = relmse(img[lit], ref[lit]), float(img[lit].mean() / ref[lit].mean())
+    print(f"{direction}: relMSE {err:.3g}, mean {ratio:.4f}, lit {lit.sum()}")
+    assert lit.sum() > 500
+    assert err <= 1e-3 and abs(ratio - 1.0) <= 0.02

@@ -144,6 +144,13 @@ class Method:
         return f"{cls.NAME} handles {', '.join(sorted(cls.LIGHTS))} lights only" if missing else ""
 
     @classmethod
+    def unreliable(cls, scene) -> str:
+        """'' unless this method is expected to miss its accuracy bound on ``scene`` (a
+        method that does detects it and falls back, after paying for the check): ``auto``
+        then passes it over, while an explicit choice still runs it. Default: ''."""
+        return ""
+
+    @classmethod
     def estimate(cls, scene, params: dict[str, Any]) -> list:
         """Cost estimates (:class:`clscatter.budget.Estimate`) of this pass on ``scene`` with
         checked ``params``, made before anything is allocated; [] when negligible."""

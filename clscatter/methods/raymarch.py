@@ -20,7 +20,13 @@ class RayMarch(Method):
     adds ``sigma_s * phase * E * T_light * T_view * dt``. Point and spot lights place
     their samples equiangularly (uniform in the angle subtended at the light), which
     integrates the 1/d^2 peak near the light without noise; directional lights step
-    uniformly. Only direct light is marched (no caustics): light bounced by mirrors or
+    uniformly. Where the transmittance along a segment (the view's and the light path's,
+    fitted as exp(-r t)) spans more than three optical depths over the segment, or over
+    the light's distance, half the steps sample exp(-r t) and every sample is weighted by
+    the balance heuristic of the two strategies (multiple importance sampling): thick
+    fog's light comes from the first optical depths of a segment (tests/test_render.py:
+    optical depth ~15 with 8 steps, relMSE 4e-4 against 1.3e-2 with uniform steps; the
+    built-in thin scenes are unchanged). Only direct light is marched (no caustics): light bounced by mirrors or
     bent by glass is the caustic methods' job.
 
     Usage: ``clscatter render scene.toml --method raymarch --set render.raymarch.steps=128``

@@ -153,5 +153,24 @@ class Scene:
         ext = float(np.max(bb[1] - bb[0]))
         return ext if ext > 0 else 1.0
 
+    def camera_in_medium(self) -> bool:
+        """True when the camera's origin lies in the medium (always, for an unbounded one)."""
+        m = self.medium
+        if m is None or m.bounds is None:
+            return m is not None
+        eye = np.asarray(self.camera.origin, np.float64)
+        return bool(np.all(eye >= m.bounds[0]) and np.all(eye <= m.bounds[1]))
+
+    def optical_depth_across(self) -> float:
+        """The largest extinction times the longest side of the medium's box (of the scene's
+        bounding box for an unbounded medium): how thick the medium is, from the scene alone
+        (0 without a medium)."""
+        if not self.has_medium():
+            return 0.0
+        m = self.medium
+        side = float(np.max(m.bounds[1] - m.bounds[0])) if m.bounds is not None \
+            else self.scene_extent()
+        return float(np.max(m.kappa)) * side
+
     def triangle_count(self) -> int:
         return int(sum(len(o.faces) for o in self.objects))

@@ -34,6 +34,28 @@ def _split(eng, segs, defines: dict):
     return [primary, deeper], (primary, deeper, n_deep)
 
 
+# Where auto passes epipolar over (Epipolar.unreliable): its estimate exceeded the
+# tolerance there in the regime sweep (tools/bench_epipolar_regimes.py at 160 x 120,
+# docs/bench/epipolar_regimes.json; tests/test_epipolar_regimes.py at 32 x 24)
+THICK_ANY = 8.0      # optical depth across the medium (Scene.optical_depth_across), any view
+THICK_ALONG = 4.0    # ... with the camera outside and a light travelling along the view
+ALONG_COS = 0.5      # "along the view": cosine of the light's travel and the camera's forward
+
+
+def _travel(light, scene) -> np.ndarray:
+    """Unit direction light travels in towards the medium: a directional light's own, a
+    spot's from its position to the medium box's centre (its axis, unbounded)."""
+    if light.type == "directional":
+        d = np.asarray(light.direction, np.float64)
+    elif scene.medium is not None and scene.medium.bounds is not None:
+        lo, hi = scene.medium.bounds
+        d = 0.5 * (np.asarray(lo) + np.asarray(hi)) - np.asarray(light.position, np.float64)
+    else:
+        d = np.asarray(light.direction, np.float64)
+    n = float(np.linalg.norm(d))
+    return d / n if n > 0 else d
+
+
 @register
 class Epipolar(Method):
     """``epipolar``: single scattering of directional and spot lights by epipolar sweeps.
@@ -59,7 +81,7 @@ class Epipolar(Method):
     point lights (the slices of a point light would need the full sphere of
     directions), the epipole ring (2 degrees around the epipole or anti-epipole, blended
     with the sweep over 2 .. 4 degrees), and any light whose estimated error stays above
-    the tolerance (below; ray marched with 4 x ``raymarch_steps``). Mirrors and glass are
+    the tolerance (below; ray marched with ``raymarch_steps``). Mirrors and glass are
     opaque occluders in the shadow map (direct light only; caustics are not this
     method's job).
 
@@ -87,7 +109,8 @@ class Epipolar(Method):
     used for a sample up to half a pixel away (visible with wide spot cones, whose shafts
     cross the epipolar lines: relMSE 9e-5 at 90 degrees against 3e-6 at 10 at 48 x 36);
     the estimate's host time (0.06 .. 0.14 s per light at 320 x 240, more when it
-    escalates).
+    escalates). ``auto`` passes the method over where its estimate is expected to fail
+    (:meth:`unreliable`: thick media, lights along the view seen from outside).
 
     Statistics: ``slices``, ``light_rays_per_slice``, ``rays_per_slice``,
     ``tree_updates``, ``tree_queries``, ``svd_singular_values``, ``svd_terms``,
@@ -148,6 +171,40 @@ class Epipolar(Method):
             raise SceneError("render.epipolar.light_rays", "must be 0 (automatic) or >= 2 (got 1)")
 
     @classmethod
+    def unreliable(cls, scene) -> str:
+        """Why ``auto`` should not pick epipolar for ``scene`` ('' when it may): a medium
+        thicker than ``THICK_ANY`` across; with the camera outside it, a directional or
+        spot light travelling along the view (cosine with the camera's forward above
+        ``ALONG_COS``) through more than ``THICK_ALONG``, or a spot light behind the camera
+        shining along the view (the anti-epipole at the image's centre, beta + gamma -> pi:
+        its estimate fails even in thin media). Measured where the estimate exceeds the
+        tolerance; conservative (some of these scenes would be swept)."""
+        tau = scene.optical_depth_across()
+        if tau == 0.0:
+            return ""
+        if tau >= THICK_ANY:
+            return (f"optical depth {tau:.3g} across the medium >= {THICK_ANY:g}: the SVD "
+                    "of its transmittance is expected to exceed the tolerance")
+        if scene.camera_in_medium():
+            return ""
+        eye = np.asarray(scene.camera.origin, np.float64)
+        fwd = np.asarray(scene.camera.target, np.float64) - eye
+        fwd /= max(float(np.linalg.norm(fwd)), 1e-300)
+        for i, light in enumerate(scene.lights):
+            if light.type not in cls.LIGHTS:
+                continue
+            along = float(_travel(light, scene) @ fwd) > ALONG_COS
+            if not along:
+                continue
+            if light.type == "spot" and float((eye - light.position) @ fwd) > 0.0:
+                return (f"light {i}: a spot light behind the camera shining along the view, "
+                        "camera outside the medium")
+            if tau >= THICK_ALONG:
+                return (f"light {i} travels along the view through optical depth {tau:.3g} "
+                        f"(>= {THICK_ALONG:g}), camera outside the medium")
+        return ""
+
+    @classmethod
     def estimate(cls, scene, params):
         from ...budget import Estimate, camera_samples
         w, h = scene.camera.width, scene.camera.height
@@ -176,7 +233,7 @@ class Epipolar(Method):
 
     # ---- the fallback: raymarch on some segments with some lights ----
     def _raymarch(self, ps: PreparedScene, segs, scale, lights, stats: Stats,
-                  show_progress: bool, steps: int | None = None) -> np.ndarray:
+                  show_progress: bool) -> np.ndarray:
         """``raymarch`` over the segments of ``segs`` (device) times ``scale`` (one float
         per segment, 0 skips it), with the lights ``lights`` only."""
         lights = np.asarray(list(lights), np.int64)
@@ -187,7 +244,7 @@ class Epipolar(Method):
             sub_ps = dataclasses.replace(ps, lights=ps.lights[lights],
                                          dev=dataclasses.replace(ps.dev, lights=buf))
         try:
-            return march_segments(sub_ps, segs, steps or self.raymarch_steps, stats,
+            return march_segments(sub_ps, segs, self.raymarch_steps, stats,
                                   show_progress, scale=scale)
         finally:
             if buf is not None:
@@ -244,10 +301,9 @@ class Epipolar(Method):
                     out = render_light(ps, li, segs, self.settings, stats, show_progress)
                 except ValueError as e:        # degenerate axis, or the SVD's error too large
                     with stats.stage("epipolar_fallback"):
-                        # the accurate path for a whole light: 4 x the ring's steps (a thick
-                        # medium is what sends lights here; 64 steps are not enough there)
-                        img += self._raymarch(ps, segs, primary, [li], stats, show_progress,
-                                              steps=4 * self.raymarch_steps)
+                        # a thick medium is what sends lights here: the ray marcher's
+                        # transmittance strategy keeps its steps enough there
+                        img += self._raymarch(ps, segs, primary, [li], stats, show_progress)
                     fallback.append(f"raymarch: light {li}: {e}")
                     per_light.append({"light": li, "fallback": "raymarch", "reason": str(e),
                                       **getattr(e, "info", {})})
