@@ -17,7 +17,8 @@ view axis, directional and spot lights. For every configuration, on the same vie
   have met its tolerance (the rule's conservatism).
 
 Only the medium pass is timed (scene preparation and view paths are shared). Writes
-bench_out/epipolar_regimes.json and .png and copies both to docs/bench/.
+bench_out/epipolar_regimes.json and .png (``epipolar_regimes_WxH`` at another ``--res``)
+and copies both to docs/bench/.
 
     python3 tools/bench_epipolar_regimes.py [--res 160x120] [--depths 0.1,1,3,5,7,10,15,30]
 """
@@ -144,17 +145,18 @@ def main(argv=None) -> int:
     }
     result["seconds_total"] = time.perf_counter() - t0
     OUT.mkdir(exist_ok=True)
-    write_json(OUT / "epipolar_regimes.json", result)
-    plot(result, OUT / "epipolar_regimes.png")
+    stem = "epipolar_regimes" + ("" if res == (160, 120) else f"_{res[0]}x{res[1]}")
+    write_json(OUT / f"{stem}.json", result)
+    plot(result, OUT / f"{stem}.png")
     if not args.no_copy:
         for ext in ("json", "png"):
-            shutil.copy(OUT / f"epipolar_regimes.{ext}", DOCS / f"epipolar_regimes.{ext}")
+            shutil.copy(OUT / f"{stem}.{ext}", DOCS / f"{stem}.{ext}")
     print(f"{len(configs)} configurations, {len(result['fell_back'])} fell back; auto picks a "
           f"fallback in {len(result['auto_picks_a_fallback'])} "
           f"{result['auto_picks_a_fallback']}; passed over but swept: "
           f"{len(result['passed_over_but_swept'])}; relMSE max: raymarch "
           f"{result['raymarch_relmse_max']:.2e}, epipolar {result['epipolar_relmse_max']:.2e}")
-    print(f"total {result['seconds_total']:.0f} s; wrote {OUT / 'epipolar_regimes.json'}")
+    print(f"total {result['seconds_total']:.0f} s; wrote {OUT / (stem + '.json')}")
     return 0
 
 
