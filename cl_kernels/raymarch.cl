@@ -34,7 +34,7 @@
  * light's strategy alone (measured: on the built-in scenes of optical depth ~2 the split
  * only added noise at shadow edges; on epi_fog, 4.4, it cut the error 5x) */
 #define MIS_OPTICAL_DEPTH 3.0f
-/* exp(-r t) over a segment: |r| len at most this (float range) */
+/* a growing exp(-r t) over a segment: -r len at most this (float range) */
 #define EXP_RATE_MAX 60.0f
 
 
@@ -96,7 +96,7 @@ __kernel void raymarch(__global const BVHNode *nodes, __global const float4 *tri
         float ds = medium_path_length(medium, sg.b, w1, 0.0f, d1)
                  - medium_path_length(medium, sg.a, w0, 0.0f, d0);
         float r = kmean * (1.0f + (isfinite(ds) ? ds / len : 0.0f));
-        r = clamp(r, -EXP_RATE_MAX / len, EXP_RATE_MAX / len);
+        r = fmax(r, -EXP_RATE_MAX / len);       /* exp(-r t) grows: keep it in float range */
         /* MIS where that falls or grows steeply over the scale of the light's own strategy:
          * the segment's length (uniform) or the light's distance h (equiangular) */
         int n_b = (fabs(r) * (equiangular ? h : len) > MIS_OPTICAL_DEPTH && steps > 1)

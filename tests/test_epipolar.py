@@ -1084,10 +1084,22 @@ def test_summarize_p99_matches_numpy_percentile():
     rng = np.random.default_rng(3)
     for n in (1, 2, 3, 7, 200, 401):
         x = rng.exponential(size=n)
-        x[0] = np.nan if n > 3 else x[0]               # non-finite errors are dropped
         s = summarize(x)
-        ref = x[np.isfinite(x)]
-        assert s["samples"] == len(ref)
-        assert s["p99"] == pytest.approx(np.percentile(ref, 99), rel=1e-12)
-        assert s["rms"] == pytest.approx(np.sqrt(np.mean(ref ** 2)), rel=1e-12)
+        assert s["samples"] == n and s["nonfinite"] == 0
+        assert s["p99"] == pytest.approx(np.percentile(x, 99), rel=1e-12)
+        assert s["rms"] == pytest.approx(np.sqrt(np.mean(x ** 2)), rel=1e-12)
     assert summarize(np.zeros(0))["p99"] == 0.0
+
+
+def test_summarize_counts_non_finite_errors_as_failures():
+    """An overflowed sample (NaN or inf: a thick medium's exponentials) is an error far
+    above any tolerance, not a sample to drop: dropped, an estimate whose samples all
+    overflowed would read 0 and pass."""
+    from clscatter.methods.epipolar.svd import NONFINITE_ERROR, summarize
+    x = np.array([1e-3, np.nan, np.inf, 2e-3])
+    s = summarize(x)
+    assert s["samples"] == 4 and s["nonfinite"] == 2
+    assert s["rms"] == pytest.approx(np.sqrt((1e-6 + 4e-6 + 2 * NONFINITE_ERROR ** 2) / 4))
+    assert summarize(np.full(3, np.nan))["rms"] == NONFINITE_ERROR
+    again = summarize(s["errors"])                 # summarized twice: still counted
+    assert again["nonfinite"] == 2 and again["rms"] == s["rms"]

@@ -260,7 +260,7 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
             if st.lookup != "segment" or live.count == 0:
                 slice_err = summarize(np.zeros(0))
                 break
-            with stats.stage("epipolar_svd"):
+            with stats.stage("epipolar_svd"), np.errstate(all="ignore"):   # as in _svd below
                 slice_err = _slice_check(axis, box, kappa[:nch], g_hg, slices, cam.origin,
                                          live.rows(segs, np.random.default_rng(54321), 200))
             if slice_err["rms"] <= 0.25 * st.svd_tolerance or attempt == 2:
@@ -307,7 +307,9 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
             n_ev = int(cnt_off[S])
             cnt_off_buf = up(cnt_off)
             g_range = (float(slices.table["gamma_lo"].min()), float(slices.table["gamma_hi"].max()))
-        with stats.stage("epipolar_svd"):
+        with stats.stage("epipolar_svd"), np.errstate(all="ignore"):
+            # overflows of thick media's exponentials are expected here: they make
+            # per-sample errors non-finite, which summarize counts as failures
             sv, tried = _svd(axis, box, ps, kappa[:nch], slices, views, live, segs, st, R,
                              DeviceRiemann(eng, frame_buf, slice_buf, defines, g_hg),
                              extra=slice_err["rms"])
@@ -320,7 +322,9 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
                 raise SVDFallback(
                     f"estimated error {err['rms']:.3g} (SVD {err['svd']:.3g}, light rays "
                     f"{err['light_rays']:.3g}, slices {slice_err['rms']:.3g} in quadrature, RMS over "
-                    f"{err['samples']} held-out samples) > "
+                    f"{err['samples']} held-out samples"
+                    + (f", {err['nonfinite']} of them not finite" if err.get("nonfinite") else "")
+                    + ") > "
                     f"tolerance {st.svd_tolerance:g} at the best of {len(tried)} settings "
                     f"({sv.terms} terms, {len(sv.ranges)} groups, {sv.ray_mult}x light rays)", info)
             defines = {"EPI_NT": int(sv.terms), "EPI_NCH": nch}

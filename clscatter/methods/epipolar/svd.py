@@ -758,13 +758,21 @@ def rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(x ** 2))) if x.size else 0.0
 
 
+# a per-sample relative error that is not a number (an overflow in a thick medium's
+# exponentials) counts as this: far above any tolerance, finite in --stats
+NONFINITE_ERROR = 1e6
+
+
 def summarize(rel: np.ndarray) -> dict:
     """RMS, 99th percentile and count of per-sample relative errors (``errors``: the
-    array itself, dropped before --stats)."""
+    array itself, dropped before --stats). Non-finite errors count as
+    ``NONFINITE_ERROR`` (dropping them would let an estimate whose samples overflowed
+    pass), and how many there were is ``nonfinite``."""
     rel = np.asarray(rel, np.float64)
-    rel = rel[np.isfinite(rel)]
-    return {"rms": rms(rel),
-            "p99": _percentile(rel, 99.0), "samples": int(len(rel)), "errors": rel}
+    bad = ~(rel < NONFINITE_ERROR)          # NaN, inf, and errors summarized once already
+    rel = np.where(bad, NONFINITE_ERROR, rel)
+    return {"rms": rms(rel), "p99": _percentile(rel, 99.0), "samples": int(len(rel)),
+            "nonfinite": int(bad.sum()), "errors": rel}
 
 
 def _percentile(x: np.ndarray, q: float) -> float:
