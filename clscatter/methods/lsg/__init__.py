@@ -72,6 +72,41 @@ def clip_segments(segs: np.ndarray, lo, hi, kappa) -> tuple[np.ndarray, ...]:
     return (keep.astype(np.int32), a[keep] + s0[:, None] * u[keep], u[keep], s1[keep] - s0, flux)
 
 
+def continue_at_entry(segs: np.ndarray, medium: np.ndarray, radius: float) -> np.ndarray:
+    """``segs`` with every lighting segment that starts where light enters a bounded
+    medium (on a face of its box, heading in) continued backwards by ``radius``, its flux
+    continued exponentially (times ``exp(kappa radius)`` at the new start, so that it is
+    unchanged from the face on).
+
+    The gather averages the light over a disc of radius r around each view point; a view
+    point within r of the face where light enters would find lighting segments over only
+    the part of its disc inside the medium, an underestimate that grows with the
+    optical depth (the lit layer behind the face is 1/kappa deep: 1.25 % of the image at
+    optical depth 10 with r = 0.004, tests/test_lsg.py). Continued, the disc sees the
+    same smooth field as in the interior. Segments starting elsewhere (at a light, a
+    mirror, glass) are unchanged; an unbounded medium has no faces."""
+    m = medium.reshape(-1)[0]
+    if not int(m["bounded"]) or radius <= 0.0 or not len(segs):
+        return segs
+    lo, hi = m["bmin"][:3].astype(np.float64), m["bmax"][:3].astype(np.float64)
+    a = segs["a"][:, :3].astype(np.float64)
+    d = segs["b"][:, :3].astype(np.float64) - a
+    eps = 1e-5 * float(np.max(hi - lo))
+    face = ((np.abs(a - lo) <= eps) & (d > 0)) | ((np.abs(a - hi) <= eps) & (d < 0))
+    idx = np.flatnonzero(face.any(1) & (np.linalg.norm(d, axis=1) > 0))
+    if not len(idx):
+        return segs
+    out = segs.copy()
+    u = d[idx] / np.linalg.norm(d[idx], axis=1)[:, None]
+    # far enough back to lie r beyond the face: r / cos of the entry angle (a corner's
+    # steepest face; capped at 10 r for grazing entries)
+    cos = np.max(np.where(face[idx], np.abs(u), 0.0), axis=1)
+    back = radius / np.maximum(cos, 0.1)
+    out["a"][idx, :3] = a[idx] - back[:, None] * u
+    out["flux"][idx, :3] *= np.exp(np.outer(back, m["kappa"][:3].astype(np.float64)))
+    return out
+
+
 def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa, leaf_size: int = 4,
                   frame: PluckerFrame | None = None) -> PreparedLines:
     """Clip lighting segments to the view segments' box grown by ``radius`` (no pair closer
@@ -170,6 +205,7 @@ class Gatherer:
         # bruteforce: a one-leaf tree (the lines in input order, clipped like the tree's)
         leaf = 1 << 62 if bruteforce else self.leaf_size
         with t_build:
+            segs = continue_at_entry(segs, self.medium, self.radius)
             prep = prepare_lines(segs, self.lo, self.hi, self.radius, kappa, leaf, self.frame)
         with t_gather:
             eng.note_host(prep.nbytes)
@@ -303,6 +339,10 @@ class LineSpaceGathering(Method):
     point light, and of shadow edges) and noise from ``light_rays`` (relative noise per
     view segment ~ 1/sqrt(expected lighting rays through its cylinder), which grows like
     ``light_rays * radius``). Halving ``radius`` needs twice the rays for the same noise.
+    Where light enters a bounded medium its lighting segments are continued ``radius`` /
+    cos beyond the face (:func:`continue_at_entry`), so that a view point near the face
+    gathers over its whole disc (optical depth 10 seen from outside: the image's deficit
+    0.9 % -> 0.2 %).
 
     *Targeted emission.* With ``min_light_depth >= 1`` (a caustic pass, as ``auto`` runs
     it) and ``targeted`` (default), every light emits only towards the bounding spheres
