@@ -85,18 +85,23 @@ def _directional(direction, sigma, origin=(0.0, 1.0, 5.0)):
 
 
 @pytest.mark.parametrize("direction,sigma,origin,method,why", [
-    # the box is 6 wide: optical depth 6 sigma across
+    # the box is 6 wide: optical depth 6 sigma across; camera at z = 5 outside, 2 inside
     ([0.0, -0.3, -1.0], 0.5, (0.0, 1.0, 5.0), "epipolar", ""),           # 3: thin enough
     ([0.0, -0.3, -1.0], 0.8, (0.0, 1.0, 5.0), "raymarch", "along the view"),   # 4.8
     ([1.0, -0.3, 0.0], 0.8, (0.0, 1.0, 5.0), "epipolar", ""),            # across the view
+    ([1.0, -0.3, 0.0], 1.4, (0.0, 1.0, 5.0), "raymarch", "optical depth 8.4"),  # thick
     ([0.0, -0.3, -1.0], 0.8, (0.0, 1.0, 2.0), "epipolar", ""),           # camera inside
-    ([1.0, -0.3, 0.0], 1.4, (0.0, 1.0, 2.0), "raymarch", "optical depth 8.4"),  # thick
+    ([1.0, -0.3, 0.0], 1.4, (0.0, 1.0, 2.0), "epipolar", ""),            # 8.4 from inside
+    ([0.0, -0.3, -1.0], 2.1, (0.0, 1.0, 2.0), "raymarch", "along the view"),   # 12.6
+    ([1.0, -0.3, 0.0], 3.0, (0.0, 1.0, 2.0), "epipolar", ""),            # 18, across
+    ([1.0, -0.3, 0.0], 4.1, (0.0, 1.0, 2.0), "raymarch", "optical depth 24.6"),
 ])
 def test_auto_passes_epipolar_over_where_its_estimate_fails(direction, sigma, origin, method,
                                                             why):
-    """``Epipolar.unreliable``: thick media (optical depth >= 8 across), and lights along
-    the view through optical depth >= 4 seen from outside, go to raymarch with a note
-    that says why; an explicit ``epipolar`` still runs there."""
+    """``Epipolar.unreliable``: thick media (optical depth >= 8 across seen from outside,
+    >= 24 from inside), and lights along the view through >= 4 from outside, >= 12 from
+    inside, go to raymarch with a note that says why; an explicit ``epipolar`` still runs
+    there."""
     d = _directional(direction, sigma, origin)
     scene = scene_from_dict(copy.deepcopy(d), HERE, "p")
     inside = origin[2] < 3.0

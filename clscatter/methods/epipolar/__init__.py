@@ -35,10 +35,12 @@ def _split(eng, segs, defines: dict):
 
 
 # Where auto passes epipolar over (Epipolar.unreliable): its estimate exceeded the
-# tolerance there in the regime sweep (tools/bench_epipolar_regimes.py at 160 x 120,
-# docs/bench/epipolar_regimes.json; tests/test_epipolar_regimes.py at 32 x 24)
-THICK_ANY = 8.0      # optical depth across the medium (Scene.optical_depth_across), any view
-THICK_ALONG = 4.0    # ... with the camera outside and a light travelling along the view
+# tolerance there, or came near it, in the regime sweep (tools/bench_epipolar_regimes.py
+# at 160 x 120 and 640 x 480, docs/bench/epipolar_regimes*.json;
+# tests/test_epipolar_regimes.py at 32 x 24). Optical depth across the medium
+# (Scene.optical_depth_across) from which auto passes it over, (any light, a light
+# travelling along the view), with the camera outside the medium and inside it:
+THICK = {False: (8.0, 4.0), True: (24.0, 12.0)}
 ALONG_COS = 0.5      # "along the view": cosine of the light's travel and the camera's forward
 
 
@@ -173,35 +175,35 @@ class Epipolar(Method):
     @classmethod
     def unreliable(cls, scene) -> str:
         """Why ``auto`` should not pick epipolar for ``scene`` ('' when it may): a medium
-        thicker than ``THICK_ANY`` across; with the camera outside it, a directional or
-        spot light travelling along the view (cosine with the camera's forward above
-        ``ALONG_COS``) through more than ``THICK_ALONG``, or a spot light behind the camera
-        shining along the view (the anti-epipole at the image's centre, beta + gamma -> pi:
-        its estimate fails even in thin media). Measured where the estimate exceeds the
-        tolerance; conservative (some of these scenes would be swept)."""
+        thicker than ``THICK`` allows across (optical depth 8 seen from outside, 24 from
+        inside), or a directional or spot light travelling along the view (cosine with
+        the camera's forward above ``ALONG_COS``) through more than 4 from outside or 12
+        from inside, or, with the camera outside, a spot light behind the camera shining
+        along the view (the anti-epipole at the image's centre, beta + gamma -> pi: its
+        estimate fails even in thin media). Measured where the estimate exceeds the
+        tolerance or comes near it; conservative (some of these scenes would be swept)."""
         tau = scene.optical_depth_across()
         if tau == 0.0:
             return ""
-        if tau >= THICK_ANY:
-            return (f"optical depth {tau:.3g} across the medium >= {THICK_ANY:g}: the SVD "
-                    "of its transmittance is expected to exceed the tolerance")
-        if scene.camera_in_medium():
-            return ""
+        inside = scene.camera_in_medium()
+        where = "inside" if inside else "outside"
+        thick, thick_along = THICK[inside]
+        if tau >= thick:
+            return (f"optical depth {tau:.3g} across the medium >= {thick:g}, camera {where} "
+                    "it: the SVD of its transmittance is expected to exceed the tolerance")
         eye = np.asarray(scene.camera.origin, np.float64)
         fwd = np.asarray(scene.camera.target, np.float64) - eye
         fwd /= max(float(np.linalg.norm(fwd)), 1e-300)
         for i, light in enumerate(scene.lights):
-            if light.type not in cls.LIGHTS:
+            if light.type not in cls.LIGHTS or float(_travel(light, scene) @ fwd) <= ALONG_COS:
                 continue
-            along = float(_travel(light, scene) @ fwd) > ALONG_COS
-            if not along:
-                continue
-            if light.type == "spot" and float((eye - light.position) @ fwd) > 0.0:
+            if (not inside and light.type == "spot"
+                    and float((eye - light.position) @ fwd) > 0.0):
                 return (f"light {i}: a spot light behind the camera shining along the view, "
                         "camera outside the medium")
-            if tau >= THICK_ALONG:
+            if tau >= thick_along:
                 return (f"light {i} travels along the view through optical depth {tau:.3g} "
-                        f"(>= {THICK_ALONG:g}), camera outside the medium")
+                        f"(>= {thick_along:g}), camera {where} the medium")
         return ""
 
     @classmethod
