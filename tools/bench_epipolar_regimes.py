@@ -93,7 +93,7 @@ def plot(result: dict, path: Path) -> None:
     rows = list(itertools.product(KINDS, CAMERAS, LIGHTS))
     depths = result["depths"]
     grid = np.full((len(rows), len(depths)), np.nan)
-    fig, ax = plt.subplots(figsize=(1.0 + 0.7 * len(depths), 0.4 * len(rows) + 1.5))
+    fig, ax = plt.subplots(figsize=(3.0 + 0.7 * len(depths), 0.4 * len(rows) + 1.5))
     for r in result["configs"]:
         i = rows.index((r["kind"], r["camera"], r["light"]))
         j = depths.index(r["depth"])
