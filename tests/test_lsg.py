@@ -600,26 +600,26 @@ def test_direct_light_over_optical_depth_against_closed_form(engine, depth):
 def test_light_entering_the_medium_is_continued_beyond_its_face(engine, monkeypatch):
     """Optical depth 10, camera outside, light across the view: a view point within r of
     the face where light enters gathers over a disc that reaches outside the medium,
-    where no lighting segment was. ``continue_at_entry`` extends those segments back by
+    where no lighting segment was. ``continue_across_faces`` extends those segments back by
     r / cos (flux continued exponentially), and those leaving it forward likewise: the
     image mean's deficit falls from 0.90 % to 0.01 % (asserted: below 0.4 %, and above
     0.6 % without it)."""
     import clscatter.methods.lsg as lsg_mod
     d = _slab_regime(10.0, "outside", "side")
     with_it = 1.0 - _slab_mean_ratio(engine, d)
-    monkeypatch.setattr(lsg_mod, "continue_at_entry", lambda segs, medium, radius: segs)
+    monkeypatch.setattr(lsg_mod, "continue_across_faces", lambda segs, medium, radius: segs)
     without = 1.0 - _slab_mean_ratio(engine, d)
     print(f"deficit with continuation {with_it:.4f}, without {without:.4f}")
     assert abs(with_it) < 0.004 and without > 0.006
 
 
-def test_continue_at_entry_moves_only_segments_crossing_a_face():
+def test_continue_across_faces_moves_only_segments_crossing_a_face():
     """NumPy check of the continuation: a segment starting on a face and heading in moves
     back by r / cos(entry) (cos capped at 0.1) with its flux times exp(kappa back); one
     ending on a face heading out reaches r / cos(exit) further, flux unchanged; one inside,
     or starting on a face heading out, is unchanged; so is everything in an unbounded
     medium."""
-    from clscatter.methods.lsg import continue_at_entry
+    from clscatter.methods.lsg import continue_across_faces
     med = np.zeros(1, structs.MEDIUM)
     med["bmin"][0, :3], med["bmax"][0, :3] = [-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]
     med["kappa"][0, :3] = [2.0, 3.0, 4.0]
@@ -631,7 +631,7 @@ def test_continue_at_entry_moves_only_segments_crossing_a_face():
                         [0.5 + 1.0, 1.0 - 0.01, 0.5], [1.0, 0.5, 0.0]]
     segs["flux"][:, :3] = 1.0
     r = 0.01
-    out = continue_at_entry(segs, med, r)
+    out = continue_across_faces(segs, med, r)
     u0 = _unit([1.0, -0.5, 0.0])
     back0 = r / u0[0]
     assert np.allclose(out["a"][0, :3], segs["a"][0, :3] - back0 * u0, atol=1e-7)
@@ -647,4 +647,4 @@ def test_continue_at_entry_moves_only_segments_crossing_a_face():
         assert np.array_equal(out[i], segs[i])
     assert np.array_equal(segs["flux"][:, :3], np.ones((5, 3)))   # input untouched
     med["bounded"] = 0
-    assert continue_at_entry(segs, med, r) is segs
+    assert continue_across_faces(segs, med, r) is segs

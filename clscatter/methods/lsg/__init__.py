@@ -72,7 +72,7 @@ def clip_segments(segs: np.ndarray, lo, hi, kappa) -> tuple[np.ndarray, ...]:
     return (keep.astype(np.int32), a[keep] + s0[:, None] * u[keep], u[keep], s1[keep] - s0, flux)
 
 
-def continue_at_entry(segs: np.ndarray, medium: np.ndarray, radius: float) -> np.ndarray:
+def continue_across_faces(segs: np.ndarray, medium: np.ndarray, radius: float) -> np.ndarray:
     """``segs`` with every lighting segment that starts where light enters a bounded
     medium (on a face of its box, heading in) continued backwards until it lies
     ``radius`` beyond the face (``radius / cos``), its flux continued exponentially
@@ -213,7 +213,7 @@ class Gatherer:
         # bruteforce: a one-leaf tree (the lines in input order, clipped like the tree's)
         leaf = 1 << 62 if bruteforce else self.leaf_size
         with t_build:
-            segs = continue_at_entry(segs, self.medium, self.radius)
+            segs = continue_across_faces(segs, self.medium, self.radius)
             prep = prepare_lines(segs, self.lo, self.hi, self.radius, kappa, leaf, self.frame)
         with t_gather:
             eng.note_host(prep.nbytes)
@@ -348,7 +348,7 @@ class LineSpaceGathering(Method):
     view segment ~ 1/sqrt(expected lighting rays through its cylinder), which grows like
     ``light_rays * radius``). Halving ``radius`` needs twice the rays for the same noise.
     Where light enters or leaves a bounded medium its lighting segments are continued
-    ``radius`` / cos beyond the face (:func:`continue_at_entry`), so that a view point
+    ``radius`` / cos beyond the face (:func:`continue_across_faces`), so that a view point
     near a face gathers over its whole disc (optical depth 10 seen from outside: the
     image's deficit 0.9 % -> 0.01 %; thin media 0.2 % -> 0.1 %).
 
