@@ -22,6 +22,7 @@ import difflib
 import hashlib
 import os
 import re
+import sys
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -36,6 +37,12 @@ ENV_DEVICE = "CLSCATTER_DEVICE"
 ENV_CACHE = "CLSCATTER_CACHE_DIR"
 # work-items per group of a 1-D launch (Engine.launch; less where a kernel allows fewer)
 GROUP_SIZE = 64
+# buffer pool (Engine.empty / free): buffers of at least POOL_MIN_BYTES are kept for reuse;
+# a request takes the smallest idle one of its size up to POOL_SLACK times it; the idle
+# bytes stay under POOL_SHARE of the memory budget
+POOL_MIN_BYTES = 1 << 16
+POOL_SLACK = 1.25
+POOL_SHARE = 0.25
 
 
 def kernel_dir() -> Path:
@@ -328,6 +335,32 @@ def program_files(program: str, root: Path | None = None) -> list[Path]:
     return sorted((p for p in seen if p.is_file()), key=lambda p: p.name)
 
 
+def one_blas_thread() -> None:
+    """Limit every BLAS loaded in the process (OpenBLAS, MKL, ...) to one thread.
+
+    The engine calls this when its device is the CPU, at creation and before each render;
+    it acts again only after new modules were imported (a library imported later, SciPy
+    say, brings its own BLAS; setting the limit costs ~1 ms). The host's linear algebra is
+    small (the epipolar SVD of a 64 x 64 table), but a multi-threaded OpenBLAS keeps its
+    worker threads spinning for a while after each call, on the cores the kernels that
+    follow need: on a 2-core machine that took ~40 ms (12% of the samples a profiler
+    saw) from a 0.34 s epipolar re-render after a light move. Without threadpoolctl (or
+    with a BLAS it does not know) nothing changes."""
+    global _BLAS_MODULES
+    if len(sys.modules) == _BLAS_MODULES:
+        return
+    _BLAS_MODULES = len(sys.modules)
+    try:
+        from threadpoolctl import threadpool_limits
+        threadpool_limits(1, user_api="blas")
+    except Exception:       # not installed, or an unknown BLAS: only a speed matter
+        pass
+    _BLAS_MODULES = len(sys.modules)
+
+
+_BLAS_MODULES = -1          # len(sys.modules) when the limit was last set
+
+
 class Engine:
     """An OpenCL context + queue on one device, with cached programs and tracked buffers.
 
@@ -350,14 +383,27 @@ class Engine:
         self._sizes: dict[int, int] = {}
         self.bytes_live = 0
         self.bytes_peak = 0
+        # idle buffers for reuse: [size, generation, buffer] (see empty, free, trim_pool)
+        self._pool: list[list] = []
+        self._pool_bytes = 0
+        self._pool_cap: float | None = None
+        self._generation = 0
         self.builds = {"source": 0, "cache": 0}   # how programs were obtained
         # seconds the host spent blocked on the device (kernel completion, transfers):
         # a render's time minus this is its host time (``--stats``: host_seconds)
         self.wait_seconds = 0.0
+        self.shares_host_cores = bool(self.device.type & cl.device_type.CPU)
+        self.quiet_host_threads()
 
     @property
     def name(self) -> str:
         return f"{self.info.platform} / {self.info.name}"
+
+    def quiet_host_threads(self) -> None:
+        """One BLAS thread (:func:`one_blas_thread`) when the kernels run on the host's
+        own cores; nothing for a GPU."""
+        if self.shares_host_cores:
+            one_blas_thread()
 
     # ---- programs ----
     def program(self, name: str, defines: dict[str, object] | None = None):
@@ -513,9 +559,33 @@ class Engine:
         return self._track(buf, arr.nbytes)
 
     def empty(self, nbytes: int):
-        """A new uninitialised read-write device buffer."""
+        """An uninitialised read-write device buffer of at least ``nbytes``.
+
+        Large ones come from the pool of buffers released by :meth:`free` when one fits
+        (at most :data:`POOL_SLACK` times the size): a re-render allocates the same ~200 MB
+        of scratch as the render before it, and fresh memory costs the CPU device a page
+        fault per 4 KiB on first touch (~40 ms of a 0.3 s epipolar re-render here). The
+        queue is in order, so a reused buffer is never written before the commands that
+        used it before have run."""
         nbytes = max(int(nbytes), 4)
-        return self._track(self.cl.Buffer(self.ctx, self.cl.mem_flags.READ_WRITE, nbytes), nbytes)
+        if nbytes >= POOL_MIN_BYTES:
+            best = None
+            for entry in self._pool:
+                if nbytes <= entry[0] <= POOL_SLACK * nbytes and (best is None
+                                                                  or entry[0] < best[0]):
+                    best = entry
+            if best is not None:
+                self._pool.remove(best)
+                self._pool_bytes -= best[0]
+                return self._track(best[2], best[0])
+        try:
+            buf = self.cl.Buffer(self.ctx, self.cl.mem_flags.READ_WRITE, nbytes)
+        except self.cl.MemoryError:
+            if not self._pool:
+                raise
+            self.drain_pool()
+            buf = self.cl.Buffer(self.ctx, self.cl.mem_flags.READ_WRITE, nbytes)
+        return self._track(buf, nbytes)
 
     def zeros(self, nbytes: int):
         """A new device buffer filled with zero bytes."""
@@ -541,14 +611,43 @@ class Engine:
         self.wait_seconds += time.perf_counter() - t
 
     def free(self, *bufs) -> None:
-        """Release device buffers now (and stop counting them as live)."""
+        """Stop counting device buffers as live: large ones made by :meth:`empty` or
+        :meth:`zeros` go to the pool for reuse (while its idle bytes stay under
+        :data:`POOL_SHARE` of the memory budget), the rest are released now. The caller
+        must not use a buffer after freeing it."""
+        if self._pool_cap is None:
+            from .budget import memory_budget
+            self._pool_cap = POOL_SHARE * memory_budget(self)[0]
         for b in bufs:
             n = self._sizes.pop(id(b), 0)
             self.bytes_live -= n
+            pooled = getattr(b, "flags", 0) == self.cl.mem_flags.READ_WRITE
+            if n >= POOL_MIN_BYTES and pooled and self._pool_bytes + n <= self._pool_cap:
+                self._pool.append([n, self._generation, b])
+                self._pool_bytes += n
+                continue
             try:
                 b.release()
             except Exception:
                 pass
+
+    def trim_pool(self) -> None:
+        """Release the pooled buffers that no request took since the last call, and start
+        a new generation (a render calls this at its end: the pool then holds what one
+        render freed, which the next render of the same size takes again)."""
+        keep = [e for e in self._pool if e[1] == self._generation]
+        for e in self._pool:
+            if e[1] != self._generation:
+                e[2].release()
+        self._pool = keep
+        self._pool_bytes = sum(e[0] for e in keep)
+        self._generation += 1
+
+    def drain_pool(self) -> None:
+        """Release every pooled buffer now."""
+        for e in self._pool:
+            e[2].release()
+        self._pool, self._pool_bytes = [], 0
 
     def note_host(self, nbytes: int) -> None:
         """Count a transient host working set towards the peak."""

@@ -189,6 +189,7 @@ class RenderSession:
             req = check(scene, self.method)
         with stats.stage("device"):
             engine = self.engine
+            engine.quiet_host_threads()
             engine.preload(_programs(scene, req))
         clock = (time.perf_counter(), engine.wait_seconds)
         with stats.stage("configure"):
@@ -249,8 +250,12 @@ class RenderSession:
         paths = self._paths
 
         # ---- passes ----
-        return self._run_passes(scene, req, ps, paths, stats, show_progress, stop_if_asked,
-                                ran, reused, preview, only, pass_params or {}, clock)
+        try:
+            return self._run_passes(scene, req, ps, paths, stats, show_progress,
+                                    stop_if_asked, ran, reused, preview, only,
+                                    pass_params or {}, clock)
+        finally:
+            engine.trim_pool()      # keep what this render freed for the next one
 
     def _run_passes(self, scene, req, ps, paths, stats, show_progress, stop_if_asked, ran,
                     reused, preview, only, pass_params, clock):

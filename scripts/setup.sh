@@ -31,7 +31,7 @@ if [ ! -x .venv/bin/python ]; then
     $PY -m venv --system-site-packages .venv
   fi
 fi
-if ! .venv/bin/python -c "import clscatter, pyopencl, trimesh, skimage, scipy, tqdm, OpenEXR, pytest, distributed, starlette, uvicorn, websockets, httpx, playwright" 2>/dev/null \
+if ! .venv/bin/python -c "import clscatter, pyopencl, trimesh, skimage, scipy, tqdm, OpenEXR, threadpoolctl, pytest, distributed, starlette, uvicorn, websockets, httpx, playwright" 2>/dev/null \
    || [ pyproject.toml -nt .venv/.installed ]; then
   echo "setup: installing clscatter and its dependencies into .venv" >&2
   .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]"

@@ -1,0 +1,146 @@
+"""The engine's buffer pool (``Engine.empty`` / ``free`` / ``trim_pool``) and its BLAS
+thread limit: released scratch buffers are reused by size, stale ones are released after
+a render, and no kernel depends on what a reused buffer held before."""
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+
+import numpy as np
+import pyopencl as cl
+import pytest
+
+from clscatter import device as dev
+from clscatter.methods import all_methods
+from clscatter.render import render
+from clscatter.scene import load_scene
+
+MB = 1 << 20
+
+
+@pytest.fixture
+def pool(engine):
+    """The shared engine with an empty pool, emptied again afterwards."""
+    engine.drain_pool()
+    yield engine
+    engine.drain_pool()
+
+
+def test_a_released_buffer_serves_requests_of_a_fitting_size(pool):
+    live = pool.bytes_live
+    a = pool.empty(MB)
+    assert pool.bytes_live == live + MB
+    pool.free(a)
+    assert pool.bytes_live == live
+    b = pool.empty(int(MB / 1.2))               # within POOL_SLACK: the same buffer
+    assert b.int_ptr == a.int_ptr and b.size == MB
+    assert pool.bytes_live == live + MB         # counted at its real size
+    pool.free(b)
+    c = pool.empty(int(MB / 1.3))               # beyond the slack: a new one
+    d = pool.empty(2 * MB)                      # larger: a new one
+    assert c.int_ptr != a.int_ptr and d.int_ptr != a.int_ptr
+    e = pool.empty(MB)                          # the pooled one again
+    assert e.int_ptr == a.int_ptr
+    pool.free(c, d, e)
+    assert pool.bytes_live == live
+
+
+def test_small_and_uploaded_buffers_are_not_pooled(pool):
+    small = pool.empty(1000)
+    up = pool.to_device(np.zeros(MB // 4, np.float32), writable=True)
+    pool.free(small, up)
+    assert pool._pool == [] and pool._pool_bytes == 0
+
+
+def test_trim_releases_what_nothing_took_since_the_last_trim(pool):
+    a, b = pool.empty(MB), pool.empty(3 * MB)
+    pool.free(a, b)
+    pool.trim_pool()                            # freed in this generation: kept
+    assert {e[0] for e in pool._pool} == {MB, 3 * MB}
+    c = pool.empty(MB)                          # the next "render" takes one of them
+    pool.free(c)
+    pool.trim_pool()                            # the other was not taken: released
+    assert [e[0] for e in pool._pool] == [MB]
+    assert pool._pool_bytes == MB
+
+
+def test_an_allocation_failure_empties_the_pool_and_retries(pool, monkeypatch):
+    pool.free(pool.empty(MB))
+    real, calls = cl.Buffer, []
+
+    def failing_once(*args, **kw):
+        calls.append(1)
+        if len(calls) == 1:
+            raise cl.MemoryError("clCreateBuffer", cl.status_code.MEM_OBJECT_ALLOCATION_FAILURE,
+                                 "out of memory")
+        return real(*args, **kw)
+
+    monkeypatch.setattr(cl, "Buffer", failing_once)
+    buf = pool.empty(4 * MB)
+    assert len(calls) == 2 and pool._pool == [] and buf.size == 4 * MB
+    pool.free(buf)
+
+
+SCENES = {"raymarch": "builtin:occluder", "epipolar": "builtin:shafts",
+          "lsg": "builtin:caustic_sphere", "vpm": "builtin:caustic_sphere"}
+SMALL = ["camera.resolution=[40,30]", "camera.spp=1"]
+QUICK = {"lsg": ["render.lsg.light_rays=20000"], "vpm": ["render.vpm.photons=100000"]}
+
+
+@pytest.mark.parametrize("method", sorted(all_methods()))
+def test_no_kernel_reads_what_a_reused_buffer_held(method, pool, monkeypatch):
+    """Every buffer the pool keeps is overwritten with 0xff bytes (NaN floats, -1 ints);
+    a render that then takes them gives the image of a render from fresh, zeroed memory
+    (PoCL's fresh allocations read as zeros, which could hide a kernel that reads scratch
+    it never wrote)."""
+    spec = SCENES.get(method, "builtin:caustic_sphere")
+    sets = SMALL + QUICK.get(method, [])
+    monkeypatch.setattr(dev, "POOL_MIN_BYTES", 1 << 62)         # the reference: no pool
+    fresh = render(load_scene(spec, sets), engine=pool, method=method, show_progress=False)
+    monkeypatch.setattr(dev, "POOL_MIN_BYTES", 4096)
+    free = pool.free
+
+    def poisoning_free(*bufs):
+        for b in bufs:
+            if b.size >= dev.POOL_MIN_BYTES and b.flags == cl.mem_flags.READ_WRITE:
+                cl.enqueue_fill_buffer(pool.queue, b, np.full(1, 0xFFFFFFFF, np.uint32), 0,
+                                       b.size)
+        free(*bufs)
+
+    monkeypatch.setattr(pool, "free", poisoning_free)
+    render(load_scene(spec, sets), engine=pool, method=method, show_progress=False)
+    assert pool._pool, "the first render left nothing in the pool"
+    reused = render(load_scene(spec, sets), engine=pool, method=method, show_progress=False)
+    assert np.isfinite(reused.image).all()
+    assert fresh.image.max() > 0.0
+    np.testing.assert_allclose(reused.image, fresh.image, rtol=1e-4,
+                               atol=1e-6 * float(fresh.image.max()))
+
+
+BLAS_CHECK = """
+import threadpoolctl
+from clscatter.device import get_engine
+from clscatter.render import render
+from clscatter.scene import load_scene
+engine = get_engine()
+import scipy.linalg  # brings its own OpenBLAS, after the engine was made
+render(load_scene("builtin:shafts", {sets!r}), engine=engine, show_progress=False)
+print([i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"])
+"""
+
+
+def test_blas_runs_one_thread_beside_a_cpu_device(engine):
+    """OpenBLAS threads spinning after the SVD would take the cores the kernels run on:
+    every BLAS, also one a library imported after the engine brings (SciPy's own), runs
+    one thread once a render started (in a fresh process)."""
+    pytest.importorskip("threadpoolctl")
+    if not engine.device.type & cl.device_type.CPU:
+        pytest.skip("the limit applies beside a CPU device only")
+    out = subprocess.run([sys.executable, "-c", BLAS_CHECK.format(sets=SMALL)],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    threads = ast.literal_eval(out.stdout.strip().splitlines()[-1])
+    if not threads:
+        pytest.skip("no BLAS that threadpoolctl knows is loaded")
+    assert threads == [1] * len(threads), threads
