@@ -162,6 +162,39 @@ _EPIPOLES = [(32, 24), (0.3, 0.2), (0, 0), (64, 48), (63.9, 0.1), (32, 48), (-10
              (100, -50), (-300, -200), (32, -1e6), (1e9, 3.0), (70, 24)]
 
 
+@pytest.mark.parametrize("fov,aspect", [(40.0, 4 / 3), (100.0, 16 / 9), (10.0, 1.0)])
+def test_min_angle_to_the_image_is_a_tight_lower_bound(fov, aspect):
+    """CameraGeom.min_angle_to: 0 for directions in view; else at most, and within two
+    border steps of, the least angle to directions on a fine grid over the image."""
+    from clscatter.methods.epipolar.geometry import CameraGeom
+    tx = math.tan(math.radians(fov) / 2)
+    fwd, right, up = np.array([0.2, 0.1, 1.0]), np.array([1.0, 0.0, -0.2]), None
+    fwd /= np.linalg.norm(fwd)
+    right -= (right @ fwd) * fwd
+    right /= np.linalg.norm(right)
+    up = np.cross(fwd, right)
+    w, h = 64, max(1, int(round(64 / aspect)))
+    cam = CameraGeom(np.zeros(3), fwd, right * tx, up * tx / aspect, w, h)
+    g = np.linspace(0.0, 1.0, 401)
+    xy = np.stack(np.meshgrid(g * w, g * h), -1).reshape(-1, 2)
+    dirs = cam.direction(xy)
+    rng = np.random.default_rng(3)
+    a_all = rng.normal(size=(300, 3))
+    a_all /= np.linalg.norm(a_all, axis=1, keepdims=True)
+    a_all = np.concatenate([a_all, [fwd, -fwd, cam.direction(np.array([[w, h]]))[0]]])
+    step = 4 * (math.radians(fov) / 2048)
+    for a in a_all:
+        got = cam.min_angle_to(a)
+        grid = float(np.arccos(np.clip(dirs @ a, -1, 1)).min())
+        if a @ fwd > 0:
+            x, y = cam.project(a)[0]
+            if 0 <= x <= w and 0 <= y <= h:
+                assert got == 0.0
+                continue
+        assert got <= grid + 1e-12
+        assert got >= grid - step - 2 * math.radians(fov) / 400, (a, got, grid)
+
+
 @pytest.mark.parametrize("size", [(64, 48), (97, 61)])
 def test_sinh_slices_half_pixel(size):
     """Every pixel centre lies within half a pixel of a slice line, for epipoles inside,

@@ -105,6 +105,35 @@ def test_split_and_weighted(engine):
     assert np.all(weighted[:, 3] == 0.0)
 
 
+def test_primary_samples_are_the_ring_free_live_list(engine):
+    """Out of view, the ring leaves the live list at every primary segment: the derived
+    list (epi_primary_flags and a compaction, built once) equals what epi_ring and its
+    compaction give with a ring no sample reaches, and NumPy's."""
+    from clscatter.methods.epipolar.pipeline import _live_samples, _primary_samples
+    from clscatter.view_paths import ViewPaths
+    rng = np.random.default_rng(8)
+    n = 1000
+    segs = _segments(rng, n)
+    dev = ViewPaths(None, None, segs).on_device(engine, 10, 10)
+    geo, idx = _samples(rng, n, 7)
+    geo[:, 0] = rng.uniform(0.5, 3.0, n)          # all beyond a ring of 0.1 rad
+    gb, ib, wr = engine.to_device(geo), engine.to_device(idx), engine.zeros(4 * n)
+    bufs = []
+    try:
+        ring = _live_samples(engine, dev, gb, ib, wr, True, 0.1, 1.0, DEFS, bufs)
+        prim_ = _primary_samples(engine, dev, gb, ib, DEFS)
+        again = _primary_samples(engine, dev, gb, ib, DEFS)
+        want = np.flatnonzero(segs["depth"] == 0)
+        assert prim_.count == ring.count == len(want) and (ring.ring, ring.band) == (0, 0)
+        assert np.array_equal(engine.read(prim_.buf, prim_.count, np.int32), want)
+        assert np.array_equal(engine.read(ring.buf, ring.count, np.int32), want)
+        assert again.buf is prim_.buf                # derived once per set of segments
+        assert np.all(engine.read(wr, n, np.float32) == 0.0)
+    finally:
+        engine.free(gb, ib, wr, *bufs)
+        dev.release()
+
+
 def _host_events(geo, idx, live, S):
     """The runs as NumPy builds them: the live samples ordered by first slice k0, then
     beta (NaN last), then live index; each slice's run offsets."""

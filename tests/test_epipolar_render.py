@@ -14,7 +14,7 @@ from clscatter.prepared import prepare_scene
 from clscatter.view_paths import trace_view_paths
 from clscatter.render import render
 from clscatter.scene.builtin.epipolar import EPIPOLAR_SCENES, load_epipolar_scene
-from clscatter.scene.loader import scene_from_dict
+from clscatter.scene.loader import load_scene, scene_from_dict
 from clscatter.stats import Stats
 
 SMALL = ["camera.resolution=[64, 48]", "camera.spp=1"]
@@ -215,3 +215,22 @@ def test_bad_parameters_are_scene_errors():
         Epipolar({"svd_terms": 0})
     with pytest.raises(SceneError, match="light_rays"):
         Epipolar({"light_rays": -4})
+
+
+@pytest.mark.parametrize("name", ["shafts", "epi_spot", "epi_sun"])
+def test_skipping_an_out_of_view_ring_changes_nothing(engine, name, monkeypatch):
+    """Where the ring around the (anti-)epipole misses the image, its weights are all 0 and
+    the live samples are the primary ones (kept across light moves); forcing the ring's
+    kernel and compaction anyway gives the same image, bit for bit. epi_sun has its sun
+    in view: the ring is used there either way."""
+    from clscatter.methods.epipolar import pipeline
+    scene = load_scene(f"builtin:{name}", SMALL)
+    a = render(scene, method="epipolar", engine=engine, show_progress=False)
+    monkeypatch.setattr(pipeline, "_ring_in_view", lambda *args: True)
+    b = render(scene, method="epipolar", engine=engine, show_progress=False)
+    assert a.image.max() > 0.0
+    assert np.array_equal(a.image, b.image)
+    in_view = [lt["ring_in_view"] for lt in a.stats["epipolar_lights"]]
+    assert in_view == [name == "epi_sun"]
+    if name == "epi_sun":
+        assert a.stats["epipolar_lights"][0]["ring_samples"] > 0

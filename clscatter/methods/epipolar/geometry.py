@@ -111,6 +111,27 @@ class CameraGeom:
         """Angle subtended by one pixel at the image centre (radians)."""
         return 2.0 * math.atan(float(np.linalg.norm(self.right)) / self.width)
 
+    def min_angle_to(self, a: np.ndarray, samples: int = 2048) -> float:
+        """A lower bound of the angle between the direction ``a`` and every direction
+        through the image rectangle: 0 when ``a`` is in view; else the least angle to the
+        image's border (where the least angle to a spherical quadrilateral that does not
+        hold ``a`` lies), sampled ``samples`` times a side, less the largest angle between
+        neighbouring samples."""
+        a = _unit(np.asarray(a, np.float64))
+        if a @ self.fwd > 0.0:
+            x, y = self.project(a)[0]
+            if 0.0 <= x <= self.width and 0.0 <= y <= self.height:
+                return 0.0
+        t = np.linspace(0.0, 1.0, int(samples) + 1)
+        w, h = float(self.width), float(self.height)
+        border = np.concatenate([np.stack([t * w, 0 * t], 1), np.stack([w + 0 * t, t * h], 1),
+                                 np.stack([(1 - t) * w, h + 0 * t], 1),
+                                 np.stack([0 * t, (1 - t) * h], 1)])
+        d = self.direction(border)
+        step = float(np.arccos(np.clip(np.sum(d[1:] * d[:-1], axis=1), -1.0, 1.0)).max())
+        least = float(np.arccos(np.clip(d @ a, -1.0, 1.0)).min())
+        return max(0.0, least - step)
+
 
 # --------------------------------------------------------------------------------------
 # The axis

@@ -254,8 +254,12 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
                          cam=ps.dev.camera, ring=no_ring,
                          segs=segs.buf, n=n, geo=geo_buf, idx=idx_buf)
                 if live is None:            # beta, hence the ring, does not depend on slices
-                    live = _live_samples(eng, segs, geo_buf, idx_buf, wr_buf, slices.front,
-                                         ring_rad, st.ring_band, defines, bufs)
+                    ring_in_view = _ring_in_view(cam, axis, slices.front, ring_rad,
+                                                 st.ring_band)
+                    live = (_live_samples(eng, segs, geo_buf, idx_buf, wr_buf, slices.front,
+                                          ring_rad, st.ring_band, defines, bufs)
+                            if ring_in_view else
+                            _primary_samples(eng, segs, geo_buf, idx_buf, defines))
                 views = DeviceViews(eng, geo_buf, idx_buf, live.buf, live.count, S, defines)
             if st.lookup != "segment" or live.count == 0:
                 slice_err = summarize(np.zeros(0))
@@ -269,7 +273,7 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
         info: dict = {"epipole_px": [float(slices.P[0]), float(slices.P[1])],
                       "epipole_in_front": bool(slices.front), "ring_samples": live.ring,
                       "ring_degrees": math.degrees(ring_rad),
-                      "ring_band_samples": live.band,
+                      "ring_band_samples": live.band, "ring_in_view": bool(ring_in_view),
                       "slice_spacing_px": float(spacing),
                       "slice_error": {k: v for k, v in slice_err.items() if k != "errors"}}
         if live.count == 0:
@@ -479,6 +483,43 @@ def _live_samples(eng, segs, geo_buf, idx_buf, wr_buf, front: bool, radius: floa
     finally:
         eng.free(flags, counts)
     return LiveSamples(eng, live, count, ring, in_band, geo_buf, idx_buf)
+
+
+# angle (radians) by which the ring's edge must miss the image for the ring to be skipped:
+# well above the float32 error of the kernels' beta (atan2_fast: 4e-7)
+RING_MARGIN = 1e-5
+
+
+def _ring_in_view(cam: geo.CameraGeom, axis: geo.Axis, front: bool, radius: float,
+                  band: float) -> bool:
+    """Whether a camera ray can come within the ring's outer edge (radius and blended band)
+    of the epipole (the anti-epipole when ``front`` is false): else every ring weight is 0
+    and the live samples are the primary ones, which :func:`_primary_samples` keeps from
+    one light move to the next."""
+    if radius <= 0.0:
+        return False
+    outer = radius * (1.0 + max(band, 0.0))
+    a = np.asarray(axis.u, np.float64) * (1.0 if front else -1.0)
+    return cam.min_angle_to(a) <= outer + RING_MARGIN
+
+
+def _primary_samples(eng, segs, geo_buf, idx_buf, defines: dict) -> LiveSamples:
+    """The live samples when the ring is out of view: every primary segment, in order,
+    with ring weight 0 (``wr`` stays the zeros it starts as). What :func:`_live_samples`
+    would give, without its kernel, compaction and read-back on every light move: the
+    list is derived once per set of view segments."""
+    def build():
+        flags = eng.empty(4 * max(segs.count, 1))
+        try:
+            eng.call("epipolar", "epi_primary_flags", segs.count, defines, segs=segs.buf,
+                     n=segs.count, flags=flags)
+            buf, count = prim.compact(eng, flags, segs.count)
+        finally:
+            eng.free(flags)
+        return [buf], (buf, count)
+
+    buf, count = segs.derived("epipolar_primary_list", build)
+    return LiveSamples(eng, buf, count, 0, 0, geo_buf, idx_buf)
 
 
 class HostViews:
