@@ -642,23 +642,39 @@ float epi_locate(__global const EpiFrame *fr, __global const float *phis, int n,
     return atan2_fast(*sb, c);
 }
 
-/* One work-item per primary view segment (segment lookup): its coordinates and the two
- * slices around it. geo = (beta, gamma(t_a), gamma(t_b), t_a) with t_a, t_b the distances
- * of the segment's ends from the eye; idx = (k0, k1, weight of k1 as bits, in the ring).
- * The ring is the disc of radius ring.z pixels around the epipole (ring.x, ring.y). */
-__kernel void epi_samples(__global const EpiFrame *fr, __global const float *phis, int nslices,
-                          int full, __global const int *lut, int bins,
-                          __global const Camera *cam, float4 ring,
-                          __global const ViewSegment *segs, int n, __global float4 *geo,
-                          __global int4 *idx) {
+/* One work-item per view segment: what epi_samples needs of it that no light changes,
+ * built once per set of view segments (pipeline.py): dirs = (unit direction v from the
+ * eye to its end b, t_b = |b - eye|), ta = max((a - eye).v, 0), the distances of its ends
+ * from the eye. 20 bytes read per light move instead of the 64-byte record. */
+__kernel void epi_view_dirs(__global const ViewSegment *segs, int n, float4 eye,
+                            __global float4 *dirs, __global float *ta) {
     int gid = get_global_id(0);
     if (gid >= n) return;
-    float4 a = segs[gid].a - fr->eye, b = segs[gid].b - fr->eye;
+    float4 a = segs[gid].a - eye, b = segs[gid].b - eye;
     a.w = 0.0f;
     b.w = 0.0f;
     float t_b = length3(b);
     float4 v = b / fmax(t_b, 1e-30f);
-    float t_a = fmax(dot3(a, v), 0.0f);
+    ta[gid] = fmax(dot3(a, v), 0.0f);
+    v.w = t_b;
+    dirs[gid] = v;
+}
+
+/* One work-item per primary view segment (segment lookup): its coordinates and the two
+ * slices around it, from its direction and distances (epi_view_dirs). geo = (beta,
+ * gamma(t_a), gamma(t_b), t_a) with t_a, t_b the distances of the segment's ends from the
+ * eye; idx = (k0, k1, weight of k1 as bits, in the ring). The ring is the disc of radius
+ * ring.z pixels around the epipole (ring.x, ring.y). */
+__kernel void epi_samples(__global const EpiFrame *fr, __global const float *phis, int nslices,
+                          int full, __global const int *lut, int bins,
+                          __global const Camera *cam, float4 ring,
+                          __global const float4 *dirs, __global const float *ta, int n,
+                          __global float4 *geo, __global int4 *idx) {
+    int gid = get_global_id(0);
+    if (gid >= n) return;
+    float4 v = dirs[gid];
+    float t_b = v.w, t_a = ta[gid];
+    v.w = 0.0f;
     int k0, k1;
     float f;
     float sb, cb;

@@ -182,7 +182,7 @@ def test_min_angle_to_the_image_is_a_tight_lower_bound(fov, aspect):
     a_all = rng.normal(size=(300, 3))
     a_all /= np.linalg.norm(a_all, axis=1, keepdims=True)
     a_all = np.concatenate([a_all, [fwd, -fwd, cam.direction(np.array([[w, h]]))[0]]])
-    step = 4 * (math.radians(fov) / 2048)
+    step = 4 * (math.radians(fov) / 512)
     for a in a_all:
         got = cam.min_angle_to(a)
         grid = float(np.arccos(np.clip(dirs @ a, -1, 1)).min())
@@ -971,13 +971,22 @@ def test_samples_kernel(engine, kind):
     lut = slices.lookup_table()
     bufs = [engine.to_device(frame.reshape(1)), engine.to_device(phis),
             engine.to_device(cam_s.reshape(1)), engine.to_device(segs), engine.empty(16 * n),
-            engine.empty(16 * n), engine.to_device(lut)]
+            engine.empty(16 * n), engine.to_device(lut), engine.empty(16 * n),
+            engine.empty(4 * n)]
+    engine.call("epipolar", "epi_view_dirs", n, DEF1, segs=bufs[3], n=n, eye=frame["eye"],
+                dirs=bufs[7], ta=bufs[8])
+    dirs = engine.read(bufs[7], (n, 4), np.float32)
+    ta = engine.read(bufs[8], n, np.float32)
     engine.launch(engine.kernel("epipolar", "epi_samples", DEF1), n, bufs[0], bufs[1],
                   np.int32(len(phis)), np.int32(slices.full), bufs[6], np.int32(len(lut) - 1),
-                  bufs[2], ring, bufs[3], np.int32(n), bufs[4], bufs[5])
+                  bufs[2], ring, bufs[7], bufs[8], np.int32(n), bufs[4], bufs[5])
     g = engine.read(bufs[4], (n, 4), np.float32)
     idx = engine.read(bufs[5], (n, 4), np.int32)
     engine.free(*bufs)
+    # epi_view_dirs: the unit direction and both distances from the eye
+    np.testing.assert_allclose(dirs[:, :3], v, atol=2e-6)
+    np.testing.assert_allclose(dirs[:, 3], t_b, rtol=2e-6)
+    np.testing.assert_allclose(ta, t_a, atol=2e-6)
     phi, beta = axis.coords(v)
     k0, k1, f = slices.bracket(phi)
     assert np.allclose(g[:, 0], beta, atol=2e-6)

@@ -214,8 +214,10 @@ class Epipolar(Method):
         d = params["light_rays"] or max(w, h, MIN_LIGHT_RAYS)
         slices = params["slices"] or 4 * (w + h)
         n = camera_samples(scene)
+        # per camera sample: ~64 bytes of per-light tables, 24 kept with the view segments
+        # (their directions and the primary list, pipeline.view_dirs/_primary_samples)
         return [Estimate("epipolar", "render.epipolar.shadow_map",
-                         4.0 * smap * smap * 2 + slices * d * 64 + n * 64,
+                         4.0 * smap * smap * 2 + slices * d * 64 + n * 88,
                          slices * d * 20 + n * 40, "tree operations")]
 
     def __init__(self, params: dict | None = None):

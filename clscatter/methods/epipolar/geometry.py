@@ -111,7 +111,7 @@ class CameraGeom:
         """Angle subtended by one pixel at the image centre (radians)."""
         return 2.0 * math.atan(float(np.linalg.norm(self.right)) / self.width)
 
-    def min_angle_to(self, a: np.ndarray, samples: int = 2048) -> float:
+    def min_angle_to(self, a: np.ndarray, samples: int = 512) -> float:
         """A lower bound of the angle between the direction ``a`` and every direction
         through the image rectangle: 0 when ``a`` is in view; else the least angle to the
         image's border (where the least angle to a spherical quadrilateral that does not

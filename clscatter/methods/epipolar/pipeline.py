@@ -249,10 +249,11 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
                 lut_buf = up(lut)
                 # the ring is decided below, in angle (the kernel's pixel disc is off)
                 no_ring = np.array([slices.P[0], slices.P[1], -1.0, 0.0], np.float32)
+                dirs_buf, ta_buf = view_dirs(eng, segs, frame["eye"], defines)
                 eng.call("epipolar", "epi_samples", n, defines, fr=frame_buf, phis=phi_buf,
                          nslices=S, full=slices.full, lut=lut_buf, bins=len(lut) - 1,
-                         cam=ps.dev.camera, ring=no_ring,
-                         segs=segs.buf, n=n, geo=geo_buf, idx=idx_buf)
+                         cam=ps.dev.camera, ring=no_ring, dirs=dirs_buf, ta=ta_buf, n=n,
+                         geo=geo_buf, idx=idx_buf)
                 if live is None:            # beta, hence the ring, does not depend on slices
                     ring_in_view = _ring_in_view(cam, axis, slices.front, ring_rad,
                                                  st.ring_band)
@@ -483,6 +484,23 @@ def _live_samples(eng, segs, geo_buf, idx_buf, wr_buf, front: bool, radius: floa
     finally:
         eng.free(flags, counts)
     return LiveSamples(eng, live, count, ring, in_band, geo_buf, idx_buf)
+
+
+def view_dirs(eng, segs, eye, defines: dict):
+    """The view segments' unit directions from the eye with their end distances, ``dirs``
+    (float4: v, t_b) and ``ta`` (float), from ``epi_view_dirs``: no light changes them, so
+    they are derived once per set of view segments (and eye) and a light move reads 20
+    bytes a segment instead of its 64-byte record."""
+    eye = np.asarray(eye, np.float32).reshape(4)
+
+    def build():
+        n = segs.count
+        dirs, ta = eng.empty(16 * max(n, 1)), eng.empty(4 * max(n, 1))
+        eng.call("epipolar", "epi_view_dirs", n, defines, segs=segs.buf, n=n, eye=eye,
+                 dirs=dirs, ta=ta)
+        return [dirs, ta], (dirs, ta)
+
+    return segs.derived("epipolar_view_dirs/" + eye.tobytes().hex(), build)
 
 
 # angle (radians) by which the ring's edge must miss the image for the ring to be skipped:
