@@ -401,8 +401,11 @@ class Engine:
         self._pool_cap: float | None = None
         self._generation = 0
         self.builds = {"source": 0, "cache": 0}   # how programs were obtained
-        # seconds the host spent blocked on the device (kernel completion, transfers):
-        # a render's time minus this is its host time (``--stats``: host_seconds)
+        # seconds the host spent blocked on the device (kernel completion, transfers, and
+        # the enqueue calls themselves: on a CPU device an enqueue returns only once the
+        # runtime has handed the kernel to worker threads that take the host's cores,
+        # 0.05-2 ms a launch, ~10 ms of a 0.26 s epipolar light move): a render's time
+        # minus this is its host time (``--stats``: host_seconds)
         self.wait_seconds = 0.0
         self.shares_host_cores = bool(self.device.type & cl.device_type.CPU)
         self.quiet_host_threads()
@@ -688,7 +691,9 @@ class Engine:
         change with the scene (slices per batch, live samples) paid that, ~0.3 s a time,
         on every frame. Arguments are set one by one (``set_arg``) rather than through
         pyopencl's generated per-kernel invokers, whose cache costs ~0.07 s of host time
-        per process (numpy scalars, arrays and records pass as their bytes)."""
+        per process (numpy scalars, arrays and records pass as their bytes). The enqueue
+        call's own time counts in :attr:`wait_seconds`: on a CPU device it lasts until
+        the runtime's worker threads, which take the host's cores, have the kernel."""
         gs = (int(global_size),) if np.isscalar(global_size) else tuple(int(g) for g in global_size)
         if min(gs) <= 0:
             return
@@ -696,9 +701,12 @@ class Engine:
             kernel.set_arg(i, a)
         if len(gs) == 1:
             g = int(group) if group else self._group_size(kernel)
-            self.cl.enqueue_nd_range_kernel(self.queue, kernel, (-(-gs[0] // g) * g,), (g,))
+            size, local = (-(-gs[0] // g) * g,), (g,)
         else:
-            self.cl.enqueue_nd_range_kernel(self.queue, kernel, gs, None)
+            size, local = gs, None
+        t = time.perf_counter()
+        self.cl.enqueue_nd_range_kernel(self.queue, kernel, size, local)
+        self.wait_seconds += time.perf_counter() - t
 
 
 _ENGINES: dict[str | None, Engine] = {}
