@@ -746,12 +746,6 @@ __kernel void epi_rectify_image(__global const EpiFrame *fr, __global const EpiS
  * Sample i is view segment i (all segments of the image, sorted by camera sample);
  * live[j] (j < L) lists the samples the sweep integrates, in increasing order. */
 
-/* Ring weight of every view segment (pipeline.ring_weights): 1 within the ring around
- * the epipole (the anti-epipole when the light is behind the camera: front = 0),
- * smoothstep to 0 across the band out to `outer`, 0 beyond; only primary segments
- * (depth 0) take part (deeper ones are ray marched whole: weight 0, not live).
- * live_flag = primary and w < 1 (the sweep), counts = (primary samples with w > 0,
- * those with 0 < w < 1). */
 /* 1 for a primary view segment (depth 0), 0 for one behind mirrors and glass: the live
  * flags of epi_ring where no sample can lie in the ring (pipeline.py: the ring is out of
  * view), built once per set of view segments */
@@ -761,6 +755,12 @@ __kernel void epi_primary_flags(__global const ViewSegment *segs, int n, __globa
     flags[i] = segs[i].depth == 0;
 }
 
+/* Ring weight of every view segment (pipeline.ring_weights): 1 within the ring around
+ * the epipole (the anti-epipole when the light is behind the camera: front = 0),
+ * smoothstep to 0 across the band out to `outer`, 0 beyond; only primary segments
+ * (depth 0) take part (deeper ones are ray marched whole: weight 0, not live).
+ * live_flag = primary and w < 1 (the sweep), counts = (primary samples with w > 0,
+ * those with 0 < w < 1). */
 __kernel void epi_ring(__global const ViewSegment *segs, __global const float4 *geo, int n,
                        int front, float radius, float outer, __global float *wr,
                        __global int *live_flag, volatile __global int *counts) {

@@ -577,9 +577,9 @@ class Engine:
         """An uninitialised read-write device buffer of at least ``nbytes``.
 
         Large ones come from the pool of buffers released by :meth:`free` when one fits
-        (at most :data:`POOL_SLACK` times the size): a re-render allocates the same ~200 MB
-        of scratch as the render before it, and fresh memory costs the CPU device a page
-        fault per 4 KiB on first touch (~40 ms of a 0.3 s epipolar re-render here). The
+        (at most :data:`POOL_SLACK` times the size): a re-render allocates the same ~220 MB
+        of scratch as the render before it, and fresh memory costs the CPU device page
+        faults on first touch (~8,400, ~10 ms, of a 0.3 s epipolar light move here). The
         queue is in order, so a reused buffer is never written before the commands that
         used it before have run."""
         nbytes = max(int(nbytes), 4)

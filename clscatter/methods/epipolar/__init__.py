@@ -119,9 +119,10 @@ class Epipolar(Method):
     ``svd_error`` (the largest estimate of a swept light), per-light details in
     ``epipolar_lights`` (among them ``shadow_map_caster``: ``grid``, with the tile grid's
     list lengths, or ``bvh``; ``ring_in_view``: whether a camera ray comes within the
-    ring's outer edge, else its weights are 0 and it costs nothing), the fallbacks in ``epipolar_fallback``, and the stages
-    ``epipolar_maps``, ``epipolar_rectify``, ``epipolar_svd``, ``epipolar_integrate``,
-    ``epipolar_unrectify``, ``epipolar_ring`` (seconds).
+    ring's outer edge, else its weights are 0 and it costs nothing), the fallbacks in
+    ``epipolar_fallback``, and the stages ``epipolar_maps``, ``epipolar_rectify``,
+    ``epipolar_svd``, ``epipolar_integrate``, ``epipolar_unrectify``, ``epipolar_ring``
+    (seconds).
 
     Usage: ``clscatter render scene.toml --method epipolar --set render.epipolar.light_rays=4096``
     """
