@@ -634,6 +634,8 @@ class Engine:
             from .budget import memory_budget
             self._pool_cap = POOL_SHARE * memory_budget(self)[0]
         for b in bufs:
+            if id(b) not in self._sizes and any(e[2] is b for e in self._pool):
+                continue                    # freed twice: it is in the pool already
             n = self._sizes.pop(id(b), 0)
             self.bytes_live -= n
             pooled = getattr(b, "flags", 0) == self.cl.mem_flags.READ_WRITE

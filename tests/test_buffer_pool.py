@@ -46,6 +46,19 @@ def test_a_released_buffer_serves_requests_of_a_fitting_size(pool):
     assert pool.bytes_live == live
 
 
+def test_a_second_free_leaves_the_pooled_buffer_alone(pool):
+    live = pool.bytes_live
+    a = pool.empty(MB)
+    pool.free(a)
+    pool.free(a)                                # must not release what the pool holds
+    assert len(pool._pool) == 1 and pool._pool_bytes == MB and pool.bytes_live == live
+    b = pool.empty(MB)
+    assert b.int_ptr == a.int_ptr
+    pool.cl.enqueue_fill_buffer(pool.queue, b, np.full(1, 7, np.uint32), 0, MB)
+    assert np.all(pool.read(b, MB // 4, np.uint32) == 7)
+    pool.free(b)
+
+
 def test_small_and_uploaded_buffers_are_not_pooled(pool):
     small = pool.empty(1000)
     up = pool.to_device(np.zeros(MB // 4, np.float32), writable=True)
