@@ -23,6 +23,7 @@ import hashlib
 import os
 import re
 import sys
+import threading
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -356,8 +357,9 @@ def one_blas_thread() -> None:
     small (the epipolar SVD of a 64 x 64 table), but a multi-threaded OpenBLAS keeps its
     worker threads spinning for a while after each call, on the cores the kernels that
     follow need: on a 2-core machine that took ~40 ms (12% of the samples a profiler
-    saw) from a 0.34 s epipolar re-render after a light move. Without threadpoolctl (or
-    with a BLAS it does not know) nothing changes."""
+    saw) from a 0.34 s epipolar re-render after a light move. The limit stays for the
+    whole process (NumPy's own linear algebra runs one thread from then on). Without
+    threadpoolctl (or with a BLAS it does not know) nothing changes."""
     global _BLAS_MODULES
     if len(sys.modules) == _BLAS_MODULES:
         return
@@ -400,9 +402,10 @@ class Engine:
         self._pool_bytes = 0
         self._pool_cap: float | None = None
         self._generation = 0
+        self._pool_lock = threading.Lock()      # a page's session may close from another thread
         self.builds = {"source": 0, "cache": 0}   # how programs were obtained
         # seconds the host spent blocked on the device (kernel completion, transfers, and
-        # the enqueue calls themselves: on a CPU device an enqueue returns only once the
+        # on a CPU device the enqueue calls themselves: an enqueue returns only once the
         # runtime has handed the kernel to worker threads that take the host's cores,
         # 0.05-2 ms a launch, ~10 ms of a 0.26 s epipolar light move): a render's time
         # minus this is its host time (``--stats``: host_seconds)
@@ -584,14 +587,16 @@ class Engine:
         used it before have run."""
         nbytes = max(int(nbytes), 4)
         if nbytes >= POOL_MIN_BYTES:
-            best = None
-            for entry in self._pool:
-                if nbytes <= entry[0] <= POOL_SLACK * nbytes and (best is None
-                                                                  or entry[0] < best[0]):
-                    best = entry
+            with self._pool_lock:
+                best = None
+                for entry in self._pool:
+                    if nbytes <= entry[0] <= POOL_SLACK * nbytes and (best is None
+                                                                      or entry[0] < best[0]):
+                        best = entry
+                if best is not None:
+                    self._pool.remove(best)
+                    self._pool_bytes -= best[0]
             if best is not None:
-                self._pool.remove(best)
-                self._pool_bytes -= best[0]
                 return self._track(best[2], best[0])
         try:
             buf = self.cl.Buffer(self.ctx, self.cl.mem_flags.READ_WRITE, nbytes)
@@ -629,20 +634,21 @@ class Engine:
         """Stop counting device buffers as live: large ones made by :meth:`empty` or
         :meth:`zeros` go to the pool for reuse (while its idle bytes stay under
         :data:`POOL_SHARE` of the memory budget), the rest are released now. The caller
-        must not use a buffer after freeing it."""
+        must not use a buffer after freeing it, nor free it twice."""
         if self._pool_cap is None:
             from .budget import memory_budget
             self._pool_cap = POOL_SHARE * memory_budget(self)[0]
         for b in bufs:
-            if id(b) not in self._sizes and any(e[2] is b for e in self._pool):
-                continue                    # freed twice: it is in the pool already
-            n = self._sizes.pop(id(b), 0)
-            self.bytes_live -= n
-            pooled = getattr(b, "flags", 0) == self.cl.mem_flags.READ_WRITE
-            if n >= POOL_MIN_BYTES and pooled and self._pool_bytes + n <= self._pool_cap:
-                self._pool.append([n, self._generation, b])
-                self._pool_bytes += n
-                continue
+            with self._pool_lock:
+                if id(b) not in self._sizes and any(e[2] is b for e in self._pool):
+                    continue                # freed twice: it is in the pool already
+                n = self._sizes.pop(id(b), 0)
+                self.bytes_live -= n
+                pooled = getattr(b, "flags", 0) == self.cl.mem_flags.READ_WRITE
+                if n >= POOL_MIN_BYTES and pooled and self._pool_bytes + n <= self._pool_cap:
+                    self._pool.append([n, self._generation, b])
+                    self._pool_bytes += n
+                    continue
             try:
                 b.release()
             except Exception:
@@ -652,19 +658,34 @@ class Engine:
         """Release the pooled buffers that no request took since the last call, and start
         a new generation (a render calls this at its end: the pool then holds what one
         render freed, which the next render of the same size takes again)."""
-        keep = [e for e in self._pool if e[1] == self._generation]
-        for e in self._pool:
-            if e[1] != self._generation:
+        with self._pool_lock:
+            keep = [e for e in self._pool if e[1] == self._generation]
+            for e in self._pool:
+                if e[1] != self._generation:
+                    e[2].release()
+            self._pool = keep
+            self._pool_bytes = sum(e[0] for e in keep)
+            self._generation += 1
+
+    def fit_pool(self, limit: float, need: float) -> None:
+        """Before a render of estimated peak ``need`` bytes within a ``limit`` budget (the
+        session's, ``--max-memory`` included): the pool's idle bytes are capped at
+        :data:`POOL_SHARE` of the limit and at what the render leaves free, the oldest
+        released first, so pooled memory never pushes a render past its budget."""
+        with self._pool_lock:
+            self._pool_cap = POOL_SHARE * float(limit)
+            room = min(self._pool_cap, max(float(limit) - float(need) - self.bytes_live, 0.0))
+            while self._pool and self._pool_bytes > room:
+                e = self._pool.pop(0)
                 e[2].release()
-        self._pool = keep
-        self._pool_bytes = sum(e[0] for e in keep)
-        self._generation += 1
+                self._pool_bytes -= e[0]
 
     def drain_pool(self) -> None:
-        """Release every pooled buffer now."""
-        for e in self._pool:
-            e[2].release()
-        self._pool, self._pool_bytes = [], 0
+        """Release every pooled buffer now (a session does when it closes)."""
+        with self._pool_lock:
+            for e in self._pool:
+                e[2].release()
+            self._pool, self._pool_bytes = [], 0
 
     def note_host(self, nbytes: int) -> None:
         """Count a transient host working set towards the peak."""
@@ -693,9 +714,10 @@ class Engine:
         change with the scene (slices per batch, live samples) paid that, ~0.3 s a time,
         on every frame. Arguments are set one by one (``set_arg``) rather than through
         pyopencl's generated per-kernel invokers, whose cache costs ~0.07 s of host time
-        per process (numpy scalars, arrays and records pass as their bytes). The enqueue
-        call's own time counts in :attr:`wait_seconds`: on a CPU device it lasts until
-        the runtime's worker threads, which take the host's cores, have the kernel."""
+        per process (numpy scalars, arrays and records pass as their bytes). On a CPU
+        device the enqueue call's own time counts in :attr:`wait_seconds`: it lasts until
+        the runtime's worker threads, which take the host's cores, have the kernel (on a
+        GPU it is the driver's host work, and counts as host time)."""
         gs = (int(global_size),) if np.isscalar(global_size) else tuple(int(g) for g in global_size)
         if min(gs) <= 0:
             return
@@ -708,7 +730,8 @@ class Engine:
             size, local = gs, None
         t = time.perf_counter()
         self.cl.enqueue_nd_range_kernel(self.queue, kernel, size, local)
-        self.wait_seconds += time.perf_counter() - t
+        if self.shares_host_cores:
+            self.wait_seconds += time.perf_counter() - t
 
 
 _ENGINES: dict[str | None, Engine] = {}

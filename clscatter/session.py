@@ -195,6 +195,7 @@ class RenderSession:
         with stats.stage("configure"):
             limit, source = budget.memory_budget(engine, self.max_memory)
             budget.check_budget(req.estimates, limit, source)
+            engine.fit_pool(limit, budget.peak_bytes(req.estimates))
             for line in budget.long_work_notes(req.estimates) + scene_notes(scene):
                 if on_note is not None:
                     on_note(line)
@@ -314,7 +315,12 @@ class RenderSession:
         self._ps = None
         self._geometry = None
 
-    close = release
+    def close(self) -> None:
+        """Free the device buffers and empty the engine's buffer pool (what the session's
+        renders left there for the next one)."""
+        self.release()
+        if self._engine is not None:
+            self._engine.drain_pool()
 
     def _release_paths(self) -> None:
         if self._paths is not None:
@@ -325,7 +331,7 @@ class RenderSession:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self.release()
+        self.close()
 
 
 def _programs(scene: Scene, req) -> list[tuple[str, dict | None]]:

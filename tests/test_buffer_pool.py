@@ -14,6 +14,7 @@ import pytest
 from clscatter import device as dev
 from clscatter.methods import all_methods
 from clscatter.render import render
+from clscatter.session import RenderSession
 from clscatter.scene import load_scene
 
 MB = 1 << 20
@@ -104,13 +105,15 @@ QUICK = {"lsg": ["render.lsg.light_rays=20000"], "vpm": ["render.vpm.photons=100
 @pytest.mark.parametrize("method", sorted(all_methods()))
 def test_no_kernel_reads_what_a_reused_buffer_held(method, pool, monkeypatch):
     """Every buffer the pool keeps is overwritten with 0xff bytes (NaN floats, -1 ints);
-    a render that then takes them gives the image of a render from fresh, zeroed memory
-    (PoCL's fresh allocations read as zeros, which could hide a kernel that reads scratch
-    it never wrote)."""
+    a session's next render, which takes them (another seed: camera paths and passes all
+    run again), gives the image of a one-off render from fresh memory (PoCL's fresh
+    allocations read as zeros, which could hide a kernel that reads scratch it never
+    wrote). Closing the session empties the pool."""
     spec = SCENES.get(method, "builtin:caustic_sphere")
     sets = SMALL + QUICK.get(method, [])
     monkeypatch.setattr(dev, "POOL_MIN_BYTES", 1 << 62)         # the reference: no pool
-    fresh = render(load_scene(spec, sets), engine=pool, method=method, show_progress=False)
+    fresh = render(load_scene(spec, sets + ["render.seed=7"]), engine=pool, method=method,
+                   show_progress=False)
     monkeypatch.setattr(dev, "POOL_MIN_BYTES", 4096)
     free = pool.free
 
@@ -122,19 +125,38 @@ def test_no_kernel_reads_what_a_reused_buffer_held(method, pool, monkeypatch):
         free(*bufs)
 
     monkeypatch.setattr(pool, "free", poisoning_free)
-    render(load_scene(spec, sets), engine=pool, method=method, show_progress=False)
-    assert pool._pool, "the first render left nothing in the pool"
-    reused = render(load_scene(spec, sets), engine=pool, method=method, show_progress=False)
+    with RenderSession.from_source(spec, sets, engine=pool, method=method) as s:
+        s.render(show_progress=False)
+        assert pool._pool, "the first render left nothing in the pool"
+        s.set(["render.seed=7"])
+        reused = s.render(show_progress=False)
+        assert "view_paths" in reused.stats["stages_run"]
+    assert pool._pool == []
     assert np.isfinite(reused.image).all()
     assert fresh.image.max() > 0.0
     np.testing.assert_allclose(reused.image, fresh.image, rtol=1e-4,
                                atol=1e-6 * float(fresh.image.max()))
 
 
+def test_pooled_bytes_fit_the_render_budget(pool):
+    """fit_pool: idle pooled bytes stay within a quarter of the budget and within what
+    the coming render leaves free, the oldest released first."""
+    bufs = [pool.empty(k * MB) for k in (1, 2, 3)]
+    pool.free(*bufs)
+    assert pool._pool_bytes == 6 * MB
+    pool.fit_pool(limit=100 * MB, need=10 * MB)          # room: min(25, 90) MB
+    assert pool._pool_bytes == 6 * MB
+    pool.fit_pool(limit=100 * MB, need=95 * MB - pool.bytes_live)   # room: 5 MB
+    assert [e[0] for e in pool._pool] == [2 * MB, 3 * MB]
+    pool.fit_pool(limit=12 * MB, need=0 - pool.bytes_live)          # room: 3 MB
+    assert [e[0] for e in pool._pool] == [3 * MB] and pool._pool_bytes == 3 * MB
+
+
 BLAS_CHECK = """
 import threadpoolctl
 from clscatter.device import get_engine
 from clscatter.render import render
+from clscatter.session import RenderSession
 from clscatter.scene import load_scene
 engine = get_engine()
 import scipy.linalg  # brings its own OpenBLAS, after the engine was made
