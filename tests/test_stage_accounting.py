@@ -8,20 +8,16 @@ import pytest
 
 from clscatter.cli import main
 from clscatter.methods import all_methods
+from method_scenes import overrides_for, scene_for
 
-SCENES = {"raymarch": "builtin:occluder", "epipolar": "builtin:shafts",
-          "lsg": "builtin:caustic_sphere", "vpm": "builtin:caustic_sphere"}
-SMALL = ["--set", "camera.resolution=[48,36]", "--set", "camera.spp=1", "--no-progress"]
-QUICK = {"lsg": ["--set", "render.lsg.light_rays=20000"],
-         "vpm": ["--set", "render.vpm.photons=100000"]}
 
 
 @pytest.mark.parametrize("method", sorted(all_methods()))
 def test_stages_cover_the_render(method, tmp_path, capsys):
-    scene = SCENES.get(method, "builtin:caustic_sphere")
     stats = tmp_path / "s.json"
-    code = main(["render", scene, "--method", method, "-o", str(tmp_path / "o.npy"),
-                 "--stats", str(stats), *SMALL, *QUICK.get(method, [])])
+    sets = [x for o in overrides_for(method) for x in ("--set", o)]
+    code = main(["render", scene_for(method), "--method", method, "-o",
+                 str(tmp_path / "o.npy"), "--stats", str(stats), "--no-progress", *sets])
     assert code == 0, capsys.readouterr().err
     st = json.loads(stats.read_text())
     covered = sum(st["stages"].values())
