@@ -746,15 +746,6 @@ __kernel void epi_rectify_image(__global const EpiFrame *fr, __global const EpiS
  * Sample i is view segment i (all segments of the image, sorted by camera sample);
  * live[j] (j < L) lists the samples the sweep integrates, in increasing order. */
 
-/* 1 for a primary view segment (depth 0), 0 for one behind mirrors and glass: the live
- * flags of epi_ring where no sample can lie in the ring (pipeline.py: the ring is out of
- * view), built once per set of view segments */
-__kernel void epi_primary_flags(__global const ViewSegment *segs, int n, __global int *flags) {
-    int i = get_global_id(0);
-    if (i >= n) return;
-    flags[i] = segs[i].depth == 0;
-}
-
 /* Ring weight of every view segment (pipeline.ring_weights): 1 within the ring around
  * the epipole (the anti-epipole when the light is behind the camera: front = 0),
  * smoothstep to 0 across the band out to `outer`, 0 beyond; only primary segments

@@ -107,7 +107,7 @@ def test_split_and_weighted(engine):
 
 def test_primary_samples_are_the_ring_free_live_list(engine):
     """Out of view, the ring leaves the live list at every primary segment: the derived
-    list (epi_primary_flags and a compaction, built once) equals what epi_ring and its
+    list (the split's primary weights compacted, built once) equals what epi_ring and its
     compaction give with a ring no sample reaches, and NumPy's."""
     from clscatter.methods.epipolar.pipeline import _live_samples, _primary_samples
     from clscatter.view_paths import ViewPaths

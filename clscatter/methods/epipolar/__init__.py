@@ -6,7 +6,7 @@ import dataclasses
 import numpy as np
 
 from ... import structs
-from .pipeline import (LOOKUPS, MIN_LIGHT_RAYS, Settings, render_light,
+from .pipeline import (LOOKUPS, MIN_LIGHT_RAYS, Settings, render_light, split_segments,
                        start_defines)
 from ...prepared import PreparedScene
 from ...view_paths import ViewPaths
@@ -14,24 +14,6 @@ from ...stats import Stats
 from .. import AutoRole, Method, Param, register
 from ...errors import SceneError
 from ..raymarch import march_segments
-
-
-def _split(eng, segs, defines: dict):
-    """Which view segments are primary (depth 0) and which lie behind mirrors and glass, as
-    two per-segment weights (1 or 0, the scale of a ray-marched part), and the count of
-    deeper ones: ``epi_split``, once per set of view segments (:meth:`DeviceSegments.derived`:
-    a warm re-render reuses them)."""
-    n = segs.count
-    primary, deeper, cnt = eng.empty(4 * n), eng.empty(4 * n), eng.zeros(4)
-    try:
-        eng.call("epipolar", "epi_split", n, defines, segs=segs.buf, n=n, primary=primary,
-                 deeper=deeper, counts=cnt)
-        n_deep = int(eng.read(cnt, 1, np.int32)[0])
-    except BaseException:
-        eng.free(primary, deeper, cnt)
-        raise
-    eng.free(cnt)
-    return [primary, deeper], (primary, deeper, n_deep)
 
 
 # Where auto passes epipolar over (Epipolar.unreliable): its estimate exceeded the
@@ -289,8 +271,7 @@ class Epipolar(Method):
         defines = start_defines(self.settings.svd_terms, ps.medium["kappa"][:3])
         try:
             with stats.stage("epipolar_rectify"):
-                primary, deeper, n_deep = segs.derived(
-                    "epipolar_split", lambda: _split(eng, segs, defines))
+                primary, deeper, n_deep = split_segments(eng, segs, defines)
             with stats.stage("epipolar_fallback"):
                 if n_deep:
                     img += self._raymarch(ps, segs, deeper, range(ps.num_lights), stats,

@@ -521,19 +521,36 @@ def _ring_in_view(cam: geo.CameraGeom, axis: geo.Axis, front: bool, radius: floa
     return cam.min_angle_to(a) <= outer + RING_MARGIN
 
 
+def split_segments(eng, segs, defines: dict):
+    """Which view segments are primary (depth 0) and which lie behind mirrors and glass, as
+    two per-segment weights (exactly 1.0 or 0.0: the scale of a ray-marched part), and the
+    count of deeper ones: ``epi_split``, once per set of view segments
+    (:meth:`DeviceSegments.derived`: a warm re-render reuses them)."""
+    def build():
+        n = segs.count
+        primary, deeper, cnt = eng.empty(4 * n), eng.empty(4 * n), eng.zeros(4)
+        try:
+            eng.call("epipolar", "epi_split", n, defines, segs=segs.buf, n=n, primary=primary,
+                     deeper=deeper, counts=cnt)
+            n_deep = int(eng.read(cnt, 1, np.int32)[0])
+        except BaseException:
+            eng.free(primary, deeper, cnt)
+            raise
+        eng.free(cnt)
+        return [primary, deeper], (primary, deeper, n_deep)
+
+    return segs.derived("epipolar_split", build)
+
+
 def _primary_samples(eng, segs, geo_buf, idx_buf, defines: dict) -> LiveSamples:
     """The live samples when the ring is out of view: every primary segment, in order,
     with ring weight 0 (``wr`` stays the zeros it starts as). What :func:`_live_samples`
     would give, without its kernel, compaction and read-back on every light move: the
-    list is derived once per set of view segments."""
+    list is compacted once per set of view segments from the split's primary weights
+    (:func:`split_segments`; 1.0 and 0.0 are non-zero and zero as int32 flags too)."""
     def build():
-        flags = eng.empty(4 * max(segs.count, 1))
-        try:
-            eng.call("epipolar", "epi_primary_flags", segs.count, defines, segs=segs.buf,
-                     n=segs.count, flags=flags)
-            buf, count = prim.compact(eng, flags, segs.count)
-        finally:
-            eng.free(flags)
+        primary = split_segments(eng, segs, defines)[0]
+        buf, count = prim.compact(eng, primary, segs.count)
         return [buf], (buf, count)
 
     buf, count = segs.derived("epipolar_primary_list", build)
