@@ -363,13 +363,12 @@ def one_blas_thread() -> None:
     global _BLAS_MODULES
     if len(sys.modules) == _BLAS_MODULES:
         return
-    _BLAS_MODULES = len(sys.modules)
     try:
         from threadpoolctl import threadpool_limits
         threadpool_limits(1, user_api="blas")
     except Exception:       # not installed, or an unknown BLAS: only a speed matter
         pass
-    _BLAS_MODULES = len(sys.modules)
+    _BLAS_MODULES = len(sys.modules)       # after importing threadpoolctl itself
 
 
 _BLAS_MODULES = -1          # len(sys.modules) when the limit was last set
