@@ -287,6 +287,42 @@ def test_shadow_rays_towards_a_point_light_through_its_cube(engine):
     assert np.array_equal(got == 1, blocked)
 
 
+def test_a_point_light_far_above_a_ball(engine):
+    """A ball on the axis of a far point light's cube (found by an outside check, which
+    crashed every method): for the four side faces the ball lies in front of the light
+    by less than the clipping distance, with nothing left to project; it is left out
+    there (no ray of those faces meets it; it was projected through a zero depth), the
+    build raises no floating-point warning, and shadow rays through the cube are blocked exactly where the BVH says."""
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.45)
+    floor = np.array([[[-3, 0, -3], [3, 0, -3], [3, 0, 3]], [[-3, 0, -3], [3, 0, 3], [-3, 0, 3]]])
+    tris = np.concatenate([ball.vertices[ball.faces] + [0.0, 1.7, 0.0], floor])
+    bvh = build_bvh(tris.astype(np.float32))
+    for height in (300.0, 1e4):
+        lights = np.zeros(1, structs.LIGHT)
+        lights[0]["type"] = structs.LIGHT_POINT
+        lights[0]["position"] = structs.vec4([0.0, height, 0.0])
+        with np.errstate(all="raise"):
+            cube = tile_grid.light_grid(bvh, lights)
+        assert isinstance(cube, tile_grid.CubeGrid)
+        down = cube.faces[3]                     # axis y, negative side: towards the ball
+        assert down.record["items"] >= len(ball.faces)
+        if height == 300.0:     # at 1e4 the clipping distance (1e-4 of it) exceeds the
+            # ball's radius: its side facets' planes pass that close, so they are listed
+            # everywhere on the side faces (a superset; the rays below still agree)
+            assert all(f.record["items"] == 0 for k, f in enumerate(cube.faces) if k != 3)
+        rng = np.random.default_rng(4)
+        pts = np.concatenate([rng.uniform([-2, 0, -2], [2, 0, 2], (20000, 3)),
+                              rng.uniform([-1, 0.5, -1], [1, 3, 1], (5000, 3))])
+        got = tile_grid.trace_toward(engine, bvh, cube, pts, tmin=1e-6)
+        assert np.all(got >= 0)
+        to = np.array([0.0, height, 0.0]) - pts
+        dist = np.linalg.norm(to, axis=1)
+        t, _ = trace(engine, bvh, pts, to / dist[:, None], tmin=1e-6)
+        blocked = t < (dist * (1 - 1e-5)).astype(np.float32)
+        assert 0.01 < blocked.mean() < 0.5
+        assert np.array_equal(got == 1, blocked)
+
+
 def test_watertight_through_shared_edges_and_vertices(engine):
     """A plane tessellated into grid-aligned quads: rays through its vertices and along
     its edges (on tile borders too) all hit, as with the BVH."""

@@ -243,6 +243,10 @@ def _perspective_rows(v, x1, x2, z, pad: float, rect):
       only within ``zc (1 + sqrt(2) R)`` of the origin (R: the rectangle's largest
       tangent), so a crossing triangle whose plane passes that close is listed everywhere
       instead. A camera inside a room sees its walls and floor clipped, not everywhere.
+    - Between (every depth below ``zc``, some above 0; e.g. a ball lying on a cube face's
+      axis, seen from a light far above it, for the side faces): listed everywhere when
+      its plane passes that close to the origin, else left out, as no ray of the grid
+      meets it (nothing would be left of it to project).
     """
     lo1, lo2, hi1, hi2 = rect
     zc = pad
@@ -254,7 +258,7 @@ def _perspective_rows(v, x1, x2, z, pad: float, rect):
         plane = np.abs(np.einsum("ij,ij->i", nrm, v[:, 0])) / np.linalg.norm(nrm, axis=1)
     reach = 2.0 * zc * (1.0 + math.sqrt(2.0) * max(abs(lo1), abs(hi1), abs(lo2), abs(hi2)))
     everywhere = crossing & ~(plane > reach)
-    clip = np.nonzero(crossing & ~everywhere)[0]
+    clip = np.nonzero(crossing & ~everywhere & (zmax >= zc))[0]
     # Sutherland-Hodgman against z >= zc: up to 4 vertices per clipped triangle, in order
     P = np.stack([x1[clip], x2[clip], z[clip]], axis=-1)                 # (m, 3, 3)
     pts = np.zeros((len(clip), 6, 3))
