@@ -11,6 +11,11 @@ scene's own settings (or ``--set`` overrides, e.g. 640x480 and 4 spp):
 * **warm re-render after a light move**: a :class:`~clscatter.session.RenderSession` renders,
   then the first light moves by 5% of the scene size (or of its direction), back and forth,
   three times; the median re-render time, and the host share of that re-render;
+* **the process floor**: a fresh Python process that only imports NumPy and PyOpenCL and
+  makes a context and queue on the device the renders used (the least of several runs),
+  and per scene the speed-up over ``raymarch`` that no method could beat there: raymarch's
+  whole process over (floor + the view paths' seconds, which every method on these scenes
+  pays before its own work), printed beside the speed-up measured;
 * **error** against a converged reference (``raymarch`` with many steps and 4x the samples
   for direct-only scenes; for caustic scenes the reference is ``lsg`` with many rays), as
   relMSE of the whole image.
@@ -45,6 +50,15 @@ from clscatter.session import RenderSession  # noqa: E402
 
 
 WARM_MOVES = 3            # light moves per warm measurement (the median is reported)
+FLOOR_RUNS = 5            # fresh processes timed for the process floor (the least is kept)
+
+FLOOR_CODE = """
+import sys, numpy, pyopencl as cl
+plat, name = sys.argv[1].split(" / ", 1)
+dev = [d for p in cl.get_platforms() if p.name.strip() == plat
+       for d in p.get_devices() if d.name.strip() == name][0]
+cl.CommandQueue(cl.Context([dev]))
+"""
 
 
 def methods_for(scene) -> list[str]:
@@ -72,6 +86,33 @@ def whole_process(spec: str, method: str, sets: list[str]) -> tuple[float, dict,
         if r.returncode != 0:
             raise RuntimeError(r.stderr)
         return wall, json.loads(st.read_text()), read_image(out)
+
+
+def process_floor(device: str, runs: int = FLOOR_RUNS) -> list[float]:
+    """Wall seconds of ``runs`` fresh Python processes that import NumPy and PyOpenCL and
+    make a context and queue on ``device`` (``"platform / device"`` as ``--stats`` names
+    it), and nothing else: what any render in a process of its own pays first."""
+    walls = []
+    for _ in range(runs):
+        t = time.perf_counter()
+        subprocess.run([sys.executable, "-c", FLOOR_CODE, device], check=True, cwd=ROOT)
+        walls.append(time.perf_counter() - t)
+    return walls
+
+
+def speedups(rows: list[dict], floor: float) -> None:
+    """Per scene, each row's whole-process speed-up over ``raymarch`` (``speedup``) and the
+    most any method could reach there with this engine's view paths (``speedup_bound``:
+    raymarch's whole process over the process floor plus the row's view paths, which every
+    method pays before its own work); ``raymarch_wall`` is the time they divide."""
+    by_scene = {r["scene"]: r["wall"] for r in rows if r["method"] == "raymarch"}
+    for r in rows:
+        base = by_scene.get(r["scene"])
+        if base is None:
+            continue
+        r["raymarch_wall"] = base
+        r["speedup"] = base / r["wall"]
+        r["speedup_bound"] = base / (floor + r["stages"].get("view_paths", 0.0))
 
 
 def warm_light_move(spec: str, method: str, sets: list[str],
@@ -136,6 +177,7 @@ def main() -> None:
             warm, ran, wst, warm_all = warm_light_move(spec, method, args.overrides)
             covered = sum(st["stages"].values())
             row = {"scene": name, "method": method, "ran": st["method"], "wall": wall,
+                   "device": st["device"],
                    "seconds_total": st["seconds_total"], "stages": st["stages"],
                    "outside_stages": st["seconds_total"] - covered,
                    "process_overhead": wall - st["seconds_total"], "warm_light_move": warm,
@@ -154,14 +196,30 @@ def main() -> None:
                   f"{st['seconds_total']:6.2f} s (host {row['host_fraction'] or 0:.0%}), warm "
                   f"light move {warm:6.3f} s (host {row['warm_host_fraction'] or 0:.0%})"
                   + ("" if ref is None else f", relMSE {row['relmse']:.2e}"), flush=True)
-    (out / "defaults.json").write_text(json.dumps({"overrides": args.overrides, "rows": rows},
-                                                  indent=2))
-    print("\n| scene | method | whole process s | host share | warm light move s | "
-          "warm host share | relMSE |\n|---|---|---|---|---|---|---|")
+    floors = process_floor(rows[0]["device"]) if rows else []
+    floor = min(floors, default=0.0)
+    speedups(rows, floor)
+    if floors:
+        print(f"\nprocess floor (Python, NumPy, PyOpenCL, a context on {rows[0]['device']}): "
+              f"{floor:.3f} s (least of {len(floors)}; all: "
+              + ", ".join(f"{f:.3f}" for f in floors) + ")")
+    for r in rows:
+        if "speedup" in r and r["method"] != "raymarch":
+            print(f"{r['scene']:>16} {r['method']:>9}: {r['speedup']:.1f}x raymarch's whole "
+                  f"process; at most {r['speedup_bound']:.1f}x with floor + view paths "
+                  f"({floor:.2f} + {r['stages'].get('view_paths', 0.0):.2f} s) and no time "
+                  f"of its own; 10x needs {r['raymarch_wall'] / 10:.2f} s")
+    (out / "defaults.json").write_text(json.dumps(
+        {"overrides": args.overrides, "process_floor": floors, "rows": rows}, indent=2))
+    print("\n| scene | method | whole process s | vs raymarch (at most) | host share | "
+          "warm light move s | warm host share | relMSE |\n|---|---|---|---|---|---|---|---|")
     for r in rows:
         rel = "" if r["relmse"] is None else f"{r['relmse']:.1e}"
-        print(f"| {r['scene']} | {r['method']} | {r['wall']:.2f} | {r['host_fraction'] or 0:.0%} "
-              f"| {r['warm_light_move']:.2f} | {r['warm_host_fraction'] or 0:.0%} | {rel} |")
+        vs = (f"{r['speedup']:.1f}x ({r['speedup_bound']:.1f}x)"
+              if "speedup" in r and r["method"] != "raymarch" else "")
+        print(f"| {r['scene']} | {r['method']} | {r['wall']:.2f} | {vs} "
+              f"| {r['host_fraction'] or 0:.0%} | {r['warm_light_move']:.2f} "
+              f"| {r['warm_host_fraction'] or 0:.0%} | {rel} |")
     try:
         import matplotlib
         matplotlib.use("Agg")
