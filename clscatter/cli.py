@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import shutil
 import signal
 import sys
 import time
@@ -240,11 +241,16 @@ def _final(stats, rendered: dict) -> dict:
     return final
 
 
+MAX_FRAMES = 100_000     # relight refuses more (the frames' overrides are built up front)
+
+
 def _cmd_relight(args: argparse.Namespace) -> int:
-    """Frames of a light or camera orbit, written to a folder with ``frames.json``."""
+    """Frames of a light or camera orbit, written to a folder with ``frames.json``: into
+    a hidden staging folder beside it first, moved there only when every frame is done
+    (an interrupted or failed animation leaves the folder as it was)."""
     from .animation import orbit
     from .image import write_image
-    from .outputs import write_all
+    from .outputs import staged_folder
     from .scene import DEFAULT_BUILTIN, load_scene
     from .stats import progress, write_json
 
@@ -254,44 +260,61 @@ def _cmd_relight(args: argparse.Namespace) -> int:
         raise ClscatterError(f"{args.output}: -o must be a folder for the frames")
     if not out.resolve().parent.is_dir():
         raise ClscatterError(f"{args.output}: parent folder {out.resolve().parent} does not exist")
+    if args.frames > MAX_FRAMES:
+        raise ClscatterError(f"--frames: at most {MAX_FRAMES:,} (got {args.frames:,})")
     scene = load_scene(spec, args.overrides)
+    _check_frames_fit(out, args.frames, scene.camera.width * scene.camera.height, args.format)
     frames = orbit(scene, args.frames, args.orbit)
     from .render import check
     check(scene, args.method)                        # bad parameters fail before any frame
-    out.mkdir(exist_ok=True)
-    names = [out / f"frame_{i:04d}.{args.format}" for i in range(len(frames))]
+    digits = max(4, len(str(len(frames) - 1)))
+    names = [f"frame_{i:0{digits}d}.{args.format}" for i in range(len(frames))]
+    with staged_folder(out) as stage:
+        def save(i: int, image, _stats) -> None:
+            write_image(stage / names[i], image, exposure=args.exposure)
 
-    def save(i: int, image, _stats) -> None:
-        write_all([(names[i], lambda tmp: write_image(tmp, image, exposure=args.exposure))])
-
-    cluster = _open_cluster(args)
-    if cluster is not None:
-        with cluster:
-            record = cluster.frames(spec, frames, args.overrides, args.method,
-                                    show_progress=not args.no_progress, on_frame=save)
-    else:
-        from .session import RenderSession
-        record = {"frames": []}
-        with RenderSession.from_source(spec, args.overrides, method=args.method,
-                                       device=args.device) as session, \
-                progress(len(frames), "frames", not args.no_progress) as bar:
-            for i, sets in enumerate(frames):
-                session.set(sets, replace=True)
-                res = session.render(show_progress=False)
-                save(i, res.image, res.stats)
-                record["frames"].append({
-                    "frame": i, "seconds": res.stats["seconds_total"],
-                    "stages": res.stats["stages"], "stages_run": res.stats["stages_run"],
-                    "reused": res.stats["reused"],
-                    **{k: res.stats[k] for k in ("voxel_stages_run", "voxel_stage_seconds")
-                       if k in res.stats}})
-                bar.update(1)
-    record.update(scene=spec, orbit=args.orbit, count=len(frames),
-                  files=[n.name for n in names])
-    write_json(out / "frames.json", record)
+        cluster = _open_cluster(args)
+        if cluster is not None:
+            with cluster:
+                record = cluster.frames(spec, frames, args.overrides, args.method,
+                                        show_progress=not args.no_progress, on_frame=save)
+        else:
+            from .session import RenderSession
+            record = {"frames": []}
+            with RenderSession.from_source(spec, args.overrides, method=args.method,
+                                           device=args.device) as session, \
+                    progress(len(frames), "frames", not args.no_progress) as bar:
+                for i, sets in enumerate(frames):
+                    session.set(sets, replace=True)
+                    res = session.render(show_progress=False)
+                    save(i, res.image, res.stats)
+                    record["frames"].append({
+                        "frame": i, "seconds": res.stats["seconds_total"],
+                        "stages": res.stats["stages"], "stages_run": res.stats["stages_run"],
+                        "reused": res.stats["reused"],
+                        **{k: res.stats[k] for k in ("voxel_stages_run", "voxel_stage_seconds")
+                           if k in res.stats}})
+                    bar.update(1)
+        record.update(scene=spec, orbit=args.orbit, count=len(frames), files=names)
+        write_json(stage / "frames.json", record)
     total = sum(f["seconds"] for f in record["frames"])
     print(f"{spec}: {len(frames)} frames ({args.orbit} orbit) in {total:.2f} s -> {out}/")
     return 0
+
+
+# bytes per pixel a frame file takes at most (PNG: 8-bit RGB, uncompressed)
+_FRAME_BYTES = {"png": 3, "exr": 12, "npy": 12, "pfm": 12}
+
+
+def _check_frames_fit(out: Path, frames: int, pixels: int, fmt: str) -> None:
+    """Refuse an animation whose frames could not fit on the output's file system (each
+    frame counted at its uncompressed size, plus 4 KiB)."""
+    need = frames * (pixels * _FRAME_BYTES[fmt] + 4096)
+    free = shutil.disk_usage(out.resolve().parent).free
+    if need > free:
+        raise ClscatterError(f"--frames: {frames:,} frames of {fmt} may need up to "
+                             f"{need / 2**30:.1f} GiB, more than the {free / 2**30:.1f} GiB "
+                             f"free under {out.resolve().parent}")
 
 
 def _first_duplicate(paths: list[Path]) -> Path:

@@ -5,13 +5,17 @@ folder exists and is writable, and the path is not a folder, so a render is neve
 an output that cannot be written. :func:`write_all` writes every output to a hidden staging
 name beside its destination and renames them into place only when all were written; on any
 failure (or Ctrl-C) the staged files are removed and no destination is touched.
+:func:`staged_folder` does the same for a folder of files written one at a time (an
+animation's frames).
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import secrets
+import shutil
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Iterator, Sequence
 
 from .errors import ClscatterError
 
@@ -62,3 +66,21 @@ def write_all(writes: Sequence[tuple[Path, Callable[[Path], None]]]) -> None:
                 tmp.unlink()
             except OSError:
                 pass
+
+
+@contextlib.contextmanager
+def staged_folder(dest: str | os.PathLike) -> Iterator[Path]:
+    """A hidden staging folder beside ``dest`` for files written one at a time: the
+    ``with`` body writes into it; when the body ends normally every file is moved into
+    ``dest`` (created if missing), and on any failure or interruption the staging folder
+    is deleted and ``dest`` is neither created nor changed."""
+    dest = Path(dest)
+    stage = dest.resolve().parent / f".{dest.name}.{secrets.token_hex(4)}.staging"
+    stage.mkdir()
+    try:
+        yield stage
+        dest.mkdir(exist_ok=True)
+        for f in sorted(stage.iterdir()):
+            os.replace(f, dest / f.name)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)

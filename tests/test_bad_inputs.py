@@ -200,6 +200,12 @@ def _cli_cases():
         (lambda t: ["check", scene(t), "--set", "render.raymarch.steps=0"], "render.raymarch.steps", []),
         (lambda t: ["check", scene(t), "--set", "camera.resolution=[100000,100000]"], "camera.resolution", []),
         (lambda t: ["nosuchcommand"], "nosuchcommand", []),
+        (lambda t: ["relight", scene(t), "-o", str(t / "fr"), "--frames", "1000000000"], "--frames",
+         ["fr"]),
+        (lambda t: ["relight", scene(t), "-o", str(t / "fr"), "--frames", "90000", "--format", "exr",
+                    "--set", "camera.resolution=[4000,3000]"], "GiB", ["fr"]),
+        (lambda t: ["relight", scene(t), "-o", str(t / "fr"), "--frames", "0"], "--frames", ["fr"]),
+        (lambda t: ["relight", scene(t), "-o", str(t / "notes.txt")], "notes.txt", []),
     ]
 
 
@@ -279,3 +285,40 @@ def test_interrupting_a_long_render_leaves_no_output(tmp_path):
         assert p.returncode == 130, err
         assert "nothing was written" in err and "Traceback" not in err
         assert not out.exists() and not [f for f in tmp_path.iterdir() if "staging" in f.name]
+
+
+def test_interrupting_an_animation_leaves_no_frames(tmp_path):
+    """SIGTERM during ``relight``: the frames rendered so far were staged beside the
+    output folder and are deleted; the folder is not created (an outside check found
+    frames left behind under "nothing was written")."""
+    out = tmp_path / "frames"
+    p = subprocess.Popen([sys.executable, "-m", "clscatter", "relight", "builtin:occluder",
+                          "--frames", "5000", "--format", "npy", "-o", str(out), "--no-progress",
+                          "--set", "camera.resolution=[32,24]", "--set", "camera.spp=1"],
+                         cwd=tmp_path, stderr=subprocess.PIPE, text=True,
+                         env={**os.environ, "PYTHONPATH": str(REPO)})
+    deadline = time.monotonic() + 60.0
+    staged = []
+    while time.monotonic() < deadline and p.poll() is None:
+        staged = [f for d in tmp_path.glob(".frames.*.staging") for f in d.glob("frame_*.npy")]
+        if len(staged) >= 3:
+            break
+        time.sleep(0.2)
+    assert p.poll() is None and len(staged) >= 3, p.stderr.read()
+    p.send_signal(signal.SIGTERM)
+    err = p.communicate(timeout=60)[1]
+    assert p.returncode == 130, err
+    assert "nothing was written" in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_animation_lands_whole(tmp_path, capsys):
+    """A finished ``relight`` moves every frame and ``frames.json`` into the folder and
+    leaves no staging folder beside it."""
+    out = tmp_path / "frames"
+    assert main(["relight", "builtin:occluder", "--frames", "3", "--format", "npy", "-o", str(out),
+                 *SMALL]) == 0
+    assert sorted(f.name for f in out.iterdir()) == [
+        "frame_0000.npy", "frame_0001.npy", "frame_0002.npy", "frames.json"]
+    assert [f.name for f in tmp_path.iterdir()] == ["frames"]
+    assert np.all(np.isfinite(np.load(out / "frame_0001.npy")))
