@@ -254,12 +254,12 @@ class RenderSession:
         try:
             return self._run_passes(scene, req, ps, paths, stats, show_progress,
                                     stop_if_asked, ran, reused, preview, only,
-                                    pass_params or {}, clock)
+                                    pass_params or {}, clock, on_note)
         finally:
             engine.trim_pool()      # keep what this render freed for the next one
 
     def _run_passes(self, scene, req, ps, paths, stats, show_progress, stop_if_asked, ran,
-                    reused, preview, only, pass_params, clock):
+                    reused, preview, only, pass_params, clock, on_note):
         from .render import RenderResult
         engine = ps.engine
         cam = scene.camera
@@ -285,8 +285,12 @@ class RenderSession:
             image = surface + medium
             bad = ~np.isfinite(image)
             if bad.any():
-                stats.set(nonfinite_pixels_zeroed=int(bad.any(axis=-1).sum()))
+                count = int(bad.any(axis=-1).sum())
+                stats.set(nonfinite_pixels_zeroed=count)
                 image = np.where(bad, 0.0, image)
+                if on_note is not None:     # float32 overflow: say so, never silently
+                    on_note(f"{count} pixels overflowed float32 and were set to 0 (are the "
+                            "scene's intensities or coefficients extreme?)")
         chosen = "+".join(p.method for p in req.passes) or "none"
         # host time: the render (after device choice) minus the waits on the device
         render_s = time.perf_counter() - clock[0]

@@ -89,6 +89,10 @@ SCENE_CASES = [
     ("render.vpm.dx=0", "render.vpm.dx"), ("render.bogus=1", "render.bogus"),
     ("render.nope.x=1", "render.nope"),
     ("render.lsg=3", "render.lsg"),
+    # beyond float32, in which the device computes (an outside check got black images)
+    ("lights[0].intensity=1e39", "lights[0].intensity"), ("medium.sigma_s=1e300", "medium.sigma_s"),
+    ("camera.origin=[1e39,0,0]", "camera.origin"), ("medium.sigma_a=[0,0,-1e39]", "medium.sigma_a"),
+    ("lights[0].intensity=3e38", "lights[0].intensity"),    # float32 until divided by 0.8^2
 ]
 
 
@@ -266,6 +270,21 @@ def test_degenerate_triangles_are_dropped_and_counted(tmp_path, capsys):
     assert "2 zero-area triangles dropped" in capsys.readouterr().err
     img = np.load(tmp_path / "o.npy")
     assert np.all(np.isfinite(img))
+
+
+def test_float32_overflow_is_said_not_silent(tmp_path, capsys):
+    """An intensity float32 holds but whose light overflows it in the image: those pixels
+    are set to 0 (never NaN or Inf in an output), counted in the stats and said in a note
+    on stderr."""
+    scene = _scene_file(tmp_path, BASE_TOML)
+    stats = tmp_path / "s.json"
+    assert main(["render", str(scene), "-o", str(tmp_path / "o.npy"), "--stats", str(stats),
+                 "--no-progress", "--method", "raymarch", "--set", "lights[0].intensity=1e38"]) == 0
+    import json
+    zeroed = json.loads(stats.read_text())["nonfinite_pixels_zeroed"]
+    assert zeroed > 0
+    assert f"{zeroed} pixels overflowed float32" in capsys.readouterr().err
+    assert np.all(np.isfinite(np.load(tmp_path / "o.npy")))
 
 
 def test_interrupting_a_long_render_leaves_no_output(tmp_path):

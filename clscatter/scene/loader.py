@@ -221,6 +221,9 @@ def _fmt_vec(v: np.ndarray) -> str:
     return "[" + ", ".join(_fmt(float(x)) for x in v) + "]"
 
 
+FLOAT32_MAX = float(np.finfo(np.float32).max)   # larger scene numbers are refused
+
+
 def _check_number(v: Any, key: str, lo: float | None, lo_open: bool, hi: float | None,
                   hi_open: bool) -> float:
     if not _is_number(v):
@@ -228,6 +231,9 @@ def _check_number(v: Any, key: str, lo: float | None, lo_open: bool, hi: float |
     x = float(v)
     if not math.isfinite(x):
         raise _err(key, f"must be finite (got {v})")
+    if abs(x) > FLOAT32_MAX:
+        raise _err(key, f"{_fmt(x)} is beyond float32's range (+-3.4e38), in which the "
+                        "device computes")
     bad = ((lo is not None and (x <= lo if lo_open else x < lo))
            or (hi is not None and (x >= hi if hi_open else x > hi)))
     if bad:
@@ -248,6 +254,9 @@ def _check_vector(v: Any, key: str, n: int, what: str = "vector") -> np.ndarray:
     a = np.array([float(x) for x in v], dtype=np.float64)
     if not np.all(np.isfinite(a)):
         raise _err(key, "must be finite")
+    if np.any(np.abs(a) > FLOAT32_MAX):
+        raise _err(key, f"{_fmt_vec(a)} is beyond float32's range (+-3.4e38), in which the "
+                        "device computes")
     return a
 
 

@@ -21,7 +21,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import structs
+from ..errors import SceneError
 from .model import Camera, Light, Medium, Scene
+
+def _fits_float32(value, key: str, what: str) -> np.ndarray:
+    """``value`` (float64, normalised) if float32 holds it; else a SceneError naming the
+    scene key whose value, rescaled for the frame, overflows."""
+    a = np.asarray(value, np.float64)
+    if np.any(np.abs(a) > np.finfo(np.float32).max):
+        raise SceneError(key, f"overflows float32 once the scene is normalised ({what}); "
+                              "use smaller units or a smaller value")
+    return a
+
 
 # An unbounded medium ends (for view and light paths) where the transmittance of the
 # least attenuated channel falls below this; the tail beyond carries < this fraction.
@@ -91,9 +102,10 @@ def medium_struct(medium: Medium | None, frame: Frame) -> np.ndarray:
     m["bmax"] = structs.vec4([big] * 3)
     if medium is None:
         return m
-    sigma_s = frame.coefficient(medium.sigma_s)
-    sigma_a = frame.coefficient(medium.sigma_a)
-    kappa = sigma_s + sigma_a
+    why = "coefficients times the scene's size"
+    sigma_s = _fits_float32(frame.coefficient(medium.sigma_s), "medium.sigma_s", why)
+    sigma_a = _fits_float32(frame.coefficient(medium.sigma_a), "medium.sigma_a", why)
+    kappa = _fits_float32(sigma_s + sigma_a, "medium.sigma_a", "sigma_s + sigma_a, " + why)
     if not np.any(kappa > 0):
         return m
     m["present"] = 1
@@ -123,7 +135,9 @@ def light_structs(lights: list[Light], frame: Frame) -> np.ndarray:
         if l.type == "directional":
             out[i]["power"] = structs.vec4(l.power)
         else:
-            out[i]["power"] = structs.vec4(np.asarray(l.power) / frame.scale ** 2)
+            out[i]["power"] = structs.vec4(_fits_float32(
+                np.asarray(l.power) / frame.scale ** 2, f"lights[{i}].intensity",
+                "intensities over the scene's size squared"))
         if l.type == "spot":
             out[i]["cos_cutoff"] = math.cos(math.radians(l.cutoff_angle))
     return out
