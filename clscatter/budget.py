@@ -70,7 +70,9 @@ def estimate(scene, passes, settings: dict) -> list[Estimate]:
 
 def memory_budget(engine=None, max_memory: float | None = None) -> tuple[float, str]:
     """(bytes, where the number comes from): ``max_memory`` if given, else the smaller of
-    the device's global memory and the machine's physical memory."""
+    the device's global memory and the machine's physical memory. ``engine`` is an
+    :class:`~clscatter.device.Engine` or a bare OpenCL device (``clscatter check``, which
+    builds no engine), or None for the machine's memory alone."""
     if max_memory is not None:
         return float(max_memory), "--max-memory"
     limits = []
@@ -81,7 +83,8 @@ def memory_budget(engine=None, max_memory: float | None = None) -> tuple[float, 
         pass
     if engine is not None:
         try:
-            limits.append((float(engine.device.global_mem_size), "device memory"))
+            device = getattr(engine, "device", engine)
+            limits.append((float(device.global_mem_size), "device memory"))
         except Exception:
             pass
     return min(limits) if limits else (float("inf"), "no limit known")

@@ -79,6 +79,8 @@ def _build_parser() -> argparse.ArgumentParser:
     c.add_argument("--method", default=None, help="override render.method")
     c.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     c.add_argument("--max-memory", default=None, metavar="SIZE")
+    c.add_argument("--device", default=None,
+                   help="OpenCL device whose memory bounds the budget: P:D or a name substring")
 
     d = sub.add_parser("diff", help="compare two images")
     d.add_argument("a")
@@ -334,6 +336,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
 
     scene = load_scene(args.scene or f"builtin:{DEFAULT_BUILTIN}", args.overrides)
     req = check(scene, args.method)
+    device = _device_for_budget(args.device)        # before printing: a bad --device is one line
     c = scene.camera
     print(f"{scene.source}: valid; {c.width}x{c.height}, {c.spp} spp, "
           f"{scene.triangle_count()} triangles")
@@ -343,10 +346,23 @@ def _cmd_check(args: argparse.Namespace) -> int:
     for e in req.estimates:
         print(f"estimate {e.stage}: {human_bytes(e.bytes)}, about {e.work:.2g} {e.unit} ({e.key})")
     max_memory = parse_bytes(args.max_memory) if args.max_memory is not None else None
-    limit, source = memory_budget(None, max_memory)
+    limit, source = memory_budget(device, max_memory)
     print(f"peak: about {human_bytes(peak_bytes(req.estimates))} of {human_bytes(limit)} ({source})")
     check_budget(req.estimates, limit, source)
     return 0
+
+
+def _device_for_budget(spec: str | None):
+    """The OpenCL device a render would choose (its memory bounds the budget, as in
+    ``render``), or None with a note when none works (the machine's memory alone)."""
+    from .device import DeviceError, choose_device
+    try:
+        return choose_device(spec).handle
+    except DeviceError as e:
+        if spec:
+            raise
+        _note(f"no working device ({e}); the budget is the machine's memory alone")
+        return None
 
 
 def _cmd_diff(args: argparse.Namespace) -> int:

@@ -203,6 +203,7 @@ def _cli_cases():
         (lambda t: ["check", str(t / "nothere.toml")], "nothere.toml", []),
         (lambda t: ["check", scene(t), "--set", "render.raymarch.steps=0"], "render.raymarch.steps", []),
         (lambda t: ["check", scene(t), "--set", "camera.resolution=[100000,100000]"], "camera.resolution", []),
+        (lambda t: ["check", scene(t), "--device", "no-such-device-xyz"], "no-such-device-xyz", []),
         (lambda t: ["nosuchcommand"], "nosuchcommand", []),
         (lambda t: ["relight", scene(t), "-o", str(t / "fr"), "--frames", "1000000000"], "--frames",
          ["fr"]),
@@ -245,6 +246,23 @@ def test_oversized_requests_are_refused_quickly(args, key, tmp_path, capsys):
                                   "--no-progress", *args], key, [out])
     assert time.perf_counter() - t < 5.0
     assert "about" in line and "iB" in line            # the estimate is in the message
+
+
+def test_check_bounds_the_budget_by_the_device_as_render_does(tmp_path, capsys, monkeypatch):
+    """``clscatter check`` refuses what ``render`` would (an outside check found it
+    approving a render that the device's memory then refused): with the chosen device
+    reporting 1 MiB, both refuse a 2 MiB render naming device memory."""
+    from types import SimpleNamespace
+
+    from clscatter import device as dev
+    small = SimpleNamespace(global_mem_size=1 << 20)
+    monkeypatch.setattr(dev, "choose_device", lambda spec=None: SimpleNamespace(handle=small))
+    scene = str(_scene_file(tmp_path, BASE_TOML))
+    line = _expect_error(capsys, ["check", scene, "--set", "camera.resolution=[64,48]"],
+                         "camera.resolution")
+    assert "(device memory)" in line
+    assert main(["check", scene]) == 0                  # 8 x 6 fits in 1 MiB
+    assert "of 1 MiB (device memory)" in capsys.readouterr().out
 
 
 def test_a_good_render_still_works_after_all_that(tmp_path, capsys):
