@@ -202,18 +202,25 @@ def diff_command(
     Prints one ``name: value`` line per metric (rmse, relmse, psnr (with ``dB``),
     ssim, max_error), or, with ``as_json``, a single JSON object with those five keys
     (non-finite values as strings, see :func:`to_json_safe`). Writes the error heatmap
-    to ``heatmap_path`` if given. Returns 0; unreadable files or images of different
-    sizes raise ImageError naming the files.
+    to ``heatmap_path`` if given. Returns 0; unreadable files, images with NaN or Inf
+    pixels, or images of different sizes raise ImageError naming the files.
     """
     import json
     import math
     import os
+
+    import numpy as np
 
     from .errors import ImageError
     from .image import METRIC_KEYS, compare, read_image, to_json_safe, write_heatmap
 
     a = read_image(a_path)
     b = read_image(b_path)
+    for path, img in ((a_path, a), (b_path, b)):
+        bad = int((~np.isfinite(img)).any(axis=-1).sum())
+        if bad:
+            raise ImageError(f"{os.fspath(path)}: {bad} pixels are NaN or Inf (the metrics "
+                             "need finite images)")
     if a.shape != b.shape:
         raise ImageError(
             f"{os.fspath(a_path)} is {a.shape[1]} x {a.shape[0]} but "

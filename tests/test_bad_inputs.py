@@ -128,6 +128,9 @@ def _files(tmp: Path) -> dict[str, Path]:
     (tmp / "img.npy").write_bytes(b"no")
     np.save(tmp / "small.npy", np.zeros((2, 2, 3), np.float32))
     np.save(tmp / "big.npy", np.zeros((3, 3, 3), np.float32))
+    np.save(tmp / "nan.npy", np.where(np.eye(2)[..., None] > 0, np.nan, 1.0).repeat(3, -1)
+            .astype(np.float32))
+    np.save(tmp / "inf.npy", np.full((2, 2, 3), np.inf, np.float32))
     np.save(tmp / "grid2d.npy", np.ones((4, 4)))
     np.save(tmp / "gridneg.npy", -np.ones((4, 4, 4)))
     return {p.name: p for p in tmp.iterdir()}
@@ -196,6 +199,8 @@ def _cli_cases():
         (lambda t: ["render", str(_grid_scene(t, "img.npy")), "-o", str(t / "o.png")], "img.npy", ["o.png"]),
         (lambda t: ["diff", str(t / "small.npy"), str(t / "big.npy")], "small.npy", []),
         (lambda t: ["diff", str(t / "small.npy"), str(t / "nothere.exr")], "nothere.exr", []),
+        (lambda t: ["diff", str(t / "nan.npy"), str(t / "small.npy")], "nan.npy: 2 pixels", []),
+        (lambda t: ["diff", str(t / "small.npy"), str(t / "inf.npy")], "inf.npy: 4 pixels", []),
         (lambda t: ["diff", str(t / "img.npy"), str(t / "small.npy")], "img.npy", []),
         (lambda t: ["diff", str(t / "small.npy"), str(t / "small.npy"), "--heatmap", str(t / "h.txt")], "h.txt",
          ["h.txt"]),
