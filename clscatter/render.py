@@ -60,6 +60,20 @@ def render(scene: Scene, method: str | None = None, engine: Engine | None = None
 
 
 def scene_notes(scene: Scene) -> list[str]:
-    """One-line notes about the scene itself (zero-area triangles dropped when loading)."""
-    return [f"{o.key}: {o.dropped_triangles} zero-area triangles dropped"
-            for o in scene.objects if o.dropped_triangles]
+    """One-line notes about the scene itself: zero-area triangles dropped when loading,
+    and surfaces that reflect more light than reaches them (albedo or reflectance above
+    1: allowed, as other renderers allow it, but not physical)."""
+    notes = [f"{o.key}: {o.dropped_triangles} zero-area triangles dropped"
+             for o in scene.objects if o.dropped_triangles]
+    seen = set()
+    for o in scene.objects:
+        m = o.material
+        value = {"diffuse": "albedo", "mirror": "reflectance"}.get(m.type)
+        if value is None or id(m) in seen or float(np.max(m.color)) <= 1.0:
+            continue
+        seen.add(id(m))
+        # inline materials are named by their key, named ones by their name
+        key = m.name if m.name.startswith("objects[") else f"materials.{m.name}"
+        notes.append(f"{key}.{value}: {float(np.max(m.color)):g} > 1 reflects more light "
+                     "than reaches it (not physical)")
+    return notes

@@ -93,6 +93,8 @@ SCENE_CASES = [
     ("lights[0].intensity=1e39", "lights[0].intensity"), ("medium.sigma_s=1e300", "medium.sigma_s"),
     ("camera.origin=[1e39,0,0]", "camera.origin"), ("medium.sigma_a=[0,0,-1e39]", "medium.sigma_a"),
     ("lights[0].intensity=3e38", "lights[0].intensity"),    # float32 until divided by 0.8^2
+    ('volumes=[{shape="quad",origin=[0,0,0],edge_u=[1,0,0],edge_v=[0,1,0],ior=1.2}]',
+     "volumes[0].shape: a quad encloses nothing"),
 ]
 
 
@@ -308,6 +310,19 @@ def test_float32_overflow_is_said_not_silent(tmp_path, capsys):
     assert zeroed > 0
     assert f"{zeroed} pixels overflowed float32" in capsys.readouterr().err
     assert np.all(np.isfinite(np.load(tmp_path / "o.npy")))
+
+
+def test_surfaces_reflecting_more_than_they_receive_are_noted(tmp_path, capsys):
+    """Albedo or reflectance above 1 renders (as in other renderers) with a note naming
+    the key."""
+    scene = _scene_file(tmp_path, BASE_TOML + '[materials.shiny]\ntype = "mirror"\n'
+                        'reflectance = [0.5, 2.0, 0.5]\n[[objects]]\nshape = "box"\n'
+                        'min = [1.0, 0.0, 0.0]\nmax = [1.2, 0.2, 0.2]\nmaterial = "shiny"\n')
+    assert main(["render", str(scene), "-o", str(tmp_path / "o.npy"), "--no-progress",
+                 "--method", "raymarch", "--set", "objects[0].material.albedo=1.5"]) == 0
+    err = capsys.readouterr().err
+    assert "objects[0].material.albedo: 1.5 > 1" in err
+    assert "materials.shiny.reflectance: 2 > 1" in err
 
 
 def test_interrupting_a_long_render_leaves_no_output(tmp_path):

@@ -444,6 +444,9 @@ def _volume(t: _Table, base_dir: Path) -> Volume:
                       **per_voxel)
     if not t.has("shape"):
         raise _err(t.k("shape"), "missing required key (a volume needs a shape or a grid)")
+    if t.raw("shape") == "quad":
+        raise _err(t.k("shape"), "a quad encloses nothing: a volume needs a closed shape "
+                                 "(mesh, sphere, box) or a grid")
     shape = t.choice("shape", ("mesh", "sphere", "box"))
     t.allow(("shape", "transform", *VOLUME_KEYS, *SHAPE_KEYS[shape]), f" for a {shape} volume")
     ior = t.number("ior", lo=0.0, lo_open=True)
