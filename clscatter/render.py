@@ -76,4 +76,28 @@ def scene_notes(scene: Scene) -> list[str]:
         key = m.name if m.name.startswith("objects[") else f"materials.{m.name}"
         notes.append(f"{key}.{value}: {float(np.max(m.color)):g} > 1 reflects more light "
                      "than reaches it (not physical)")
-    return notes
+    return notes + _range_notes(scene)
+
+
+SPAN_NOTE = 1e5     # a scene this many times wider than the camera's view distance is noted
+
+
+def _range_notes(scene: Scene) -> list[str]:
+    """A note when the scene's bounding box is :data:`SPAN_NOTE` times or more the
+    camera's distance to its target: the device works in float32 in a frame scaled to
+    the box, so what the camera sees is then resolved to a few float32 steps (an object
+    far off made images wrong from ~1e6 times on in an outside check), naming the object
+    furthest from the target."""
+    bb = scene.bbox()
+    if bb is None:
+        return []
+    span = float(np.max(bb[1] - bb[0]))
+    target = np.asarray(scene.camera.target, np.float64)
+    view = float(np.linalg.norm(np.asarray(scene.camera.origin, np.float64) - target))
+    if span < SPAN_NOTE * view or not scene.objects:
+        return []
+    far = max(scene.objects, key=lambda o: float(np.max(np.linalg.norm(o.vertices - target,
+                                                                       axis=1))))
+    return [f"the scene spans {span:.3g} units, {span / view:.1e} times the camera's distance "
+            f"to its target: the device's float32 may not resolve what the camera sees "
+            f"({far.key} is furthest off)"]

@@ -325,6 +325,24 @@ def test_surfaces_reflecting_more_than_they_receive_are_noted(tmp_path, capsys):
     assert "materials.shiny.reflectance: 2 > 1" in err
 
 
+@pytest.mark.parametrize("far, noted", [(1e3, False), (1e7, True)])
+def test_a_scene_too_wide_for_float32_is_noted(far, noted, tmp_path):
+    """An object far off widens the normalised frame until float32 cannot resolve what the
+    camera sees: noted from 1e5 times the view distance on, naming the object."""
+    from clscatter.render import scene_notes
+    from clscatter.scene import load_scene
+    scene = load_scene(_scene_file(tmp_path, BASE_TOML + f'''
+[[objects]]
+shape = "sphere"
+center = [{far}, 0.0, 0.0]
+radius = 0.4
+material = {{ type = "diffuse" }}
+'''))
+    got = [n for n in scene_notes(scene) if "float32" in n]
+    assert (got != []) == noted
+    assert all("objects[1] is furthest off" in n for n in got)
+
+
 def test_interrupting_a_long_render_leaves_no_output(tmp_path):
     """SIGINT and SIGTERM stop a render between launches; nothing is written."""
     for sig in (signal.SIGINT, signal.SIGTERM):
