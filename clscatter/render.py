@@ -72,9 +72,7 @@ def scene_notes(scene: Scene) -> list[str]:
         if value is None or id(m) in seen or float(np.max(m.color)) <= 1.0:
             continue
         seen.add(id(m))
-        # inline materials are named by their key, named ones by their name
-        key = m.name if m.name.startswith("objects[") else f"materials.{m.name}"
-        notes.append(f"{key}.{value}: {float(np.max(m.color)):g} > 1 reflects more light "
+        notes.append(f"{m.key or m.name}.{value}: {float(np.max(m.color)):g} > 1 reflects more light "
                      "than reaches it (not physical)")
     return notes + _range_notes(scene)
 

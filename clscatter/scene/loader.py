@@ -335,7 +335,7 @@ def _light(t: _Table) -> Light:
 def _material(t: _Table, name: str) -> Material:
     kind = t.choice("type", tuple(MATERIAL_KEYS))
     t.allow(MATERIAL_KEYS[kind], f" for a {kind} material")
-    m = Material(name=name, type=kind)
+    m = Material(name=name, type=kind, key=t.key)
     if kind == "diffuse":
         m.albedo = t.colour("albedo", 0.5)
     elif kind == "mirror":

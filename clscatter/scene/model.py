@@ -58,6 +58,7 @@ class Material:
     ior: float = 1.5
     interior_sigma_a: RGB = field(default_factory=lambda: np.zeros(3))
     interior_sigma_s: RGB = field(default_factory=lambda: np.zeros(3))
+    key: str = ""               # its table's dotted key, for messages ("materials.glass")
 
     @property
     def color(self) -> RGB:
