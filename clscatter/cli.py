@@ -146,12 +146,12 @@ def _note(line: str) -> None:
 def _cmd_render(args: argparse.Namespace) -> int:
     stats = args.stats_obj
     with stats.stage("startup"):     # imports of the render path, and the output checks
-        from .budget import parse_bytes
-        from .image import write_image
-        from .outputs import check_output, write_all
-        from .render import render
+        from .pipeline.budget import parse_bytes
+        from .io.image import write_image
+        from .io.outputs import check_output, write_all
+        from .pipeline.render import render
         from .scene import DEFAULT_BUILTIN, load_scene
-        from .stats import write_json
+        from .io.stats import write_json
 
         # every output is checked before any work: nothing is rendered for nothing
         outputs = [check_output(o, IMAGE_SUFFIXES, "-o") for o in (args.output or [DEMO_OUTPUT])]
@@ -212,7 +212,7 @@ def diff_command(
     import numpy as np
 
     from .errors import ImageError
-    from .image import METRIC_KEYS, compare, read_image, to_json_safe, write_heatmap
+    from .io.image import METRIC_KEYS, compare, read_image, to_json_safe, write_heatmap
 
     a = read_image(a_path)
     b = read_image(b_path)
@@ -258,10 +258,10 @@ def _cmd_relight(args: argparse.Namespace) -> int:
     a hidden staging folder beside it first, moved there only when every frame is done
     (an interrupted or failed animation leaves the folder as it was)."""
     from .animation import orbit
-    from .image import write_image
-    from .outputs import staged_folder
+    from .io.image import write_image
+    from .io.outputs import staged_folder
     from .scene import DEFAULT_BUILTIN, load_scene
-    from .stats import progress, write_json
+    from .io.stats import progress, write_json
 
     spec = args.scene or f"builtin:{DEFAULT_BUILTIN}"
     out = Path(args.output)
@@ -274,7 +274,7 @@ def _cmd_relight(args: argparse.Namespace) -> int:
     scene = load_scene(spec, args.overrides)
     _check_frames_fit(out, args.frames, scene.camera.width * scene.camera.height, args.format)
     frames = orbit(scene, args.frames, args.orbit)
-    from .render import check
+    from .pipeline.render import check
     check(scene, args.method)                        # bad parameters fail before any frame
     digits = max(4, len(str(len(frames) - 1)))
     names = [f"frame_{i:0{digits}d}.{args.format}" for i in range(len(frames))]
@@ -288,7 +288,7 @@ def _cmd_relight(args: argparse.Namespace) -> int:
                 record = cluster.frames(spec, frames, args.overrides, args.method,
                                         show_progress=not args.no_progress, on_frame=save)
         else:
-            from .session import RenderSession
+            from .pipeline.session import RenderSession
             record = {"frames": []}
             with RenderSession.from_source(spec, args.overrides, method=args.method,
                                            device=args.device) as session, \
@@ -337,8 +337,8 @@ def _first_duplicate(paths: list[Path]) -> Path:
 
 def _cmd_check(args: argparse.Namespace) -> int:
     """Validate the scene and the method parameters, print the plan and the estimates."""
-    from .budget import check_budget, human_bytes, memory_budget, parse_bytes, peak_bytes
-    from .render import check
+    from .pipeline.budget import (check_budget, human_bytes, memory_budget, parse_bytes, peak_bytes)
+    from .pipeline.render import check
     from .scene import DEFAULT_BUILTIN, load_scene
 
     scene = load_scene(args.scene or f"builtin:{DEFAULT_BUILTIN}", args.overrides)
@@ -414,7 +414,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv:
         argv = ["render"]
-    from .stats import Stats
+    from .io.stats import Stats
     stats = Stats()          # seconds_total counts from here: argument parsing onwards
     try:
         with stats.stage("startup"):

@@ -19,7 +19,7 @@ Work units
     *Frames* of an animation (a list of ``--set`` overrides per frame): one task each.
 
 Per worker, a :class:`ClscatterPlugin` opens the OpenCL device once and keeps a
-:class:`~clscatter.session.RenderSession` per scene, so the scene is sent once per worker
+:class:`~clscatter.pipeline.session.RenderSession` per scene, so the scene is sent once per worker
 (``client.scatter(..., broadcast=True)``) and its BVH and device buffers are built once;
 frames that follow on the same worker re-use them (the warm path).
 
@@ -39,7 +39,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from .stats import Stats, progress
+from .io.stats import Stats, progress
 
 PLUGIN_NAME = "clscatter"
 
@@ -77,7 +77,7 @@ def _worker_session(payload: dict, method: str | None):
     """The calling worker's session for ``payload`` (made on first use)."""
     from distributed import get_worker
 
-    from .session import RenderSession
+    from .pipeline.session import RenderSession
     plugin = get_worker().plugins[PLUGIN_NAME]
     key = payload["key"] + "|" + str(method)
     if key not in plugin.sessions:
@@ -196,10 +196,10 @@ class Cluster:
                stats: Stats | None = None, on_unit: Callable[[int, int], None] | None = None):
         """The image of ``spec``, rendered as ``units`` camera-sample sets (default: four
         per worker), summed in unit order. ``on_unit(done, total)`` is called after each unit
-        arrives. Returns a :class:`~clscatter.render.RenderResult`."""
+        arrives. Returns a :class:`~clscatter.pipeline.render.RenderResult`."""
         from distributed import as_completed
 
-        from .render import RenderResult, check
+        from .pipeline.render import RenderResult, check
         from .scene.loader import load_scene
 
         stats = stats or Stats()

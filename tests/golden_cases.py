@@ -37,7 +37,7 @@ def key(source: str, method: str) -> str:
 def render_case(source: str, method: str, engine=None) -> np.ndarray | str:
     """The image of one case, or the one-line error it gives."""
     from clscatter.errors import ClscatterError
-    from clscatter.session import RenderSession
+    from clscatter.pipeline.session import RenderSession
     try:
         with RenderSession.from_source(source, SMALL + QUICK.get(method, []), method=method,
                                        engine=engine) as s:

@@ -329,7 +329,7 @@ def test_surfaces_reflecting_more_than_they_receive_are_noted(tmp_path, capsys):
 def test_a_scene_too_wide_for_float32_is_noted(far, noted, tmp_path):
     """An object far off widens the normalised frame until float32 cannot resolve what the
     camera sees: noted from 1e5 times the view distance on, naming the object."""
-    from clscatter.render import scene_notes
+    from clscatter.pipeline.render import scene_notes
     from clscatter.scene import load_scene
     scene = load_scene(_scene_file(tmp_path, BASE_TOML + f'''
 [[objects]]

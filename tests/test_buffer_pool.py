@@ -13,8 +13,8 @@ import pytest
 
 from clscatter import device as dev
 from clscatter.methods import all_methods
-from clscatter.render import render
-from clscatter.session import RenderSession
+from clscatter.pipeline.render import render
+from clscatter.pipeline.session import RenderSession
 from clscatter.scene import load_scene
 from method_scenes import SMALL, overrides_for, scene_for
 
@@ -151,7 +151,7 @@ def test_pooled_bytes_fit_the_render_budget(pool):
 BLAS_CHECK = """
 import threadpoolctl
 from clscatter.device import get_engine
-from clscatter.render import render
+from clscatter.pipeline.render import render
 from clscatter.scene import load_scene
 def threads():
     return [i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"]

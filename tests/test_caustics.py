@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from clscatter.image import relmse
-from clscatter.render import render
+from clscatter.io.image import relmse
+from clscatter.pipeline.render import render
 from clscatter.scene import scene_from_dict
 from clscatter.scene import procedural
 from clscatter.scene.builtin import to_toml

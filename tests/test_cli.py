@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from clscatter.cli import main
-from clscatter.image import read_image
+from clscatter.io.image import read_image
 
 REPO = Path(__file__).resolve().parents[1]
 SMALL = ["--set", "camera.resolution=[16,12]", "--set", "camera.spp=1", "--no-progress"]

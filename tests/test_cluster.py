@@ -12,9 +12,9 @@ distributed = pytest.importorskip("distributed", reason="dask.distributed is the
 
 from clscatter.animation import orbit                     # noqa: E402
 from clscatter.cluster import Cluster                     # noqa: E402
-from clscatter.render import render                       # noqa: E402
+from clscatter.pipeline.render import render
 from clscatter.scene import load_scene                    # noqa: E402
-from clscatter.session import RenderSession               # noqa: E402
+from clscatter.pipeline.session import RenderSession
 
 SMALL = ["camera.resolution=[48,36]", "camera.spp=1"]
 

@@ -1,4 +1,4 @@
-"""Targeted emission (clscatter/emission.py, light_paths.cl with targets): the kernel's
+"""Targeted emission (clscatter/transport/emission.py, light_paths.cl with targets): the kernel's
 flux per ray against a float64 NumPy evaluation of the mixture pdf, the power the
 targeted rays carry against a Monte Carlo solid angle, and whole caustic renders with
 and without targeting (same image within the noise, far more caustic segments per ray)."""
@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from clscatter.emission import mixture_flux, specular_spheres, targets
-from clscatter.light_paths import trace_light_paths
-from clscatter.prepared import prepare_scene
-from clscatter.render import render
+from clscatter.transport.emission import mixture_flux, specular_spheres, targets
+from clscatter.transport.light_paths import trace_light_paths
+from clscatter.transport.prepared import prepare_scene
+from clscatter.pipeline.render import render
 from clscatter.scene import scene_from_dict
 from clscatter.scene.builtin.caustics import CAUSTIC_SCENES
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from layout import layout_mismatches
 
-from clscatter import structs
+from clscatter.device import structs
 from clscatter.accel.bvh import build_bvh, trace
 from clscatter.methods.epipolar import geometry as geo
 from clscatter.methods.epipolar import svd

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from clscatter import structs
+from clscatter.device import structs
 from clscatter.methods.epipolar import geometry as geo_mod
 from clscatter.methods.epipolar.pipeline import (DeviceViews, HostViews, LiveSamples,
                                                  _segment_events, merged_offsets,
@@ -110,7 +110,7 @@ def test_primary_samples_are_the_ring_free_live_list(engine):
     list (the split's primary weights compacted, built once) equals what epi_ring and its
     compaction give with a ring no sample reaches, and NumPy's."""
     from clscatter.methods.epipolar.pipeline import _live_samples, _primary_samples
-    from clscatter.view_paths import ViewPaths
+    from clscatter.transport.view_paths import ViewPaths
     rng = np.random.default_rng(8)
     n = 1000
     segs = _segments(rng, n)

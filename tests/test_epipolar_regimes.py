@@ -15,15 +15,15 @@ import itertools
 import numpy as np
 import pytest
 
-from clscatter.image import relmse
+from clscatter.io.image import relmse
 from clscatter.methods.epipolar import Epipolar
 from clscatter.methods.raymarch import RayMarch
-from clscatter.prepared import prepare_scene
-from clscatter.render import render
+from clscatter.transport.prepared import prepare_scene
+from clscatter.pipeline.render import render
 from clscatter.scene.builtin.epipolar import epi_fog, epi_sweep, epi_wide_spot
 from clscatter.scene.loader import apply_overrides, scene_from_dict
-from clscatter.stats import Stats
-from clscatter.view_paths import trace_view_paths
+from clscatter.io.stats import Stats
+from clscatter.transport.view_paths import trace_view_paths
 
 RES = (32, 24)
 REF_STEPS = 192

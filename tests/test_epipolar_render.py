@@ -8,14 +8,14 @@ import pytest
 
 from clscatter.methods.epipolar.pipeline import Settings, render_light
 from clscatter.errors import SceneError
-from clscatter.image import relmse
+from clscatter.io.image import relmse
 from clscatter.methods.epipolar import Epipolar
-from clscatter.prepared import prepare_scene
-from clscatter.view_paths import trace_view_paths
-from clscatter.render import render
+from clscatter.transport.prepared import prepare_scene
+from clscatter.transport.view_paths import trace_view_paths
+from clscatter.pipeline.render import render
 from clscatter.scene.builtin.epipolar import EPIPOLAR_SCENES, load_epipolar_scene
 from clscatter.scene.loader import load_scene, scene_from_dict
-from clscatter.stats import Stats
+from clscatter.io.stats import Stats
 
 SMALL = ["camera.resolution=[64, 48]", "camera.spp=1"]
 

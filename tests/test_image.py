@@ -1,4 +1,4 @@
-"""Tests for clscatter.image: file formats, metrics, heatmaps and the diff command."""
+"""Tests for clscatter.io.image: file formats, metrics, heatmaps and the diff command."""
 from __future__ import annotations
 
 import json
@@ -12,7 +12,7 @@ import OpenEXR
 import pytest
 from matplotlib import colormaps
 
-from clscatter import image as im
+from clscatter.io import image as im
 from clscatter.cli import diff_command
 from clscatter.errors import ImageError
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from clscatter.render import render
+from clscatter.pipeline.render import render
 from clscatter.scene import scene_from_dict
 from test_stress import _transform
 

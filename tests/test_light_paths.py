@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from clscatter.light_paths import emission, trace_light_paths
-from clscatter.prepared import prepare_scene
+from clscatter.transport.light_paths import emission, trace_light_paths
+from clscatter.transport.prepared import prepare_scene
 from clscatter.scene import scene_from_dict
 
 HERE = Path(__file__).resolve().parent

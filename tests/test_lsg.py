@@ -15,14 +15,14 @@ import numpy as np
 import pytest
 
 import analytic
-from clscatter import structs
+from clscatter.device import structs
 from clscatter.methods.lsg.linetree import PluckerFrame
-from clscatter.image import relmse
-from clscatter.light_paths import trace_light_paths
+from clscatter.io.image import relmse
+from clscatter.transport.light_paths import trace_light_paths
 from clscatter.methods.lsg import STRUCTS, Gatherer, clip_segments
-from clscatter.prepared import prepare_scene
-from clscatter.view_paths import trace_view_paths
-from clscatter.render import render
+from clscatter.transport.prepared import prepare_scene
+from clscatter.transport.view_paths import trace_view_paths
+from clscatter.pipeline.render import render
 from clscatter.scene import scene_from_dict
 from test_render import _airlight_reference
 
@@ -317,7 +317,7 @@ def test_real_scene_tree_equals_exhaustive(engine, bounded):
     assert len(s_tree) > 500 and s_tree == set(map(tuple, res_all.pairs.tolist()))
     np.testing.assert_allclose(v_tree, v_all, rtol=2e-5, atol=1e-6 * np.abs(v_all).max())
     w, h = CAUSTIC["camera"]["resolution"]
-    from clscatter.view_paths import accumulate_segments
+    from clscatter.transport.view_paths import accumulate_segments
     img_t = accumulate_segments(v_tree, views["pixel"], w, h)
     img_a = accumulate_segments(v_all, views["pixel"], w, h)
     assert relmse(img_t, img_a) < 1e-10 and img_a.max() > 0
@@ -525,7 +525,7 @@ def test_gatherer_image_and_counters_stay_on_the_device(engine):
     use) equals the host sum of Gatherer.values by pixel, and the per-add counters
     (totals of the device's per-view counts) equal a pair-by-pair count: several adds,
     several launches per add, views given as an existing device buffer."""
-    from clscatter.view_paths import ViewPaths, accumulate_segments
+    from clscatter.transport.view_paths import ViewPaths, accumulate_segments
     rng = np.random.default_rng(11)
     lights, views = _random_set("random", rng, nl=2000, nv=300)
     views["pixel"] = rng.integers(0, 7 * 5, len(views))

@@ -44,8 +44,8 @@ def test_misspelled_key_is_reported_with_every_optional_dependency_missing(tmp_p
 
 
 def test_range_errors_come_before_any_device_work(monkeypatch):
-    import clscatter.render as render_mod
-    import clscatter.session as session_mod
+    import clscatter.pipeline.render as render_mod
+    import clscatter.pipeline.session as session_mod
 
     def no_device(*a, **k):
         raise AssertionError("a device was requested before the parameters were checked")

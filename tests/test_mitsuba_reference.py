@@ -13,7 +13,7 @@ Scenes: (a) point light in an unbounded medium, diffuse sphere over a floor, g =
 floor, g = 0.5.
 
 Tolerances come from the measured noise of both renderers (relMSE as
-``clscatter.image.relmse``, test image first, eps = 1e-2):
+``clscatter.io.image.relmse``, test image first, eps = 1e-2):
 
 * Mitsuba's noise per image = half the relMSE between two of its renders with different
   seeds (``noise_relmse_estimate`` in references.json).
@@ -32,8 +32,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from clscatter.image import read_image, relmse
-from clscatter.render import render
+from clscatter.io.image import read_image, relmse
+from clscatter.pipeline.render import render
 from clscatter.scene import load_scene
 
 DATA = Path(__file__).resolve().parent / "data" / "mitsuba"

@@ -11,7 +11,7 @@ import pytest
 
 from clscatter.errors import SceneError
 from clscatter.methods import AutoRole, Method, get_method
-from clscatter.planner import plan
+from clscatter.pipeline.planner import plan
 from clscatter.scene import scene_from_dict
 
 HERE = Path(__file__).resolve().parent
@@ -37,7 +37,7 @@ def test_planner_needs_no_opencl():
     import subprocess
     import sys
     code = ("import sys; sys.modules['pyopencl'] = None\n"
-            "from clscatter.planner import plan\n"
+            "from clscatter.pipeline.planner import plan\n"
             "from clscatter.scene import load_scene\n"
             "passes, notes = plan(load_scene('builtin:shafts'), 'auto')\n"
             "print([p.method for p in passes])")

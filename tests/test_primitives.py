@@ -1,4 +1,4 @@
-"""Device primitives (clscatter/primitives.py, cl_kernels/primitives.cl) against NumPy.
+"""Device primitives (clscatter/transport/primitives.py, cl_kernels/primitives.cl) against NumPy.
 
 Integer results (scan, sort permutations and offsets, compaction, gather) must equal the
 NumPy reference exactly. Float segment sums must equal a float32 running sum on the host
@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clscatter import primitives as P
+from clscatter.transport import primitives as P
 
 SIZES = [0, 1, 3, 1023, 1024, 1025, 4097, 100003]
 U = 2.0 ** -24          # float32 unit roundoff

@@ -13,12 +13,12 @@ from scipy.special import gammaln
 
 import analytic
 from clscatter.methods.lsg import LineSpaceGathering, ppb_radii
-from clscatter.prepared import prepare_scene
-from clscatter.render import render
+from clscatter.transport.prepared import prepare_scene
+from clscatter.pipeline.render import render
 from clscatter.scene import scene_from_dict
 from clscatter.scene.builtin.caustics import CAUSTIC_SCENES
-from clscatter.stats import Stats
-from clscatter.view_paths import accumulate_segments, trace_view_paths
+from clscatter.io.stats import Stats
+from clscatter.transport.view_paths import accumulate_segments, trace_view_paths
 
 HERE = Path(__file__).resolve().parent
 

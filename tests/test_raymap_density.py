@@ -13,7 +13,7 @@ import pytest
 from clscatter.methods.raymap.density import DensitySettings, build_map, caustic_pieces, estimate
 from clscatter.methods.raymap.kdtree import TreeParams
 from clscatter.methods.raymap.queries import RayMap, knn_np, plane_dist
-from clscatter.prepared import prepare_scene
+from clscatter.transport.prepared import prepare_scene
 from clscatter.scene import scene_from_dict
 
 HERE = Path(__file__).resolve().parent

@@ -9,11 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
-from clscatter import structs
-from clscatter.light_paths import trace_light_paths
-from clscatter.prepared import prepare_scene
+from clscatter.device import structs
+from clscatter.transport.light_paths import trace_light_paths
+from clscatter.transport.prepared import prepare_scene
 from clscatter.scene import scene_from_dict
-from clscatter.view_paths import trace_diffuse_hits, trace_view_paths
+from clscatter.transport.view_paths import trace_diffuse_hits, trace_view_paths
 
 HERE = Path(__file__).resolve().parent
 CAM = {"origin": [0.0, 3.0, 3.0], "target": [0.0, 0.0, 0.0], "resolution": [24, 16], "spp": 4}

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clscatter.render import render
+from clscatter.pipeline.render import render
 from clscatter.scene import scene_from_dict
 
 HERE = Path(__file__).resolve().parent
@@ -62,9 +62,9 @@ def test_surface_caustics_sums_on_the_device_as_the_host_would(engine):
     equal within float32 summation, and the work counters equal exactly."""
     from clscatter.methods.raymap.density import (DensitySettings, build_map, caustic_pieces,
                                                   estimate, surface_caustics)
-    from clscatter.prepared import prepare_scene
-    from clscatter.stats import Stats
-    from clscatter.view_paths import trace_diffuse_hits
+    from clscatter.transport.prepared import prepare_scene
+    from clscatter.io.stats import Stats
+    from clscatter.transport.view_paths import trace_diffuse_hits
     ps = prepare_scene(_scene(), engine)
     s = DensitySettings(k=16, max_radius=0.2, batch=100)
     try:

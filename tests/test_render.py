@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 import analytic
-from clscatter import structs
-from clscatter.image import relmse
-from clscatter.render import render
+from clscatter.device import structs
+from clscatter.io.image import relmse
+from clscatter.pipeline.render import render
 from clscatter.scene import scene_from_dict
 
 HERE = Path(__file__).resolve().parent
@@ -132,8 +132,8 @@ def test_glass_sphere_conserves_energy(engine):
 
 
 def res_escaped(engine, d: dict) -> np.ndarray:
-    from clscatter.prepared import prepare_scene
-    from clscatter.view_paths import trace_view_paths
+    from clscatter.transport.prepared import prepare_scene
+    from clscatter.transport.view_paths import trace_view_paths
     ps = prepare_scene(_scene(d), engine)
     try:
         return trace_view_paths(ps, show_progress=False).escaped
@@ -214,8 +214,8 @@ def test_raymarch_kernel_segments_against_quadrature(engine, thick):
     the equiangular and the transmittance strategy where the light's distance spans an
     optical depth above three: <= 1e-2 (measured 6.0e-3; equiangular alone 2.2e-2)."""
     from clscatter.methods.raymarch import RayMarch
-    from clscatter.prepared import prepare_scene
-    from clscatter.view_paths import ViewPaths
+    from clscatter.transport.prepared import prepare_scene
+    from clscatter.transport.view_paths import ViewPaths
     d = copy.deepcopy(AIRLIGHT)
     d["camera"]["resolution"] = [8, 1]
     d["medium"]["g"] = -0.4
@@ -234,7 +234,7 @@ def test_raymarch_kernel_segments_against_quadrature(engine, thick):
     segs["weight"][:, :3] = weight
     segs["pixel"] = np.arange(n)
     segs["sample"] = np.arange(n)
-    from clscatter.stats import Stats
+    from clscatter.io.stats import Stats
     img = RayMarch({"steps": 64}).render(ps, ViewPaths(None, None, segs), Stats(), False)
     ps.release()
     m, L = d["medium"], d["lights"][0]
@@ -250,8 +250,8 @@ def test_raymarch_kernel_segments_against_quadrature(engine, thick):
 
 
 def test_view_segments_follow_camera_rays(engine):
-    from clscatter.prepared import prepare_scene
-    from clscatter.view_paths import trace_view_paths
+    from clscatter.transport.prepared import prepare_scene
+    from clscatter.transport.view_paths import trace_view_paths
     d = copy.deepcopy(AIRLIGHT)
     d["camera"] = _cam(w=6, h=4, spp=1)
     ps = prepare_scene(_scene(d), engine)
@@ -309,9 +309,9 @@ def test_raymarch_thick_medium_against_closed_form(engine, direction, scale):
     thousandth) behind 1.7e-4, beside 4.7e-10 (with the strategy's rate capped at 60 over
     a segment, as first written, the image was mostly zeros with rare spikes)."""
     from clscatter.methods.raymarch import RayMarch
-    from clscatter.prepared import prepare_scene
-    from clscatter.stats import Stats
-    from clscatter.view_paths import trace_view_paths
+    from clscatter.transport.prepared import prepare_scene
+    from clscatter.io.stats import Stats
+    from clscatter.transport.view_paths import trace_view_paths
     ps = prepare_scene(_scene(_thick_slab(direction, scale)), engine)
     try:
         paths = trace_view_paths(ps, show_progress=False)

@@ -46,7 +46,7 @@ class SlowSession:
         return getattr(self.real, name)
 
     def render(self, **kw):
-        from clscatter.session import Cancelled
+        from clscatter.pipeline.session import Cancelled
 
         cancel = kw.get("cancel")
         medium = self.real.scene.medium
@@ -199,7 +199,7 @@ def test_newer_change_cancels_the_render_in_flight(server, page):
 
 def _cli_message(override: str) -> str:
     """The one-line message ``clscatter check SPEC --set ... --set override`` prints."""
-    from clscatter.render import check
+    from clscatter.pipeline.render import check
     from clscatter.scene import load_scene
     try:
         check(load_scene(SPEC, [*TINY, override]))
@@ -257,8 +257,8 @@ def test_cli_prints_the_same_line():
 def test_saved_toml_rerenders_to_the_same_image(server, page, tmp_path):
     """Save: the TOML of the current settings renders (fresh process state, no session) to
     exactly the EXR the page saved; the PNG is its tone-mapped image."""
-    from clscatter.image import read_image, tonemap
-    from clscatter.render import render
+    from clscatter.io.image import read_image, tonemap
+    from clscatter.pipeline.render import render
     from clscatter.scene import load_scene
 
     rid = page.set(["lights[0].position=[-0.8, 2.2, 0.7]", "medium.sigma_s=0.18",

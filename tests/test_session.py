@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from clscatter.errors import SceneError
-from clscatter.render import render
+from clscatter.pipeline.render import render
 from clscatter.scene import load_scene
-from clscatter.session import Cancelled, RenderSession
+from clscatter.pipeline.session import Cancelled, RenderSession
 
 SMALL = ["camera.resolution=[40,30]", "camera.spp=1"]
 
@@ -105,8 +105,8 @@ def test_light_moves_reshade_hits_like_a_fresh_render(engine, spec, moves):
 def test_segment_derivations_are_built_once_and_freed_with_the_segments(engine):
     """DeviceSegments.derived builds what a method derives from the segments alone once;
     its buffers are freed with the segments."""
-    from clscatter import structs
-    from clscatter.view_paths import ViewPaths
+    from clscatter.device import structs
+    from clscatter.transport.view_paths import ViewPaths
     segs = np.zeros(10, structs.VIEW_SEGMENT)
     segs["pixel"] = np.arange(10) % 4
     live0 = engine.bytes_live

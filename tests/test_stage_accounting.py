@@ -32,7 +32,7 @@ def test_start_up_loads_the_programs_the_render_uses(engine, monkeypatch):
     """The programs an epipolar render builds (view paths, primitives, epipolar with its
     starting defines) are loaded at start-up: the passes use no other (program, defines)."""
     from clscatter.device import Engine
-    from clscatter.render import render
+    from clscatter.pipeline.render import render
     from clscatter.scene.loader import load_scene
 
     loaded, phase = [], ["start"]
@@ -59,7 +59,7 @@ def test_start_up_loads_the_programs_the_render_uses(engine, monkeypatch):
 
 def test_a_stage_inside_another_counts_once():
     import time
-    from clscatter.stats import Stats
+    from clscatter.io.stats import Stats
     st = Stats()
     with st.stage("outer") as outer:
         time.sleep(0.02)

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from clscatter.image import relmse
-from clscatter.render import render
+from clscatter.io.image import relmse
+from clscatter.pipeline.render import render
 from clscatter.scene import scene_from_dict
 
 HERE = Path(__file__).resolve().parent

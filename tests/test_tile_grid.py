@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clscatter import structs
+from clscatter.device import structs
 from clscatter.accel import tile_grid
 from clscatter.accel.bvh import build_bvh, trace
 from clscatter.geometry import perpendicular_axes
@@ -378,7 +378,7 @@ def test_shadow_map_through_the_grid_equals_the_bvh(engine, name, kind):
     cone through the BVH."""
     from clscatter.methods.epipolar import geometry as geo
     from clscatter.methods.epipolar import maps
-    from clscatter.prepared import prepare_scene
+    from clscatter.transport.prepared import prepare_scene
     from clscatter.scene.loader import load_scene
 
     ps = prepare_scene(load_scene(f"builtin:{name}", ["camera.resolution=[64,48]"]), engine)
@@ -416,7 +416,7 @@ def test_renders_equal_with_and_without_the_grids(engine, monkeypatch, name, met
     """The scene grids (camera rays; a directional, spot or point light's shadow rays) and
     the shadow map's grid change how hits are found, not which: the image equals the BVH-only one to
     float tolerance (a ray exactly on an edge shared by two triangles may report either)."""
-    from clscatter.render import render
+    from clscatter.pipeline.render import render
     from clscatter.scene.loader import load_scene
 
     scene = load_scene(f"builtin:{name}", ["camera.resolution=[48,36]", "camera.spp=2"])

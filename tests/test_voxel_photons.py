@@ -202,7 +202,7 @@ def _light_scene(tmp_path, light):
     a bounded absorbing medium; the voxel pipeline's fields and lighting pass only."""
     from clscatter.methods import configure
     from clscatter.methods.voxel.pipeline import Pipeline
-    from clscatter.prepared import prepare_scene
+    from clscatter.transport.prepared import prepare_scene
     from clscatter.scene.loader import scene_from_dict
     np.save(tmp_path / "ones.npy", np.ones((4, 4, 4)))
     d = {"camera": {"origin": [0, 0, 5], "target": [0, 0, 0], "resolution": [8, 8], "spp": 1},

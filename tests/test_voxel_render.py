@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from clscatter.render import render
+from clscatter.pipeline.render import render
 from clscatter.scene.builtin.volumes import VOLUME_SCENES
 from clscatter.scene.loader import scene_from_dict
 
@@ -84,7 +84,7 @@ def test_relighter_runs_only_changed_stages(engine):
     """After set_light only lighting and view run, after set_camera only the view, after
     set_volume material onwards; each frame equals a fresh render of the changed scene
     (float tolerance: photon deposits are float atomics, summed in any order)."""
-    from clscatter.methods.voxel.relight import Relighter
+    from clscatter.pipeline.relighter import Relighter
     d = _scene("volume_sphere", res=(48, 36))
     s = scene_from_dict(d)
     rl = Relighter(s, engine=engine)
@@ -116,7 +116,7 @@ def test_render_session_reuses_voxel_stages(engine):
     """The engine's generic RenderSession (clscatter relight) makes a new method object per
     frame; the voxel method still re-runs only the stages whose inputs changed."""
     from clscatter.methods.voxel import Voxel
-    from clscatter.session import RenderSession
+    from clscatter.pipeline.session import RenderSession
     Voxel.release_cache(engine)        # earlier tests may have left this scene's stages
     d = _scene("volume_sphere", res=(32, 24))
     with RenderSession.from_data(d, ".", "test", engine=engine) as sess:

@@ -12,15 +12,15 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from clscatter import structs
+from clscatter.device import structs
 from clscatter.methods.vpm import photontree as pt
-from clscatter.image import relmse
+from clscatter.io.image import relmse
 from clscatter.methods.vpm import (DevicePhotonMap, VolumetricPhotonMapping, deposit_photons,
                                    gather, knn_points)
-from clscatter.prepared import prepare_scene
-from clscatter.view_paths import accumulate_segments, trace_view_paths
+from clscatter.transport.prepared import prepare_scene
+from clscatter.transport.view_paths import accumulate_segments, trace_view_paths
 from clscatter.scene import scene_from_dict
-from clscatter.stats import Stats
+from clscatter.io.stats import Stats
 
 try:
     import analytic as A

@@ -10,7 +10,7 @@ the same view segments; only the medium pass ``render`` is timed):
   not available; ``--reference``), cached under bench_out/caustics/ and keyed by scene,
   size, method and parameters; in the full run a converged VPM too, and the relMSE
   between the two references (how far "converged" is);
-* time, peak memory and relMSE (clscatter.image.relmse of the whole image against the
+* time, peak memory and relMSE (clscatter.io.image.relmse of the whole image against the
   reference) for LSG over (light_rays, radius) and VPM over (photons, knn, dx);
 * the Pareto fronts (least time, least memory for a given error) of both methods and the
   VPM / LSG ratios of time and of memory at equal error, interpolated log-log along the
@@ -54,12 +54,12 @@ if str(REPO) not in sys.path:
 
 from clscatter import methods                                   # noqa: E402
 from clscatter.device import get_engine                         # noqa: E402
-from clscatter.image import relmse, write_image                 # noqa: E402
-from clscatter.prepared import prepare_scene
-from clscatter.view_paths import trace_view_paths     # noqa: E402
+from clscatter.io.image import relmse, write_image
+from clscatter.transport.prepared import prepare_scene
+from clscatter.transport.view_paths import trace_view_paths
 from clscatter.scene import scene_from_dict                     # noqa: E402
 from clscatter.scene.builtin.caustics import CAUSTIC_SCENES     # noqa: E402
-from clscatter.stats import Stats, write_json                   # noqa: E402
+from clscatter.io.stats import Stats, write_json
 
 OUT = REPO / "bench_out" / "caustics"
 DOCS = REPO / "docs" / "bench"

@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from clscatter.cluster import Cluster  # noqa: E402
-from clscatter.render import render  # noqa: E402
+from clscatter.pipeline.render import render
 from clscatter.scene import load_scene  # noqa: E402
 
 

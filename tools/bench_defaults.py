@@ -8,7 +8,7 @@ scene's own settings (or ``--set`` overrides, e.g. 640x480 and 4 spp):
 * **stages**: the ``--stats`` breakdown of that run, and the share outside every stage;
 * **host share**: of the render's seconds (after device choice), those the host spent
   outside waits on the device (``host_seconds / render_seconds`` of ``--stats``);
-* **warm re-render after a light move**: a :class:`~clscatter.session.RenderSession` renders,
+* **warm re-render after a light move**: a :class:`~clscatter.pipeline.session.RenderSession` renders,
   then the first light moves by 5% of the scene size (or of its direction), back and forth,
   three times; the median re-render time, and the host share of that re-render;
 * **the process floor**: a fresh Python process that only imports NumPy and PyOpenCL and
@@ -41,12 +41,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from clscatter.image import read_image, relmse  # noqa: E402
+from clscatter.io.image import read_image, relmse
 from clscatter.methods import all_methods  # noqa: E402
-from clscatter.planner import needed_terms  # noqa: E402
-from clscatter.render import render  # noqa: E402
+from clscatter.pipeline.planner import needed_terms
+from clscatter.pipeline.render import render
 from clscatter.scene import BUILTIN, load_scene  # noqa: E402
-from clscatter.session import RenderSession  # noqa: E402
+from clscatter.pipeline.session import RenderSession
 
 
 WARM_MOVES = 3            # light moves per warm measurement (the median is reported)

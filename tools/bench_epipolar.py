@@ -8,7 +8,7 @@ raises its SVD terms/light rays on its own error estimate), at 1280 x 960, 1 spp
 
 * a converged reference: ``raymarch`` with ``--ref-steps`` steps per view segment
   (cached in bench_out/, keyed by scene, size and steps);
-* time against error (relMSE of the medium image, clscatter.image.relmse) for raymarch
+* time against error (relMSE of the medium image, clscatter.io.image.relmse) for raymarch
   over its step count and for epipolar over its quality levels (light rays per slice,
   shadow-map size and slice spacing scaled together);
 * the speed-up at equal error: each epipolar point against the raymarch time that
@@ -56,13 +56,13 @@ if str(REPO) not in sys.path:
 
 from clscatter.device import get_engine
 from clscatter.methods.epipolar import geometry as geo
-from clscatter.image import relmse
+from clscatter.io.image import relmse
 from clscatter.methods.epipolar import Epipolar
 from clscatter.methods.raymarch import RayMarch
-from clscatter.prepared import prepare_scene
-from clscatter.view_paths import trace_view_paths
+from clscatter.transport.prepared import prepare_scene
+from clscatter.transport.view_paths import trace_view_paths
 from clscatter.scene.builtin.epipolar import load_epipolar_scene
-from clscatter.stats import Stats, write_json
+from clscatter.io.stats import Stats, write_json
 
 SCENES = ("epi_window", "epi_grille", "epi_forest", "epi_fog")
 DEFAULT_LEVEL = 4          # index of the method's default settings in epi_levels()

@@ -34,8 +34,8 @@ sys.path.insert(0, str(REPO / "tools"))
 
 from bench_output import publish  # noqa: E402
 from clscatter.device import get_engine, kernel_dir  # noqa: E402
-from clscatter.image import relmse  # noqa: E402
-from clscatter.render import render  # noqa: E402
+from clscatter.io.image import relmse
+from clscatter.pipeline.render import render
 from clscatter.scene import load_scene  # noqa: E402
 
 SOURCE = """

@@ -37,14 +37,14 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from clscatter.device import get_engine  # noqa: E402
-from clscatter.image import relmse  # noqa: E402
+from clscatter.io.image import relmse
 from clscatter.methods.epipolar import Epipolar  # noqa: E402
 from clscatter.methods.raymarch import RayMarch  # noqa: E402
-from clscatter.prepared import prepare_scene  # noqa: E402
+from clscatter.transport.prepared import prepare_scene
 from clscatter.scene.builtin.epipolar import epi_sweep  # noqa: E402
 from clscatter.scene.loader import scene_from_dict  # noqa: E402
-from clscatter.stats import Stats, progress, write_json  # noqa: E402
-from clscatter.view_paths import trace_view_paths  # noqa: E402
+from clscatter.io.stats import Stats, progress, write_json
+from clscatter.transport.view_paths import trace_view_paths
 
 OUT = REPO / "bench_out"
 DOCS = REPO / "docs" / "bench"

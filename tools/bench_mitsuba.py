@@ -35,9 +35,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tools"))
 
-from clscatter.image import relmse  # noqa: E402
+from clscatter.io.image import relmse
 from clscatter.scene import load_scene  # noqa: E402
-from clscatter.session import RenderSession  # noqa: E402
+from clscatter.pipeline.session import RenderSession
 
 DATA = ROOT / "tests" / "data" / "mitsuba"
 

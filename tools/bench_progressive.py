@@ -21,7 +21,7 @@ is 2x below the last progressive radius of the quick run, and its noise is small
 * VPM: photons rising by 2x (knn 32).
 
 relMSE is ``mean((a - b)^2) / mean(b)^2`` over the image (the caustic pass alone has
-radiance ~1e-3, where clscatter.image.relmse's eps = 1e-2 would hide every error).
+radiance ~1e-3, where clscatter.io.image.relmse's eps = 1e-2 would hide every error).
 Writes bench_out/progressive/bench_progressive.json and .png (copied to
 docs/bench/caustics_progressive.{json,png} unless --no-copy).
 
@@ -53,11 +53,11 @@ if str(REPO) not in sys.path:
 
 from clscatter.device import get_engine                         # noqa: E402
 from clscatter.methods import get_method                        # noqa: E402
-from clscatter.prepared import prepare_scene                    # noqa: E402
+from clscatter.transport.prepared import prepare_scene
 from clscatter.scene import scene_from_dict                     # noqa: E402
 from clscatter.scene.builtin.caustics import CAUSTIC_SCENES     # noqa: E402
-from clscatter.stats import Stats                               # noqa: E402
-from clscatter.view_paths import accumulate_segments, trace_view_paths   # noqa: E402
+from clscatter.io.stats import Stats
+from clscatter.transport.view_paths import accumulate_segments, trace_view_paths
 
 OUT = REPO / "bench_out" / "progressive"
 DOCS = REPO / "docs" / "bench"

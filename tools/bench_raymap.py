@@ -47,14 +47,14 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from clscatter.device import get_engine                                  # noqa: E402
-from clscatter.image import relmse                                       # noqa: E402
+from clscatter.io.image import relmse
 from clscatter.methods.raymap.density import (DensitySettings, build_map,  # noqa: E402
                                               caustic_pieces, estimate, lazy_radius)
 from clscatter.methods.raymap.queries import candidate_lists, knn, knn_lists, knn_np  # noqa: E402
-from clscatter.prepared import prepare_scene                             # noqa: E402
+from clscatter.transport.prepared import prepare_scene
 from clscatter.scene import scene_from_dict                              # noqa: E402
 from clscatter.scene.builtin.caustics import CAUSTIC_SCENES              # noqa: E402
-from clscatter.view_paths import trace_diffuse_hits                      # noqa: E402
+from clscatter.transport.view_paths import trace_diffuse_hits
 
 OUT = REPO / "bench_out" / "raymap"
 DOCS = REPO / "docs" / "bench"
@@ -102,7 +102,7 @@ def main() -> None:
     rel = ps.scene.scene_extent() / ps.frame.scale
     hits = trace_diffuse_hits(ps)
     qx, qn = hits["p"][:, :3].astype(np.float64), hits["n"][:, :3].astype(np.float64)
-    # lighting rays are targeted at the specular objects (clscatter.emission): every one
+    # lighting rays are targeted at the specular objects (clscatter.transport.emission): every one
     # can carry caustic light (about 5 stored segments per ray on caustic_sphere)
     ray_counts = [2_000, 4_000, 8_000] if args.quick else [2_000, 4_000, 8_000, 16_000]
     ks = [20, 50, 100, 200] if args.quick else [20, 50, 100, 200, 500]

@@ -31,13 +31,13 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tools"))
 
 from bench_output import publish  # noqa: E402
-from clscatter import view_paths  # noqa: E402
+from clscatter.transport import view_paths
 from clscatter.accel import tile_grid  # noqa: E402
 from clscatter.device import get_engine  # noqa: E402
-from clscatter.image import relmse  # noqa: E402
+from clscatter.io.image import relmse
 from clscatter.methods.epipolar import geometry as geo, maps  # noqa: E402
-from clscatter.prepared import prepare_scene  # noqa: E402
-from clscatter.render import render  # noqa: E402
+from clscatter.transport.prepared import prepare_scene
+from clscatter.pipeline.render import render
 from clscatter.scene import load_scene  # noqa: E402
 
 SCENES = ("shafts", "epi_grille", "epi_window", "epi_forest", "epi_sun", "epi_spot",

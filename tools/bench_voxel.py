@@ -35,7 +35,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 
 def stage_table(quick: bool) -> list[dict]:
-    from clscatter.methods.voxel.relight import Relighter
+    from clscatter.pipeline.relighter import Relighter
     from clscatter.scene.builtin.volumes import VOLUME_SCENES
     from clscatter.scene.loader import scene_from_dict
     grids = (64,) if quick else (64, 128)
@@ -128,7 +128,7 @@ def adaptive_vs_fixed_glass(resolution: int = 64, photons: int = 1 << 16) -> lis
     from clscatter.methods.voxel import as_volume_scene
     from clscatter.methods.voxel.photons import MarchSettings, light_pass
     from clscatter.methods.voxel.pipeline import Pipeline
-    from clscatter.prepared import prepare_scene
+    from clscatter.transport.prepared import prepare_scene
     from clscatter.scene.builtin.volumes import VOLUME_SCENES
     from clscatter.scene.loader import scene_from_dict
     eng = get_engine()

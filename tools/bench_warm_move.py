@@ -1,7 +1,7 @@
 """A warm light move, taken apart: per-kernel device time, page faults, and what each of
 the ninth session's changes to the warm path is worth, switched off one at a time.
 
-One process, one :class:`~clscatter.session.RenderSession` on ``--scene`` (default the
+One process, one :class:`~clscatter.pipeline.session.RenderSession` on ``--scene`` (default the
 demo, ``builtin:shafts``, at 640x480, 4 spp, by epipolar). The first light moves back and
 forth; the variants take turns move by move, so the machine's drift (10-40% here) falls
 on all of them alike:
@@ -42,7 +42,7 @@ sys.path.insert(0, str(ROOT / "tools"))
 from bench_output import publish  # noqa: E402
 from clscatter import device as dev  # noqa: E402
 from clscatter.methods.epipolar import pipeline  # noqa: E402
-from clscatter.session import RenderSession  # noqa: E402
+from clscatter.pipeline.session import RenderSession
 
 
 @contextlib.contextmanager

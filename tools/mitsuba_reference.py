@@ -234,7 +234,7 @@ def render_mitsuba(scene: Scene, spp: int = 1024, seed: int = 0, sampler: str = 
 
 
 def relmse(a: np.ndarray, b: np.ndarray, eps: float = 1e-2) -> float:
-    from clscatter.image import relmse as _relmse
+    from clscatter.io.image import relmse as _relmse
     return _relmse(a, b, eps=eps)
 
 

@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..structs import BVH_NODE
+from ..device.structs import BVH_NODE
 
 MAX_DEPTH = 64   # == BVH_STACK_SIZE in cl_kernels/bvh.h
 MAX_LEAF = 16    # largest leaf SAH may choose; bigger nodes are always split
@@ -70,7 +70,7 @@ class BVHBuffers:
 class BVH:
     """A built BVH.
 
-    ``nodes``: structured array of :data:`clscatter.structs.BVH_NODE`, depth-first.
+    ``nodes``: structured array of :data:`clscatter.device.structs.BVH_NODE`, depth-first.
     ``triangles``: (T, 3, 4) float32, the reordered triangles (xyz, w = 0), the array
     the device gets (3 float4 per triangle).
     ``order``: (T,) int64, the input index of each reordered slot.

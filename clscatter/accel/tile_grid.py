@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import structs
+from ..device import structs
 from ..geometry import box_corners, perpendicular_axes
 from .bvh import BVH
 

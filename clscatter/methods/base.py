@@ -152,7 +152,7 @@ class Method:
 
     @classmethod
     def estimate(cls, scene, params: dict[str, Any]) -> list:
-        """Cost estimates (:class:`clscatter.budget.Estimate`) of this pass on ``scene`` with
+        """Cost estimates (:class:`clscatter.pipeline.budget.Estimate`) of this pass on ``scene`` with
         checked ``params``, made before anything is allocated; [] when negligible."""
         return []
 

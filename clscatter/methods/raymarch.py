@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..prepared import PreparedScene
-from ..view_paths import DeviceSegments, ViewPaths
-from ..stats import Stats, progress
+from ..transport.prepared import PreparedScene
+from ..transport.view_paths import DeviceSegments, ViewPaths
+from ..io.stats import Stats, progress
 from .base import AutoRole, Method, Param
 from . import register
 
@@ -42,7 +42,7 @@ class RayMarch(Method):
 
     @classmethod
     def estimate(cls, scene, params):
-        from ..budget import Estimate, camera_samples
+        from ..pipeline.budget import Estimate, camera_samples
         segs = 2.0 * camera_samples(scene)          # primary segments plus specular branches
         return [Estimate("raymarch", "render.raymarch.steps", segs * (64 + 16 + 16),
                          segs * params["steps"] * max(1, len(scene.lights)), "shadow-ray steps")]

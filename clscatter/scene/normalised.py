@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import structs
+from ..device import structs
 from ..errors import SceneError
 from .model import Camera, Light, Medium, Scene
 

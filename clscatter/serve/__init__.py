@@ -91,7 +91,7 @@ def serve(spec: str, overrides: Sequence[str] = (), host: str = "127.0.0.1", por
     ``ready(url)`` is called instead of printing when given. The scene is loaded and checked
     first, so a bad scene fails here with the command line's one-line error."""
     _need_extra()
-    from ..render import check
+    from ..pipeline.render import check
     from ..scene import load_scene
 
     check(load_scene(spec, overrides))           # one-line SceneError before listening

@@ -1,5 +1,5 @@
 """The relighting page's server: a Starlette app, one WebSocket per page, one worker thread
-per page that owns a :class:`clscatter.session.RenderSession`.
+per page that owns a :class:`clscatter.pipeline.session.RenderSession`.
 
 Why this shape:
 
@@ -9,7 +9,7 @@ Why this shape:
 * A page never queues work. Every change the page sends lands in a mailbox that keeps only
   the newest value per key and bumps a generation counter; the render in flight polls the
   counter through the session's ``cancel`` callback (between stages) and stops with
-  :class:`~clscatter.session.Cancelled` as soon as a newer change exists. A stale result
+  :class:`~clscatter.pipeline.session.Cancelled` as soon as a newer change exists. A stale result
   that finishes anyway is dropped, never sent.
 * Progressive frames: a change first renders a preview (the session's reduced resolution,
   1 spp), then, unless the page asked for the preview alone (it does while the user drags),
@@ -99,7 +99,7 @@ def png_bytes(image: np.ndarray, exposure: float = 0.0) -> bytes:
     """Tone-mapped 8-bit sRGB PNG of linear ``image`` (the CLI's PNG tone curve)."""
     from PIL import Image
 
-    from ..image import tonemap
+    from ..io.image import tonemap
 
     buf = io.BytesIO()
     Image.fromarray(tonemap(image, exposure)).save(buf, format="PNG", compress_level=1)
@@ -107,8 +107,8 @@ def png_bytes(image: np.ndarray, exposure: float = 0.0) -> bytes:
 
 
 def exr_bytes(image: np.ndarray) -> bytes:
-    """The float32 linear image as an OpenEXR file (written by :func:`clscatter.image.write_image`)."""
-    from ..image import write_image
+    """The float32 linear image as an OpenEXR file (written by :func:`clscatter.io.image.write_image`)."""
+    from ..io.image import write_image
 
     with tempfile.TemporaryDirectory(prefix="clscatter-serve-") as tmp:
         path = Path(tmp) / "image.exr"
@@ -128,8 +128,8 @@ def override_key(text: str) -> str:
 # ---------------------------------------------------------------------------- sessions
 
 def open_session(spec: str, overrides: Sequence[str], device: str | None):
-    """A :class:`~clscatter.session.RenderSession` on ``spec`` with ``--set`` overrides."""
-    from ..session import RenderSession
+    """A :class:`~clscatter.pipeline.session.RenderSession` on ``spec`` with ``--set`` overrides."""
+    from ..pipeline.session import RenderSession
 
     return RenderSession.from_source(spec, list(overrides), device=device)
 
@@ -138,7 +138,7 @@ def applicable_methods(scene) -> list[str]:
     """``auto`` and every implemented method that suits ``scene`` and would compute a term
     it needs (an explicit method with nothing to do is left out)."""
     from ..methods import all_methods
-    from ..planner import plan
+    from ..pipeline.planner import plan
 
     out = ["auto"]
     for name, cls in all_methods().items():
@@ -330,7 +330,7 @@ class PageWorker:
                        "saveable": frame is not None and frame.version == self.version})
 
     def _render(self, request: int, generation: int, mode: str) -> None:
-        from ..session import Cancelled
+        from ..pipeline.session import Cancelled
 
         levels = {"preview": ["preview"], "refine": ["full"]}.get(mode, ["preview", "full"])
         version = self.version

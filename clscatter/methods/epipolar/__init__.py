@@ -5,12 +5,12 @@ import dataclasses
 
 import numpy as np
 
-from ... import structs
+from ...device import structs
 from .pipeline import (LOOKUPS, MIN_LIGHT_RAYS, Settings, render_light, split_segments,
                        start_defines)
-from ...prepared import PreparedScene
-from ...view_paths import ViewPaths
-from ...stats import Stats
+from ...transport.prepared import PreparedScene
+from ...transport.view_paths import ViewPaths
+from ...io.stats import Stats
 from .. import AutoRole, Method, Param, register
 from ...errors import SceneError
 from ..raymarch import march_segments
@@ -192,7 +192,7 @@ class Epipolar(Method):
 
     @classmethod
     def estimate(cls, scene, params):
-        from ...budget import Estimate, camera_samples
+        from ...pipeline.budget import Estimate, camera_samples
         w, h = scene.camera.width, scene.camera.height
         smap = params["shadow_map"] or min(max(2 * max(w, h), 1024), 4096)
         d = params["light_rays"] or max(w, h, MIN_LIGHT_RAYS)

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ... import structs
+from ...device import structs
 from ...geometry import perpendicular_axes
 
 F4 = (np.float32, 4)

@@ -14,10 +14,10 @@ import math
 
 import numpy as np
 
-from ... import structs
+from ...device import structs
 from ...accel import tile_grid
 from ...geometry import box_corners, perpendicular_axes
-from ...prepared import PreparedScene
+from ...transport.prepared import PreparedScene
 from .geometry import EPI_FACE, Axis, CameraGeom, medium_box
 
 T_INF = 1e30

@@ -39,10 +39,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ... import primitives as prim
-from ... import structs
-from ...prepared import PreparedScene
-from ...stats import Stats, progress
+from ...transport import primitives as prim
+from ...device import structs
+from ...transport.prepared import PreparedScene
+from ...io.stats import Stats, progress
 from . import geometry as geo
 from .maps import setup_shadow_map, trace_depth_map, trace_shadow_map
 from .svd import (REF_NODES, accepts, decompose, float32_bound, float32_error, heldout_error,
@@ -174,7 +174,7 @@ def _spacing(st: Settings, axis: geo.Axis, cam: geo.CameraGeom) -> float:
 def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
                  show_progress: bool = True) -> LightOutput:
     """Radiance from light ``li`` scattered towards the start of each primary view segment
-    of ``segs`` (:class:`~clscatter.view_paths.DeviceSegments`, or a host segment array,
+    of ``segs`` (:class:`~clscatter.transport.view_paths.DeviceSegments`, or a host segment array,
     uploaded; deeper segments get 0).
 
     Per-sample work stays on the device: the samples' slice coordinates (``epi_samples``),
@@ -190,7 +190,7 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
     eng = ps.engine
     cam = geo.CameraGeom.from_struct(ps.camera)
     if isinstance(segs, np.ndarray):
-        from ...view_paths import ViewPaths
+        from ...transport.view_paths import ViewPaths
         segs = ViewPaths(None, None, segs).on_device(eng, cam.width, cam.height)
     axis = geo.make_axis(ps.lights[li], cam.origin)
     st = _auto(st, cam)

@@ -7,17 +7,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ... import primitives as prim
-from ... import structs
+from ...transport import primitives as prim
+from ...device import structs
 from .linetree import (LINE_NODE, LineTree, PluckerFrame, build_linetree, canonical_signs,
                               plucker)
 from ...device import Engine
 from ...geometry import slab_interval
-from ...emission import targeted_fraction
-from ...light_paths import ray_counts, trace_light_paths
-from ...prepared import PreparedScene
-from ...view_paths import DeviceSegments, ViewPaths
-from ...stats import Stats, Timer, progress
+from ...transport.emission import targeted_fraction
+from ...transport.light_paths import ray_counts, trace_light_paths
+from ...transport.prepared import PreparedScene
+from ...transport.view_paths import DeviceSegments, ViewPaths
+from ...io.stats import Stats, Timer, progress
 from .. import AutoRole, Method, Param, register
 
 F4 = structs.F4
@@ -166,7 +166,7 @@ class Gatherer:
     ``clip = False`` keeps lighting segments whole (otherwise they are cut to the view
     segments' box grown by the radius); ``frame`` fixes the Plücker frame (tests).
     ``views_buf``: the same view segments already on the device (a render's
-    :class:`~clscatter.view_paths.DeviceSegments` buffer; not freed here), else uploaded.
+    :class:`~clscatter.transport.view_paths.DeviceSegments` buffer; not freed here), else uploaded.
 
     Per view segment, the estimate and the work counters (tests, valid pairs, leaf points)
     accumulate on the device; an :meth:`add` reads back the counters' totals only, and
@@ -355,7 +355,7 @@ class LineSpaceGathering(Method):
     *Targeted emission.* With ``min_light_depth >= 1`` (a caustic pass, as ``auto`` runs
     it) and ``targeted`` (default), every light emits only towards the bounding spheres
     of the mirrors and glass (directional lights: their projected footprint), each ray
-    weighted by its exact pdf (``clscatter.emission``), so the expected image is the same
+    weighted by its exact pdf (``clscatter.transport.emission``), so the expected image is the same
     and no ray is spent on light that cannot make a caustic. ``light_rays`` keeps its
     meaning (rays over the whole emission); only the part of them that would have gone
     towards the mirrors and glass is traced (``light_rays`` in ``--stats``), so the noise
@@ -462,7 +462,7 @@ class LineSpaceGathering(Method):
         """Working set: one chunk of lighting segments (bounded by ``max_bytes``; ~3
         segments per ray at BYTES_PER_SEGMENT each) plus 80 bytes per view segment; work:
         the segments traced over all passes (the gather's pair tests scale with them)."""
-        from ...budget import Estimate, camera_samples
+        from ...pipeline.budget import Estimate, camera_samples
         views = 2.0 * camera_samples(scene)
         rays = float(params["light_rays"])
         chunk = min(float(params["max_bytes"]), rays * 3 * BYTES_PER_SEGMENT)

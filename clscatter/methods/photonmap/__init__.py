@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...prepared import PreparedScene
-from ...stats import Stats
-from ...view_paths import ViewPaths
+from ...transport.prepared import PreparedScene
+from ...io.stats import Stats
+from ...transport.view_paths import ViewPaths
 from .. import register
 from ..base import AutoRole, Method, Param
 from ..raymap import COMMON_PARAMS, render_surface_and_medium, scene_relative

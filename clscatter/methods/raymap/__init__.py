@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...prepared import PreparedScene
-from ...stats import Stats
-from ...view_paths import ViewPaths
+from ...transport.prepared import PreparedScene
+from ...io.stats import Stats
+from ...transport.view_paths import ViewPaths
 from .. import register
 from ..base import AutoRole, Method, Param
 from .density import DensitySettings, surface_caustics
@@ -71,8 +71,8 @@ class RayMapMethod(Method):
     """``raymap``: diffuse surfaces lit through mirrors and glass, by density estimation over
     a ray map (Havran et al. 2005), plus the medium by the engine's ``medium`` method.
 
-    Lighting rays aimed at the mirrors and glass (``clscatter.emission``, exact pdf
-    weights) are traced through them (``clscatter.light_paths``, Fresnel split,
+    Lighting rays aimed at the mirrors and glass (``clscatter.transport.emission``, exact pdf
+    weights) are traced through them (``clscatter.transport.light_paths``, Fresnel split,
     ``render.max_depth``) and kept as *segments*: the last piece of every
     branch after at least one specular bounce (ending on a diffuse or black surface, or
     leaving the scene), with the flux it delivers. A kd-tree over the segments (every leaf

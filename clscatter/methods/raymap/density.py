@@ -2,7 +2,7 @@
 al. 2005 Sec. 4.2) and the photon map (Jensen 1996), sharing everything but the query.
 
 Both start from the same lighting rays (:func:`caustic_pieces`: the light tracer's
-:data:`~clscatter.structs.RAY_PIECE` records after at least one specular bounce) and
+:data:`~clscatter.device.structs.RAY_PIECE` records after at least one specular bounce) and
 estimate irradiance with eq. (1) of the paper, ``E(x) = sum_i w_i Phi_i / (pi R^2)``
 (``rm_density`` in ``cl_kernels/raymap.cl``):
 
@@ -23,10 +23,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ... import primitives as prim
-from ... import structs
-from ...light_paths import trace_light_paths
-from ...stats import Stats, progress
+from ...transport import primitives as prim
+from ...device import structs
+from ...transport.light_paths import trace_light_paths
+from ...io.stats import Stats, progress
 from .kdtree import TreeParams
 from .queries import RayMap, _f4, heap_define, heap_scratch
 
@@ -52,7 +52,7 @@ def caustic_pieces(ps, rays: int, stats: Stats | None = None, show_progress: boo
                    min_depth: int = 1, targeted: bool = True) -> np.ndarray:
     """Lighting-ray pieces that carry light through mirrors or glass (``depth >=
     min_depth``), ending on a surface or leaving the scene (normalised frame).
-    ``targeted``: emit only towards the specular objects (``clscatter.emission``, exact
+    ``targeted``: emit only towards the specular objects (``clscatter.transport.emission``, exact
     pdf weights), since light that never meets one is not kept anyway."""
     lp = trace_light_paths(ps, rays, stats, show_progress, pieces=True,
                            targeted=targeted and min_depth >= 1)
@@ -161,7 +161,7 @@ def surface_caustics(ps, estimator: str, rays: int, settings: DensitySettings, s
     normals are read once for the host-built tree, which the queries refine lazily batch by
     batch. Each hit's irradiance, its weighted value and the per-pixel sums stay on the
     device; the work counters are totalled there."""
-    from ...view_paths import trace_diffuse_hits_on_device
+    from ...transport.view_paths import trace_diffuse_hits_on_device
     cam = ps.scene.camera
     img = np.zeros((cam.height, cam.width, 3), np.float32)
     if ps.num_lights == 0:

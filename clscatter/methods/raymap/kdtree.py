@@ -31,7 +31,7 @@ import numpy as np
 
 from ...geometry import slab_interval
 
-from ...structs import register_struct
+from ...device.structs import register_struct
 
 # node kinds (RM_LEAF ... in raymap.h)
 LEAF, SPATIAL, DIRECTIONAL = 0, 1, 2

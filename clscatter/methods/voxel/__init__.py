@@ -7,7 +7,7 @@ import hashlib
 import numpy as np
 
 from ...errors import SceneError
-from ...prepared import prepare_scene
+from ...transport.prepared import prepare_scene
 from ...scene.model import Scene, Volume
 from ..base import AutoRole, Method, Param
 from .. import register
@@ -113,7 +113,7 @@ class Voxel(Method):
         """Working set: the grid (its resolution cubed, an upper bound), the outer grid,
         the photon states of one light (48 bytes each) and the view rays (2 x 64 bytes per
         camera sample, an upper bound)."""
-        from ...budget import Estimate, camera_samples
+        from ...pipeline.budget import Estimate, camera_samples
         if not scene.volumes and not any(o.material.type == "dielectric" for o in scene.objects):
             return []
         grid = float(params["resolution"]) ** 3

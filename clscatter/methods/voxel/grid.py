@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ... import structs
+from ...device import structs
 from ...scene.normalised import Frame
 from ...scene.model import Scene, Volume
 

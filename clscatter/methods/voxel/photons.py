@@ -31,8 +31,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ... import primitives as prim
-from ... import structs
+from ...transport import primitives as prim
+from ...device import structs
 from ...device import AppendBuffer, Engine
 from ...geometry import box_corners, perpendicular_axes
 from .grid import GridBox

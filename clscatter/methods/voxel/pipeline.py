@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...view_paths import DeviceSegments, ViewPaths
+from ...transport.view_paths import DeviceSegments, ViewPaths
 from .grid import GridBox, make_box, scene_box
 from .photons import Fields, MarchSettings, Radiance, light_pass, upload_fields
 from .view import view_pass

@@ -22,11 +22,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ... import primitives as prim
-from ... import structs
+from ...transport import primitives as prim
+from ...device import structs
 from ...device import AppendBuffer, Engine, launch_appending
-from ...stats import progress
-from ...view_paths import SAMPLES_PER_LAUNCH, DeviceSegments, _first_samples, _Store
+from ...io.stats import progress
+from ...transport.view_paths import SAMPLES_PER_LAUNCH, DeviceSegments, _first_samples, _Store
 from .grid import VOX_RAY, GridBox
 from .photons import Fields, Radiance
 
@@ -46,7 +46,7 @@ class ViewResult:
 
 class _Pass:
     """The device state of one view pass: the append buffers the tracers write to, the
-    view segments of every launch (a :class:`~clscatter.view_paths._Store`), the camera
+    view segments of every launch (a :class:`~clscatter.transport.view_paths._Store`), the camera
     samples' pixel offsets and the two images so far. Images are the only per-pixel data
     read back: each launch's per-work-item values are summed into pixels on the device and
     the image (or a camera launch's band of pixels) is added here (float64)."""
@@ -206,7 +206,7 @@ def view_pass(ps, fields: Fields, radiance: Radiance, max_rounds: int = 4,
     marched, filtered by throughput (a compaction) and traced on; per-sample and per-ray
     light is summed into pixels there. The view segments of every launch are kept in one
     buffer and returned sorted by (sample, branch) (a
-    :class:`~clscatter.view_paths.DeviceSegments`, for the direct and beyond passes).
+    :class:`~clscatter.transport.view_paths.DeviceSegments`, for the direct and beyond passes).
     Read back: per-pixel sums only (each camera launch's band of pixels, two images per
     round; added here in float64) and the counts.
 

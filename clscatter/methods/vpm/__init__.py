@@ -7,11 +7,11 @@ import numpy as np
 
 from .photontree import (BUILD_BYTES_PER_PHOTON, PHOTON, PhotonTree, build_tree,
                                 encode_direction, encode_rgb9e5)
-from ... import primitives as prim
-from ...light_paths import trace_light_paths
-from ...prepared import PreparedScene
-from ...view_paths import ViewPaths
-from ...stats import Stats, progress
+from ...transport import primitives as prim
+from ...transport.light_paths import trace_light_paths
+from ...transport.prepared import PreparedScene
+from ...transport.view_paths import ViewPaths
+from ...io.stats import Stats, progress
 from .. import Method, Param, register
 
 # photons deposited per NumPy batch (bounds the float64 temporaries of the deposition)
@@ -190,7 +190,7 @@ class VolumetricPhotonMapping(Method):
     gathers while marching the view segments. The baseline for volumetric caustics.
 
     *Photons.* ``photons / photons_per_ray`` lighting rays are traced by
-    ``clscatter.light_paths`` (the rays LSG uses: stratified emission, mirrors,
+    ``clscatter.transport.light_paths`` (the rays LSG uses: stratified emission, mirrors,
     Fresnel-split dielectrics, TIR, interior absorption, ``render.max_depth``). Along every
     lighting segment in the medium, photons are placed with a density proportional to
     the flux the segment still carries (``deposit``: ``independent`` by default, a Poisson
@@ -231,7 +231,7 @@ class VolumetricPhotonMapping(Method):
 
     *Caustic pass.* ``min_light_depth >= 1`` keeps only lighting segments after a
     specular bounce (as LSG's caustic pass); with ``targeted`` the lights then emit only
-    towards the mirrors and glass (``clscatter.emission``), so no photon ray is wasted.
+    towards the mirrors and glass (``clscatter.transport.emission``), so no photon ray is wasted.
 
     *Cost.* Gather time is proportional to the number of march samples (view segments x
     length in the medium / ``dx``) times the kNN cost (~log photons + a few x ``knn``);
@@ -274,7 +274,7 @@ class VolumetricPhotonMapping(Method):
 
     @classmethod
     def estimate(cls, scene, params):
-        from ...budget import Estimate, camera_samples
+        from ...pipeline.budget import Estimate, camera_samples
         photons = float(params["photons"])
         segs = 2.0 * camera_samples(scene)
         steps = segs / params["dx"]                # an upper bound: every segment spans the scene

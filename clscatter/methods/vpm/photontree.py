@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ... import structs
+from ...device import structs
 
 PHOTON = np.dtype([("x", np.float32), ("y", np.float32), ("z", np.float32),
                    ("dir", np.uint32), ("power", np.uint32)])

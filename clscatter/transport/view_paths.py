@@ -1,6 +1,6 @@
 """View paths: camera rays through specular chains, surface shading, segment buffers.
 
-:func:`trace_view_paths` runs ``view_paths.cl`` over a :class:`~clscatter.prepared.PreparedScene`: one work-item per camera
+:func:`trace_view_paths` runs ``view_paths.cl`` over a :class:`~clscatter.transport.prepared.PreparedScene`: one work-item per camera
 sample, dielectric hits split into Fresnel-weighted branches, diffuse hits lit directly
 by every light (shadow rays, medium attenuation). It returns the surface image and the
 buffer of view segments in the medium, which every medium method consumes.
@@ -13,10 +13,10 @@ from collections.abc import Callable
 import numpy as np
 
 from . import primitives as prim
-from . import structs
-from .device import AppendBuffer, Engine, launch_appending
+from ..device import structs
+from ..device import AppendBuffer, Engine, launch_appending
 from .prepared import PreparedScene
-from .stats import Stats, progress
+from ..io.stats import Stats, progress
 
 # camera samples per kernel launch (bounds the segment buffer; drives the progress bar)
 SAMPLES_PER_LAUNCH = 1 << 17
@@ -25,7 +25,7 @@ SAMPLES_PER_LAUNCH = 1 << 17
 class DeviceSegments:
     """Records of camera paths on the device (view segments, or diffuse hits), sorted by
     (camera sample, branch), with the offsets of each pixel's run: ``buf`` holds ``count``
-    :data:`~clscatter.structs.VIEW_SEGMENT` (or :data:`~clscatter.structs.DIFFUSE_HIT`)
+    :data:`~clscatter.device.structs.VIEW_SEGMENT` (or :data:`~clscatter.device.structs.DIFFUSE_HIT`)
     records, those of pixel ``p`` are ``[pix_off[p], pix_off[p + 1])``. A method
     that writes one float4 per segment turns it into an image with :meth:`accumulate`
     (summed on the device in segment order: deterministic), so nothing per segment comes
@@ -85,7 +85,7 @@ class ViewPaths:
     them) or as a host array. :attr:`segments` reads a device copy back once, for the
     methods that work on the host; :meth:`on_device` uploads a host array once, for those
     that work on the device. ``hits``: the diffuse hits of the same paths
-    (:data:`~clscatter.structs.DIFFUSE_HIT`, a :class:`DeviceSegments`) when the tracer was
+    (:data:`~clscatter.device.structs.DIFFUSE_HIT`, a :class:`DeviceSegments`) when the tracer was
     asked to keep them, else None.
     """
 
@@ -107,7 +107,7 @@ class ViewPaths:
 
     @property
     def segments(self) -> np.ndarray:
-        """The segments as a host :data:`~clscatter.structs.VIEW_SEGMENT` array (read from
+        """The segments as a host :data:`~clscatter.device.structs.VIEW_SEGMENT` array (read from
         the device on first use)."""
         if self._host is None:
             d = self.device
@@ -295,7 +295,7 @@ def trace_diffuse_hits_on_device(ps: PreparedScene, samples_per_launch: int = SA
                                  sample_range: tuple[int, int] | None = None) -> DeviceSegments:
     """The diffuse hits of :func:`trace_diffuse_hits`, left on the device, sorted by
     (sample, branch), with pixel offsets (a :class:`DeviceSegments` of
-    :data:`~clscatter.structs.DIFFUSE_HIT` records): what :func:`shade_hits` relights.
+    :data:`~clscatter.device.structs.DIFFUSE_HIT` records): what :func:`shade_hits` relights.
     (A render that traces the view paths anyway records them in the same launch:
     ``trace_view_paths(..., keep_hits=True)``.)"""
     return _trace(ps, sample_range, samples_per_launch, shade=False, want_segs=False,
@@ -321,7 +321,7 @@ def trace_diffuse_hits(ps: PreparedScene, samples_per_launch: int = SAMPLES_PER_
     """Where the camera paths of :func:`trace_view_paths` meet diffuse surfaces, as a host
     array (the ray map and photon map build host structures from them).
 
-    The same samples and branches (same seeds), one :data:`~clscatter.structs.DIFFUSE_HIT`
+    The same samples and branches (same seeds), one :data:`~clscatter.device.structs.DIFFUSE_HIT`
     per branch ending on a diffuse surface, with weight = throughput * albedo / pi: a
     method that knows the irradiance E arriving at a hit adds ``weight * E`` to its pixel
     (surface caustics). Sorted by (sample, branch) on the device, so runs are

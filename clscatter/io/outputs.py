@@ -17,7 +17,7 @@ import shutil
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
-from .errors import ClscatterError
+from ..errors import ClscatterError
 
 
 def check_output(path: str | os.PathLike, suffixes: Sequence[str], option: str) -> Path:

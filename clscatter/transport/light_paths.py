@@ -1,7 +1,7 @@
 """Light paths: lighting rays from every light through specular chains -> segment buffers.
 
 :func:`trace_light_paths` runs ``light_paths.cl`` (one work-item per lighting ray) and
-returns the :data:`~clscatter.structs.LIGHT_SEGMENT` pieces inside the medium, each with
+returns the :data:`~clscatter.device.structs.LIGHT_SEGMENT` pieces inside the medium, each with
 the flux it carries at its start. The caustic methods (``lsg``, ``vpm``) consume them.
 
 Emission, in the normalised frame (so fluxes are in normalised units, consistent with
@@ -17,7 +17,7 @@ the same flux, power / rays.
 
 ``targeted=True`` (caustic passes, which keep only light that met a mirror or glass):
 every light emits only towards the bounding spheres of the specular objects, each ray
-weighted by its exact pdf (:mod:`clscatter.emission`); lights are then shared by the
+weighted by its exact pdf (:mod:`clscatter.transport.emission`); lights are then shared by the
 power they send that way. ``LightPaths.specular_rays`` counts, per light, the rays whose
 first hit is a mirror or dielectric.
 """
@@ -29,11 +29,11 @@ from typing import Iterator
 
 import numpy as np
 
-from . import structs
-from .device import AppendBuffer
-from .geometry import box_corners, perpendicular_axes
+from ..device import structs
+from ..device import AppendBuffer
+from ..geometry import box_corners, perpendicular_axes
 from .prepared import PreparedScene
-from .stats import Stats, progress
+from ..io.stats import Stats, progress
 from .emission import specular_spheres, targets as emission_targets
 
 
@@ -119,10 +119,10 @@ def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = No
     ``chunk = (k, n)`` traces only the k-th of n equal parts of every light's rays (the
     same rays a full trace would give), so callers can bound memory and sum results.
     ``pieces=True`` returns, instead of the medium segments, the
-    :data:`~clscatter.structs.RAY_PIECE` on which every branch ends (diffuse or black
+    :data:`~clscatter.device.structs.RAY_PIECE` on which every branch ends (diffuse or black
     surface, or leaving the scene box) with the flux arriving there, with or without a
     medium (the surface-caustic methods: ``raymap``, ``photonmap``).
-    ``targeted=True`` emits only towards the specular objects (:mod:`clscatter.emission`;
+    ``targeted=True`` emits only towards the specular objects (:mod:`clscatter.transport.emission`;
     for passes that keep only light with a specular bounce). ``seed_offset`` selects an
     independent set of rays (progressive passes).
     """

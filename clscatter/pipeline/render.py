@@ -1,5 +1,5 @@
 """One render: scene -> checked method parameters -> plan -> prepared device scene -> view
-paths -> passes -> image (the stages themselves live in :mod:`clscatter.session`)."""
+paths -> passes -> image (the stages themselves live in :mod:`clscatter.pipeline.session`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -8,10 +8,10 @@ from typing import Any
 import numpy as np
 
 from . import budget
-from .device import Engine
-from .methods import configure_scene
+from ..device import Engine
+from ..methods import configure_scene
 from .planner import plan
-from .scene.model import Scene
+from ..scene.model import Scene
 
 
 @dataclass
@@ -35,7 +35,7 @@ class Prepared:
 def check(scene: Scene, method: str | None = None) -> Prepared:
     """Everything a render checks before it touches a device: the method name, every
     ``[render.<method>]`` table (:func:`clscatter.methods.configure_scene`), the plan (made
-    from the scene alone) and the cost estimates (:mod:`clscatter.budget`)."""
+    from the scene alone) and the cost estimates (:mod:`clscatter.pipeline.budget`)."""
     requested = method if method is not None else scene.render.method
     settings = configure_scene(scene, requested)
     passes, notes = plan(scene, requested)
@@ -50,7 +50,7 @@ def render(scene: Scene, method: str | None = None, engine: Engine | None = None
     :func:`check` runs first; a render whose estimated peak memory exceeds ``max_memory``
     (default: the device's and the machine's memory) is refused before anything is
     allocated. ``on_note`` receives one-line notes for the user (long work, dropped
-    triangles). This is a :class:`~clscatter.session.RenderSession` used once.
+    triangles). This is a :class:`~clscatter.pipeline.session.RenderSession` used once.
     """
     from .session import RenderSession
 

@@ -17,7 +17,7 @@ render.max_depth / seed     view paths, passes
 method or its parameters    passes only
 ==========================  ==============================================================
 
-A one-off :func:`clscatter.render.render` is a session used once, so a warm re-render and
+A one-off :func:`clscatter.pipeline.render.render` is a session used once, so a warm re-render and
 a fresh render run the same code and give the same image. ``stats["stages_run"]`` lists
 what ran and ``stats["reused"]`` what was kept; ``stats["stages"]`` times them.
 
@@ -36,13 +36,14 @@ from typing import Callable, Sequence
 import numpy as np
 
 from . import budget
-from .device import Engine, get_engine
-from .methods import configure, get_method
-from .prepared import PreparedScene, prepare_scene, refresh, same_frame
-from .scene.loader import apply_overrides, scene_from_dict, scene_source
-from .scene.model import Scene
-from .stats import Stats
-from .view_paths import ViewPaths, shade_hits, trace_view_paths
+from ..device import Engine, get_engine
+from ..methods import configure, get_method
+from ..transport.prepared import PreparedScene, prepare_scene, refresh, same_frame
+from ..scene.loader import apply_overrides, scene_from_dict, scene_source
+from ..scene.model import Scene
+from ..io.stats import Stats
+from .planner import dropped_light
+from ..transport.view_paths import ViewPaths, shade_hits, trace_view_paths
 
 
 class Cancelled(Exception):
@@ -150,7 +151,7 @@ class RenderSession:
     def to_toml(self) -> str:
         """The current scene as a TOML file that ``clscatter render`` reproduces exactly
         (relative mesh and grid paths made absolute)."""
-        from .scene.builtin import to_toml
+        from ..scene.builtin import to_toml
         return to_toml(self.current_data())
 
     @property
@@ -170,7 +171,7 @@ class RenderSession:
         stats say so); ``cancel()`` is polled between stages and raises :class:`Cancelled`.
         ``stats`` may be one the caller started earlier (the CLI times scene loading and
         output writing in it too). ``samples = (lo, hi)`` renders only those camera samples
-        (see :func:`~clscatter.view_paths.trace_view_paths`). ``only`` runs just those passes
+        (see :func:`~clscatter.transport.view_paths.trace_view_paths`). ``only`` runs just those passes
         of the plan (by index) and ``pass_params`` (``{index: {param: value}}``) overrides their
         parameters: how a cluster splits a render into tasks (:mod:`clscatter.cluster`).
         """
@@ -196,7 +197,8 @@ class RenderSession:
             limit, source = budget.memory_budget(engine, self.max_memory)
             budget.check_budget(req.estimates, limit, source)
             engine.fit_pool(limit, budget.peak_bytes(req.estimates))
-            for line in budget.long_work_notes(req.estimates) + scene_notes(scene):
+            for line in (dropped_light(req.notes) + budget.long_work_notes(req.estimates)
+                         + scene_notes(scene)):
                 if on_note is not None:
                     on_note(line)
             if scene.dropped_triangles():

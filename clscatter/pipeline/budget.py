@@ -18,7 +18,7 @@ import os
 import re
 from dataclasses import dataclass
 
-from .errors import ClscatterError
+from ..errors import ClscatterError
 
 # bytes per camera sample kept by the view-path stage on the device: surface + escaped
 # (2 x float4), the diffuse hits a warm session keeps for re-shading (80 bytes, about one
@@ -59,7 +59,7 @@ def view_path_estimate(scene) -> Estimate:
 def estimate(scene, passes, settings: dict) -> list[Estimate]:
     """Estimates of the view paths and of every pass of the plan (``settings``: checked
     parameters per method, :func:`clscatter.methods.configure_scene`)."""
-    from .methods import configure, get_method
+    from ..methods import configure, get_method
     out = [view_path_estimate(scene)]
     for p in passes:
         cls = get_method(p.method)

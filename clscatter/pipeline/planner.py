@@ -24,8 +24,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from .methods import all_methods
-from .scene.model import Scene
+from ..methods import all_methods
+from ..scene.model import Scene
+
+#: the ending of every plan note that says light the scene needs is left out of the image
+#: (``render`` prints those notes; :func:`dropped_light` picks them out)
+DROPS_LIGHT = "that light is not in this image"
 
 
 @dataclass
@@ -79,11 +83,10 @@ def plan(scene: Scene, requested: str) -> tuple[list[Pass], list[str]]:
         missing = [t for t in terms if t not in cls.TERMS]
         if len(missing) == len(terms):
             notes.append(f"{requested} computes {', '.join(sorted(cls.TERMS))}, which this scene "
-                         f"does not need ({', '.join(terms)}): nothing to run")
+                         f"does not need ({', '.join(terms)}): nothing to run, {DROPS_LIGHT}")
             return [], notes
         if missing:
-            notes.append(f"{requested} does not compute {', '.join(missing)}: "
-                         "that light is not in this image")
+            notes.append(f"{requested} does not compute {', '.join(missing)}: {DROPS_LIGHT}")
         return [Pass(requested, "all")], notes
     passes: list[Pass] = []
     for term in terms:
@@ -98,7 +101,7 @@ def plan(scene: Scene, requested: str) -> tuple[list[Pass], list[str]]:
                 continue
             candidates.append((role.priority, name, role))
         if not candidates:
-            notes.append(f"scene needs {term} but no available method computes it")
+            notes.append(f"scene needs {term} but no available method computes it: {DROPS_LIGHT}")
             continue
         _, name, role = max(candidates)
         passes.append(Pass(name, term, dict(role.params or {}), dict(role.defaults or {})))
@@ -113,3 +116,8 @@ def plan(scene: Scene, requested: str) -> tuple[list[Pass], list[str]]:
                          + (f" (instead of {', '.join(others)})" if others else ""))
             return [Pass(p.method, "all", p.params, p.defaults)], notes
     return passes, notes
+
+
+def dropped_light(notes: list[str]) -> list[str]:
+    """The plan notes that say light the scene needs is left out of the image."""
+    return [n for n in notes if n.endswith(DROPS_LIGHT)]

@@ -73,7 +73,7 @@ from typing import Any, Callable, Mapping, Union
 
 import numpy as np
 
-from .errors import ImageError
+from ..errors import ImageError
 
 PathLike = Union[str, "os.PathLike[str]"]
 

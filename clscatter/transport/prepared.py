@@ -10,13 +10,13 @@ from typing import Sequence
 
 import numpy as np
 
-from . import structs
-from .accel import tile_grid
-from .accel.bvh import BVH, build_bvh
-from .device import Engine
-from .scene.normalised import Frame, camera_struct, light_structs, medium_struct, triangle_soup
-from .scene.model import Scene
-from .stats import Stats
+from ..device import structs
+from ..accel import tile_grid
+from ..accel.bvh import BVH, build_bvh
+from ..device import Engine
+from ..scene.normalised import (Frame, camera_struct, light_structs, medium_struct, triangle_soup)
+from ..scene.model import Scene
+from ..io.stats import Stats
 
 
 @dataclass

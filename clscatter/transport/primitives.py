@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .device import Engine
+from ..device import Engine
 
 PROGRAM = "primitives"
 SCAN_BLOCK = 1024           # entries scanned sequentially by one work-item

@@ -2,7 +2,7 @@
 re-running only the stages whose inputs changed (Sun et al. 2008, sec. 3 and 6: "only
 some of the stages need to be executed").
 
-A :class:`Relighter` is a :class:`~clscatter.session.RenderSession` with the ``voxel``
+A :class:`Relighter` is a :class:`~clscatter.pipeline.session.RenderSession` with the ``voxel``
 method and convenience setters; the session keeps the BVH, the device buffers and the view
 paths, and the voxel method keeps its grid stages between renders (``Voxel._CACHE``), so
 there is one warm-path mechanism for every method.
@@ -27,10 +27,10 @@ from typing import Any
 
 import numpy as np
 
-from ...device import Engine
-from ...errors import SceneError
-from ...scene.model import Scene
-from ...session import RenderSession
+from ..device import Engine
+from ..errors import SceneError
+from ..scene.model import Scene
+from .session import RenderSession
 
 
 def _rgb(value) -> np.ndarray:

@@ -33,7 +33,7 @@ Point and spot lights: a mixture of cones
 
 Directional lights: the objects' projected footprint
     The start rectangle (facing the light, upstream of the whole scene, as in
-    :func:`clscatter.light_paths.emission`) is shrunk to the bounding rectangle of the
+    :func:`clscatter.transport.light_paths.emission`) is shrunk to the bounding rectangle of the
     spheres' projections onto it; every ray that can hit a specular object starts in it.
     Start points are uniform, so the flux per ray is ``E * area / N`` as before.
 
@@ -48,7 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import structs
+from ..device import structs
 
 #: mixtures with more cones than this are merged into one cone per light (the kernel
 #: tests every cone for every ray)
@@ -81,7 +81,7 @@ class Targets:
 
 def specular_spheres(ps) -> list[tuple[np.ndarray, float]]:
     """Bounding spheres ``(centre, radius)`` of the mirror and dielectric objects, in the
-    normalised frame of ``ps`` (a :class:`~clscatter.prepared.PreparedScene`)."""
+    normalised frame of ``ps`` (a :class:`~clscatter.transport.prepared.PreparedScene`)."""
     out = []
     for obj in ps.scene.objects:
         if obj.material.type not in ("mirror", "dielectric") or not len(obj.vertices):
@@ -114,7 +114,7 @@ def _cone(p: np.ndarray, c: np.ndarray, r: float) -> tuple[np.ndarray, float, fl
 
 def targets(ps, index: int, spheres: list[tuple[np.ndarray, float]] | None = None) -> Targets:
     """The targeted emission of light ``index`` towards the specular objects of ``ps``."""
-    from .light_paths import emission   # (light_paths imports nothing from here)
+    from .light_paths import emission
     spheres = specular_spheres(ps) if spheres is None else spheres
     L = ps.lights[index]
     I = L["power"][:3].astype(np.float64)

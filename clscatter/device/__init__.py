@@ -32,7 +32,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .errors import DeviceError, KernelArgError, KernelBuildError
+from ..errors import DeviceError, KernelArgError, KernelBuildError
 
 ENV_DEVICE = "CLSCATTER_DEVICE"
 ENV_CACHE = "CLSCATTER_CACHE_DIR"
@@ -60,7 +60,7 @@ _KERNEL_DIR: Path | None = None
 
 
 def _find_kernel_dir() -> Path:
-    here = Path(__file__).resolve().parent
+    here = Path(__file__).resolve().parents[1]      # the clscatter package
     checkout = here.parent / "cl_kernels"
     if (checkout / "common.h").is_file():
         return checkout

@@ -1,0 +1,1 @@
+"""Images, output files and render statistics."""
