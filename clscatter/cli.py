@@ -91,7 +91,7 @@ def _build_parser() -> argparse.ArgumentParser:
     v = sub.add_parser("devices", help="list OpenCL platforms and devices")
     v.add_argument("--device", default=None, help="show which device this spec chooses")
 
-    from .serve import add_serve_command       # imports no web framework until it runs
+    from .serve import add_serve_command  # imports no web framework until it runs
     add_serve_command(sub)
 
     s = sub.add_parser("scenes", help="list built-in scenes")
@@ -146,12 +146,12 @@ def _note(line: str) -> None:
 def _cmd_render(args: argparse.Namespace) -> int:
     stats = args.stats_obj
     with stats.stage("startup"):     # imports of the render path, and the output checks
-        from .pipeline.budget import parse_bytes
         from .io.image import write_image
         from .io.outputs import check_output, write_all
+        from .io.stats import write_json
+        from .pipeline.budget import parse_bytes
         from .pipeline.render import render
         from .scene import DEFAULT_BUILTIN, load_scene
-        from .io.stats import write_json
 
         # every output is checked before any work: nothing is rendered for nothing
         outputs = [check_output(o, IMAGE_SUFFIXES, "-o") for o in (args.output or [DEMO_OUTPUT])]
@@ -201,9 +201,10 @@ def diff_command(
 
     Prints one ``name: value`` line per metric (rmse, relmse, psnr (with ``dB``),
     ssim, max_error), or, with ``as_json``, a single JSON object with those five keys
-    (non-finite values as strings, see :func:`to_json_safe`). Writes the error heatmap
-    to ``heatmap_path`` if given. Returns 0; unreadable files, images with NaN or Inf
-    pixels, or images of different sizes raise ImageError naming the files.
+    (non-finite values as strings, see :func:`~clscatter.io.stats.json_safe`). Writes the error heatmap
+    to ``heatmap_path`` if given. Returns 0; unreadable files, a linear image (EXR, NPY,
+    PFM) against a tone-mapped one (PNG), images with NaN or Inf pixels, or images of
+    different sizes raise ImageError naming the files.
     """
     import json
     import math
@@ -212,10 +213,18 @@ def diff_command(
     import numpy as np
 
     from .errors import ImageError
-    from .io.image import METRIC_KEYS, compare, read_image, to_json_safe, write_heatmap
+    from .io.image import (
+        METRIC_KEYS,
+        check_comparable,
+        compare,
+        read_image,
+        write_heatmap,
+    )
+    from .io.stats import json_safe
 
     a = read_image(a_path)
     b = read_image(b_path)
+    check_comparable(a_path, b_path)       # linear vs tone-mapped: no metric means anything
     for path, img in ((a_path, a), (b_path, b)):
         bad = int((~np.isfinite(img)).any(axis=-1).sum())
         if bad:
@@ -231,7 +240,7 @@ def diff_command(
     if heatmap_path is not None:
         write_heatmap(heatmap_path, a, b)
     if as_json:
-        print(json.dumps(to_json_safe(metrics)))
+        print(json.dumps(json_safe(metrics)))
     else:
         for key in METRIC_KEYS:
             unit = " dB" if key == "psnr" and math.isfinite(metrics[key]) else ""
@@ -257,11 +266,11 @@ def _cmd_relight(args: argparse.Namespace) -> int:
     """Frames of a light or camera orbit, written to a folder with ``frames.json``: into
     a hidden staging folder beside it first, moved there only when every frame is done
     (an interrupted or failed animation leaves the folder as it was)."""
-    from .animation import orbit
+    from .animation import orbit, orbit_path
     from .io.image import write_image
     from .io.outputs import staged_folder
-    from .scene import DEFAULT_BUILTIN, load_scene
     from .io.stats import progress, write_json
+    from .scene import DEFAULT_BUILTIN, load_scene
 
     spec = args.scene or f"builtin:{DEFAULT_BUILTIN}"
     out = Path(args.output)
@@ -274,6 +283,13 @@ def _cmd_relight(args: argparse.Namespace) -> int:
     scene = load_scene(spec, args.overrides)
     _check_frames_fit(out, args.frames, scene.camera.width * scene.camera.height, args.format)
     frames = orbit(scene, args.frames, args.orbit)
+    path = orbit_path(scene, args.orbit)              # the axis and radii, for frames.json
+    for m in path.movers:
+        if m.widened:
+            _note(f"{m.key} is close to the orbit's axis: it orbits at "
+                  + (f"radius {m.radius:.3g} (its height kept)" if m.radius is not None
+                     else f"{m.tilt_deg:g} degrees from the axis")
+                  + " so that the frames differ")
     from .pipeline.render import check
     check(scene, args.method)                        # bad parameters fail before any frame
     digits = max(4, len(str(len(frames) - 1)))
@@ -304,10 +320,12 @@ def _cmd_relight(args: argparse.Namespace) -> int:
                         **{k: res.stats[k] for k in ("voxel_stages_run", "voxel_stage_seconds")
                            if k in res.stats}})
                     bar.update(1)
-        record.update(scene=spec, orbit=args.orbit, count=len(frames), files=names)
+        record.update(scene=spec, orbit=args.orbit, count=len(frames), files=names,
+                      **path.record())
         write_json(stage / "frames.json", record)
     total = sum(f["seconds"] for f in record["frames"])
-    print(f"{spec}: {len(frames)} frames ({args.orbit} orbit) in {total:.2f} s -> {out}/")
+    radius = f", radius {path.radius:.3g}" if path.radius is not None else ""
+    print(f"{spec}: {len(frames)} frames ({args.orbit} orbit{radius}) in {total:.2f} s -> {out}/")
     return 0
 
 
@@ -337,7 +355,13 @@ def _first_duplicate(paths: list[Path]) -> Path:
 
 def _cmd_check(args: argparse.Namespace) -> int:
     """Validate the scene and the method parameters, print the plan and the estimates."""
-    from .pipeline.budget import (check_budget, human_bytes, memory_budget, parse_bytes, peak_bytes)
+    from .pipeline.budget import (
+        check_budget,
+        human_bytes,
+        memory_budget,
+        parse_bytes,
+        peak_bytes,
+    )
     from .pipeline.render import check
     from .scene import DEFAULT_BUILTIN, load_scene
 
@@ -402,11 +426,23 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
                                  f"(one of {', '.join(sorted(BUILTIN))})")
         sys.stdout.write(builtin_toml(args.dump))
         return 0
+    labels = {name: f"builtin:{name}" + (" (default)" if name == DEFAULT_BUILTIN else "")
+              for name in BUILTIN}
+    width = max(map(len, labels.values()), default=0)
     for name in sorted(BUILTIN):
-        mark = " (default)" if name == DEFAULT_BUILTIN else ""
-        doc = (BUILTIN[name].__doc__ or "").strip().splitlines()
-        print(f"builtin:{name}{mark}  {doc[0] if doc else ''}")
+        print(f"{labels[name]:<{width}}  {scene_summary(BUILTIN[name].__doc__)}".rstrip())
     return 0
+
+
+def scene_summary(doc: str | None) -> str:
+    """The first paragraph of a built-in scene's description, on one line and whole (never
+    cut mid-sentence), without the double backquotes that mark code in the docstring."""
+    paragraph = []
+    for line in (doc or "").strip().splitlines():
+        if not line.strip():
+            break
+        paragraph.append(line.strip())
+    return " ".join(" ".join(paragraph).replace("``", "").split())
 
 
 def main(argv: Sequence[str] | None = None) -> int:

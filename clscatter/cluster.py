@@ -34,7 +34,6 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -162,6 +161,7 @@ class Cluster:
     def __init__(self, workers: int | None = None, address: str | None = None,
                  device: str | None = None):
         from distributed import Client, LocalCluster
+
         from .errors import ClscatterError
         self._local = None
         if address:
@@ -292,13 +292,3 @@ class Cluster:
                 "cluster_tasks": len(futures)}
 
 
-def frames_dir(path: str | Path) -> Path:
-    """Check a frames output folder before rendering (exists or can be made; writable)."""
-    from .errors import ClscatterError
-    p = Path(path)
-    if p.exists() and not p.is_dir():
-        raise ClscatterError(f"{path}: frames output must be a folder")
-    parent = p.resolve().parent
-    if not parent.is_dir():
-        raise ClscatterError(f"{path}: parent folder {parent} does not exist")
-    return p

@@ -14,6 +14,14 @@ if ! installed pocl-opencl-icd || ! installed ocl-icd-libopencl1; then
   $SUDO apt-get update -qq
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq pocl-opencl-icd ocl-icd-libopencl1 >/dev/null
 fi
+# Oclgrind, a second OpenCL implementation (a strict simulator reporting invalid accesses
+# and data races), for the test that runs every method under it
+if ! installed oclgrind; then
+  echo "setup: installing oclgrind from Debian (every method is tested under it)" >&2
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq oclgrind >/dev/null \
+    || echo "setup: oclgrind could not be installed; its test will be skipped" >&2
+fi
 # headless Chromium for the browser test of `clscatter serve` (Playwright drives Debian's
 # chromium; Playwright's own browser download is not used)
 if ! command -v chromium >/dev/null 2>&1; then

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl as cl
 
-from clscatter.device import kernel_dir
+from clscatter.device import kernel_dirs
 
 
 def layout_mismatches(engine, header: str, dtypes: dict[str, np.dtype]) -> list[tuple]:
@@ -22,7 +22,7 @@ def layout_mismatches(engine, header: str, dtypes: dict[str, np.dtype]) -> list[
                          f"(__private char *)&{var});")
             expected.append((cname, field, dt.fields[field][1]))
     lines.append("}")
-    prog = cl.Program(engine.ctx, "\n".join(lines)).build(options=["-I", str(kernel_dir())])
+    prog = cl.Program(engine.ctx, "\n".join(lines)).build(options=[o for d in kernel_dirs() for o in ("-I", str(d))])
     out = cl.Buffer(engine.ctx, cl.mem_flags.WRITE_ONLY, 4 * len(expected))
     prog.layout(engine.queue, (1,), None, out)
     got = np.empty(len(expected), np.int32)

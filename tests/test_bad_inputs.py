@@ -89,7 +89,7 @@ SCENE_CASES = [
     ("render.vpm.dx=0", "render.vpm.dx"), ("render.bogus=1", "render.bogus"),
     ("render.nope.x=1", "render.nope"),
     ("render.lsg=3", "render.lsg"),
-    # beyond float32, in which the device computes (an outside check got black images)
+    # beyond float32, in which the device computes (such values gave black images)
     ("lights[0].intensity=1e39", "lights[0].intensity"), ("medium.sigma_s=1e300", "medium.sigma_s"),
     ("camera.origin=[1e39,0,0]", "camera.origin"), ("medium.sigma_a=[0,0,-1e39]", "medium.sigma_a"),
     ("lights[0].intensity=3e38", "lights[0].intensity"),    # float32 until divided by 0.8^2
@@ -256,8 +256,8 @@ def test_oversized_requests_are_refused_quickly(args, key, tmp_path, capsys):
 
 
 def test_check_bounds_the_budget_by_the_device_as_render_does(tmp_path, capsys, monkeypatch):
-    """``clscatter check`` refuses what ``render`` would (an outside check found it
-    approving a render that the device's memory then refused): with the chosen device
+    """``clscatter check`` refuses what ``render`` would (it must not approve a render
+    that the device's memory then refuses): with the chosen device
     reporting 1 MiB, both refuse a 2 MiB render naming device memory."""
     from types import SimpleNamespace
 
@@ -364,8 +364,8 @@ def test_interrupting_a_long_render_leaves_no_output(tmp_path):
 
 def test_interrupting_an_animation_leaves_no_frames(tmp_path):
     """SIGTERM during ``relight``: the frames rendered so far were staged beside the
-    output folder and are deleted; the folder is not created (an outside check found
-    frames left behind under "nothing was written")."""
+    output folder and are deleted; the folder is not created (no frames are left behind
+    under "nothing was written")."""
     out = tmp_path / "frames"
     p = subprocess.Popen([sys.executable, "-m", "clscatter", "relight", "builtin:occluder",
                           "--frames", "5000", "--format", "npy", "-o", str(out), "--no-progress",

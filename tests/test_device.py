@@ -82,11 +82,10 @@ def test_binary_cache_skips_recompilation(tmp_path, monkeypatch):
 
 
 def test_build_error_carries_the_compiler_log(tmp_path, monkeypatch):
-    (tmp_path / "common.h").write_text((dev.kernel_dir() / "common.h").read_text())
     (tmp_path / "broken.cl").write_text('#include "common.h"\n__kernel void k(__global float *a) '
                                         '{ a[0] = undefined_symbol_xyz; }\n')
     e = dev.Engine(dev.choose_device())
-    monkeypatch.setattr(dev, "kernel_dir", lambda: tmp_path)
+    monkeypatch.setattr(dev, "_EXTRA_DIRS", [tmp_path])
     monkeypatch.setenv(dev.ENV_CACHE, str(tmp_path / "cache"))
     with pytest.raises(KernelBuildError, match="undefined_symbol_xyz"):
         e.program("broken")

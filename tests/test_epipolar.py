@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +15,8 @@ from clscatter.device import structs
 from clscatter.accel.bvh import build_bvh, trace
 from clscatter.methods.epipolar import geometry as geo
 from clscatter.methods.epipolar import svd
+
+EPI_STRUCTS = {"EpiFrame": geo.EPI_FRAME, "EpiSlice": geo.EPI_SLICE, "EpiFace": geo.EPI_FACE}
 from clscatter.scene.normalised import Frame, camera_struct
 from clscatter.scene.model import Camera
 
@@ -72,9 +75,9 @@ def _setup(kind="dir", eye=(0.1, 0.2, 1.2), target=(0.0, 0.15, 0.0), d=64, w=64,
 # structs
 
 def test_struct_layouts_match(engine):
-    bad = layout_mismatches(engine, "epipolar.h", geo.STRUCTS)
+    bad = layout_mismatches(engine, "epipolar.h", EPI_STRUCTS)
     assert not bad, f"layout mismatches (struct, field, host, device): {bad}"
-    assert all(dt.itemsize % 16 == 0 for dt in geo.STRUCTS.values())
+    assert all(dt.itemsize % 16 == 0 for dt in EPI_STRUCTS.values())
 
 
 # ---------------------------------------------------------------------------------------
@@ -83,6 +86,8 @@ def test_struct_layouts_match(engine):
 def _run_fenwick(engine, init, ops, nch):
     ntree, d, nv = init.shape
     nq = int((ops[:, 0] == 1).sum())
+    from clscatter.device import add_kernel_dir
+    add_kernel_dir(Path(__file__).parent / "kernels")      # the test-only hook, fenwick.cl
     k = engine.kernel("fenwick", "fenwick_test", {"EPI_NT": nv // nch, "EPI_NCH": nch})
     bufs = [engine.to_device(init), engine.to_device(ops), engine.empty(init.nbytes),
             engine.empty(init.nbytes), engine.empty(4 * ntree * nq * nv)]
@@ -285,8 +290,9 @@ def test_svd_fourth_singular_value_claim():
     held-out error estimate of 4 terms there (view rays of the slices, Gauss nodes that
     are not the SVD's samples) is reported: it exceeds the tolerance in most but not all
     of those matrices (measured 0.004 .. 0.11), which is why the claim is checked too."""
-    from clscatter.methods.epipolar.pipeline import Settings, _views
-    tol = Settings().svd_tolerance
+    from clscatter.methods.epipolar.pipeline import _views
+    from clscatter.methods.epipolar.settings import settings
+    tol = settings().svd_tolerance
     rng = np.random.default_rng(3)
     worst = {"dir": 0.0, "spot": 0.0}
     fails, n, blind = [], 0, 0
@@ -370,8 +376,8 @@ def test_float32_bound_exceeds_the_emulation():
     diagonal); and useful: small enough to skip the emulation in 95% of the cases.
     Measured: the least per-sample ratio bound / emulation 1.15; the RMS ratio 4.3 .. 12 (median)
     .. 203, the bound at most 1.1e-3."""
-    from clscatter.methods.epipolar.pipeline import (F32_BOUND_DEPTH, F32_BOUND_ENOUGH, Settings,
-                                                     _truncate)
+    from clscatter.methods.epipolar.pipeline import F32_BOUND_DEPTH, F32_BOUND_ENOUGH, _truncate
+    from clscatter.methods.epipolar.settings import settings
     rng = np.random.default_rng(5)
     n, ratios = 0, []
     for i, (kind, axis, sl, box, gr, br) in enumerate(_sweep_configs()):
@@ -402,7 +408,7 @@ def test_float32_bound_exceeds_the_emulation():
           f"{r[:, 0].max():.3g}; bound RMS up to {r[:, 1].max():.3g}")
     assert np.median(r[:, 0]) <= 20.0
     # useful: it settles the float32 question (the emulation is skipped) in these media
-    assert np.mean(r[:, 1] <= F32_BOUND_ENOUGH * Settings().svd_tolerance) >= 0.95
+    assert np.mean(r[:, 1] <= F32_BOUND_ENOUGH * settings().svd_tolerance) >= 0.95
 
 
 def test_riemann_sums_against_a_loop():

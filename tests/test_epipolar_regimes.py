@@ -1,4 +1,4 @@
-"""Epipolar method in the regimes of issue 8, against ``raymarch``: optical depth, camera
+"""Epipolar method across its hard regimes, against ``raymarch``: optical depth, camera
 inside/outside the medium, light behind/beside/in front of the camera and along the view
 axis, directional and spot lights, wide spot cones; the error estimate and the fallback.
 
@@ -41,9 +41,9 @@ def _pair(engine, d: dict, ref_steps: int = REF_STEPS, params: dict | None = Non
     ps = prepare_scene(scene_from_dict(d), engine)
     try:
         paths = trace_view_paths(ps, show_progress=False)
-        ref = RayMarch({"steps": ref_steps}).render(ps, paths, Stats(), False)
+        ref = RayMarch({"steps": ref_steps}).run(ps, paths, Stats(), False).radiance()
         st = Stats()
-        got = Epipolar(params or {}).render(ps, paths, st, False)
+        got = Epipolar(params or {}).run(ps, paths, st, False).radiance()
     finally:
         ps.release()
     return got, ref, st.values
@@ -92,7 +92,7 @@ def test_sweep_against_raymarch(engine, kind):
 
 
 def test_thick_fog_seen_from_outside(engine):
-    """Issue 8's scene (sigma_s = 1, sigma_a = 0.1, sun behind the camera, camera outside):
+    """A thick fog (sigma_s = 1, sigma_a = 0.1, sun behind the camera, camera outside):
     previously 16.9 x too bright at 48 x 36 (relMSE 126); now relMSE <= 1e-4 (measured
     5e-7) and the mean within 1 % (measured 1.001), swept (not ray marched) with the
     terms its estimate asks for (16, where 4 are estimated at an RMS error of ~100), and
@@ -113,7 +113,7 @@ def test_thick_fog_seen_from_outside(engine):
     ps = prepare_scene(scene_from_dict(d), engine)
     try:
         st2 = Stats()
-        forced.render(ps, trace_view_paths(ps, show_progress=False), st2, False)
+        forced.run(ps, trace_view_paths(ps, show_progress=False), st2, False).radiance()
     finally:
         ps.release()
     assert st2.values["epipolar_lights"][0].get("fallback") == "raymarch"
@@ -127,7 +127,7 @@ def test_spot_cutoffs_with_a_grille(engine, cutoff):
     1.4e-6; what remains at wide cones is the half-pixel slice spacing across shafts
     fanning out in every direction: 2.7 x the slices halve it), mean within 1 % (0.997 ..
     1.008); cones wider than 60 degrees use five cube faces, so no light ray goes
-    unshadowed (the issue: a 90-degree cone was 5 % too bright, relMSE 9.5e-4)."""
+    unshadowed (otherwise a 90-degree cone is 5 % too bright, relMSE 9.5e-4)."""
     d = epi_wide_spot(cutoff, (48, 36))
     d["camera"]["spp"] = 1
     got, ref, st = _pair(engine, d, 256)
@@ -183,7 +183,7 @@ def test_epipole_ring_in_angle_with_a_blended_band(engine):
     ps = prepare_scene(scene_from_dict(d), engine)
     try:
         paths = trace_view_paths(ps, show_progress=False)
-        ref = RayMarch({"steps": 512}).render(ps, paths, Stats(), False)
+        ref = RayMarch({"steps": 512}).run(ps, paths, Stats(), False).radiance()
         cam = geo.CameraGeom.from_struct(ps.camera)
         axis = geo.make_axis(ps.lights[0], cam.origin)
         xy = np.stack(np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5), -1).reshape(-1, 2)
@@ -193,9 +193,9 @@ def test_epipole_ring_in_angle_with_a_blended_band(engine):
         out = {}
         for band in (0.0, 1.0):
             m = Epipolar({})
-            m.settings = dataclasses.replace(m.settings, ring_band=band)
+            m.settings = dataclasses.replace(m.settings, epipole_band=band)
             st = Stats()
-            got = m.render(ps, paths, st, False)
+            got = m.run(ps, paths, st, False).radiance()
             out[band] = (relmse(got[near], ref[near]), relmse(got, ref), st.values)
     finally:
         ps.release()

@@ -6,14 +6,15 @@ import analytic
 import numpy as np
 import pytest
 
-from clscatter.methods.epipolar.pipeline import Settings, render_light
+from clscatter.methods.epipolar.pipeline import render_light
+from clscatter.methods.epipolar.settings import settings
 from clscatter.errors import SceneError
 from clscatter.io.image import relmse
 from clscatter.methods.epipolar import Epipolar
 from clscatter.transport.prepared import prepare_scene
 from clscatter.transport.view_paths import trace_view_paths
 from clscatter.pipeline.render import render
-from clscatter.scene.builtin.epipolar import EPIPOLAR_SCENES, load_epipolar_scene
+from clscatter.scene.builtin.epipolar import EPIPOLAR_SCENES
 from clscatter.scene.loader import load_scene, scene_from_dict
 from clscatter.io.stats import Stats
 
@@ -53,7 +54,7 @@ def test_directional_slab_matches_closed_form(engine, direction, target):
     5e-4 of the mean."""
     ps, segs = _segments(engine, _slab_scene(direction, target))
     try:
-        out = render_light(ps, 0, segs, Settings(epipole_ring=0.0, ring_degrees=0.0, light_rays=256), Stats(), False)
+        out = render_light(ps, 0, segs, settings(epipole_ring=0.0, light_rays=256), Stats(), False)
         eye = ps.camera["origin"][:3].astype(np.float64)
         v = segs["b"][:, :3].astype(np.float64) - eye
         m = ps.medium
@@ -96,7 +97,7 @@ def test_spot_unbounded_matches_quadrature(engine):
     }
     ps, segs = _segments(engine, scene)
     try:
-        out = render_light(ps, 0, segs, Settings(epipole_ring=0.0, ring_degrees=0.0, light_rays=256), Stats(), False)
+        out = render_light(ps, 0, segs, settings(epipole_ring=0.0, light_rays=256), Stats(), False)
         eye = ps.camera["origin"][:3].astype(np.float64)
         v = segs["b"][:, :3].astype(np.float64) - eye
         t_b = np.linalg.norm(v, axis=1)
@@ -137,7 +138,7 @@ _SCENES = [
 @pytest.mark.parametrize("name,make,bound", _SCENES)
 def test_matches_raymarch_on_shaft_scenes(engine, name, make, bound):
     if make is None:
-        scene = load_epipolar_scene(name, SMALL)
+        scene = load_scene(f"builtin:{name}", SMALL)
     else:
         from clscatter.scene.loader import apply_overrides
         scene = scene_from_dict(apply_overrides(make(), SMALL))
@@ -158,7 +159,7 @@ def test_matches_raymarch_on_shaft_scenes(engine, name, make, bound):
 def test_grid_lookup_matches_raymarch(engine):
     """The paper's variant: rectified camera depth map, bilinear unrectification (depth
     edges are interpolated across): relMSE <= 1.2e-3 (measured 4.3e-4)."""
-    scene = load_epipolar_scene("epi_grille", SMALL + ["render.epipolar.lookup='grid'"])
+    scene = load_scene("builtin:epi_grille", SMALL + ["render.epipolar.lookup='grid'"])
     scene.render.params["raymarch"] = {"steps": 256}
     ref = render(scene, "raymarch", engine, show_progress=False)
     got = render(scene, "epipolar", engine, show_progress=False)

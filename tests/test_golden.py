@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from golden_cases import GOLDEN, METHODS, key, render_case, sources
 
 # float atomics (voxel deposition) add in thread order: measured up to 5.4e-8 of the peak

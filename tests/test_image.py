@@ -12,9 +12,9 @@ import OpenEXR
 import pytest
 from matplotlib import colormaps
 
-from clscatter.io import image as im
 from clscatter.cli import diff_command
 from clscatter.errors import ImageError
+from clscatter.io import image as im
 
 LOSSLESS = ("exr", "npy", "pfm")
 
@@ -395,7 +395,8 @@ def test_shape_mismatch(func):
 
 def test_to_json_safe():
     m = {"psnr": math.inf, "a": -math.inf, "b": math.nan, "rmse": 0.5}
-    safe = im.to_json_safe(m)
+    from clscatter.io.stats import json_safe
+    safe = json_safe(m)
     assert safe == {"psnr": "inf", "a": "-inf", "b": "nan", "rmse": 0.5}
     json.dumps(safe, allow_nan=False)  # strict JSON
     assert m["psnr"] == math.inf  # input untouched
@@ -502,3 +503,30 @@ def test_diff_command_errors(tmp_path):
     with pytest.raises(ImageError) as exc:
         diff_command(tmp_path / "small.npy", tmp_path / "nothere.exr")
     assert "nothere.exr" in _assert_one_line(exc)
+
+
+def test_linear_and_tone_mapped_formats():
+    """PNG is the only tone-mapped format; check_comparable refuses exactly the mixed pairs,
+    naming both files in one line."""
+    assert im.is_tone_mapped("a.png") and im.is_tone_mapped("A.PNG")
+    assert not any(im.is_tone_mapped(f"a.{s}") for s in ("exr", "npy", "pfm", "EXR"))
+    assert set(im.LINEAR_SUFFIXES) | set(im.TONE_MAPPED_SUFFIXES) == set(im.SUPPORTED_SUFFIXES)
+    for a, b in [("a.exr", "b.npy"), ("a.pfm", "b.exr"), ("a.png", "b.PNG")]:
+        im.check_comparable(a, b)                                # like with like: no error
+    for a, b in [("a.exr", "b.png"), ("a.png", "b.npy"), ("x/a.PNG", "b.pfm")]:
+        with pytest.raises(ImageError) as e:
+            im.check_comparable(a, b)
+        msg = str(e.value)
+        assert a in msg and b in msg and "\n" not in msg
+        assert "linear" in msg and "tone-mapped" in msg and "two PNGs" in msg
+    with pytest.raises(ImageError, match="unsupported image format"):
+        im.is_tone_mapped("a.gif")
+
+
+def test_diff_command_refuses_png_against_exr(tmp_path, capsys):
+    img = np.full((3, 4, 3), 0.25, np.float32)
+    im.write_image(tmp_path / "a.exr", img)
+    im.write_image(tmp_path / "b.png", img)
+    with pytest.raises(ImageError, match="comparing a linear image with a tone-mapped one"):
+        diff_command(tmp_path / "a.exr", tmp_path / "b.png", heatmap_path=tmp_path / "h.png")
+    assert capsys.readouterr().out == "" and not (tmp_path / "h.png").exists()

@@ -87,8 +87,8 @@ def test_automatic_radius_ignores_scale_and_far_objects(engine):
     world radius (measured 2.6x the noise, from that 0.15%; bound 10x). (The images
     with and without the far objects differ by ~180x the noise for reasons that are not
     the radius: the normalised frame is 25x coarser, so some deep glass chains of the
-    light and view tracers end differently, as they do for raymarch: a tracer issue,
-    reported.) The old rule, a fixed fraction of the bounding box (radius = 0.003),
+    light and view tracers end differently, as they do for raymarch: a property of
+    the tracers.) The old rule, a fixed fraction of the bounding box (radius = 0.003),
     grows the radius 25x with the far objects: that changes the image by 1.5e6x the
     noise (bound 1000x)."""
     d = copy.deepcopy(SCENE)

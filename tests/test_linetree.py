@@ -1,11 +1,11 @@
-"""The line-space hierarchy (clscatter/methods/lsg/linetree.py): the perfect 8-ary tree's
+"""The line-space hierarchy (clscatter/estimators/line_tree.py): the perfect 8-ary tree's
 structure, and the Plücker plane-query bound that its culling rests on."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from clscatter.methods.lsg.linetree import (PluckerFrame, box_plane_range, build_linetree,
+from clscatter.estimators.line_tree import (PluckerFrame, box_plane_range, build_linetree,
                                       canonical_signs, plane_of, plucker, tree_levels)
 
 

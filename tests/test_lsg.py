@@ -16,10 +16,12 @@ import pytest
 
 import analytic
 from clscatter.device import structs
-from clscatter.methods.lsg.linetree import PluckerFrame
+from clscatter.estimators.line_tree import PluckerFrame
 from clscatter.io.image import relmse
 from clscatter.transport.light_paths import trace_light_paths
-from clscatter.methods.lsg import STRUCTS, Gatherer, clip_segments
+from clscatter.estimators.line_gather import LINE_NODE, LSG_LINE, Gatherer, clip_segments
+
+STRUCTS = {"LineNode": LINE_NODE, "LsgLine": LSG_LINE}
 from clscatter.transport.prepared import prepare_scene
 from clscatter.transport.view_paths import trace_view_paths
 from clscatter.pipeline.render import render
@@ -39,7 +41,7 @@ def _unit(v):
 
 
 # --------------------------------------------------------------------------------------
-# struct layout (cl_kernels/lsg.h vs clscatter/methods/lsg.py)
+# struct layout (cl_kernels/lsg.h vs clscatter/estimators/line_gather.py)
 # --------------------------------------------------------------------------------------
 def test_lsg_struct_layouts_match(engine):
     bad = layout_mismatches(engine, "lsg.h", STRUCTS)
@@ -483,7 +485,7 @@ def test_leaf_point_counts_match_a_numpy_walk_of_the_tree(engine):
     per-point plane test) against a float64 NumPy walk of the same tree with the same
     node test and threshold (lsg.h: lsg_threshold): equal within 0.5% (float32 vs
     float64 on boundary cases), >= the exact tests; exhaustive: every pair."""
-    from clscatter.methods.lsg import prepare_lines
+    from clscatter.estimators.line_gather import prepare_lines
     rng = np.random.default_rng(5)
     lights, views = _random_set("random", rng, nl=3000, nv=200)
     r = 0.03
@@ -604,7 +606,7 @@ def test_light_entering_the_medium_is_continued_beyond_its_face(engine, monkeypa
     r / cos (flux continued exponentially), and those leaving it forward likewise: the
     image mean's deficit falls from 0.90 % to 0.01 % (asserted: below 0.4 %, and above
     0.6 % without it)."""
-    import clscatter.methods.lsg as lsg_mod
+    import clscatter.estimators.line_gather as lsg_mod
     d = _slab_regime(10.0, "outside", "side")
     with_it = 1.0 - _slab_mean_ratio(engine, d)
     monkeypatch.setattr(lsg_mod, "continue_across_faces", lambda segs, medium, radius: segs)
@@ -619,7 +621,7 @@ def test_continue_across_faces_moves_only_segments_crossing_a_face():
     ending on a face heading out reaches r / cos(exit) further, flux unchanged; one inside,
     or starting on a face heading out, is unchanged; so is everything in an unbounded
     medium."""
-    from clscatter.methods.lsg import continue_across_faces
+    from clscatter.estimators.line_gather import continue_across_faces
     med = np.zeros(1, structs.MEDIUM)
     med["bmin"][0, :3], med["bmax"][0, :3] = [-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]
     med["kappa"][0, :3] = [2.0, 3.0, 4.0]

@@ -21,13 +21,14 @@ def test_every_subpackage_is_listed():
     assert found - listed == set(), f"add to pyproject.toml [tool.setuptools] packages: {sorted(found - listed)}"
     assert "clscatter.cl_kernels" in listed
     data = cfg["tool"]["setuptools"]["package-data"]["clscatter.cl_kernels"]
-    assert "*.cl" in data and "*.h" in data
+    for group in ("shared", "transport", "estimators", "methods"):
+        assert f"{group}/*.cl" in data or f"{group}/*.h" in data
 
 
 def test_kernel_sources_are_found():
     from clscatter.device import kernel_dir
     kd = kernel_dir()
-    assert (kd / "common.h").is_file() and (kd / "view_paths.cl").is_file()
+    assert (kd / "shared" / "common.h").is_file() and (kd / "transport" / "view_paths.cl").is_file()
 
 
 def test_nothing_points_outside_the_repository():

@@ -59,7 +59,7 @@ def _per_pass_errors(engine, d, reference, passes, seeds, mask=None, per_view=Fa
             err[i - 1] += float((diff ** 2).mean()) / len(seeds)
         m.pass_callback = grab
         stats = Stats()
-        m.render(ps, paths, stats, show_progress=False)
+        m.run(ps, paths, stats, show_progress=False).radiance()
     ps.release()
     return err, stats.to_dict()
 

@@ -235,7 +235,7 @@ def test_raymarch_kernel_segments_against_quadrature(engine, thick):
     segs["pixel"] = np.arange(n)
     segs["sample"] = np.arange(n)
     from clscatter.io.stats import Stats
-    img = RayMarch({"steps": 64}).render(ps, ViewPaths(None, None, segs), Stats(), False)
+    img = RayMarch({"steps": 64}).run(ps, ViewPaths(None, None, segs), Stats(), False).radiance()
     ps.release()
     m, L = d["medium"], d["lights"][0]
     kappa = np.add(m["sigma_s"], m["sigma_a"])
@@ -315,7 +315,7 @@ def test_raymarch_thick_medium_against_closed_form(engine, direction, scale):
     ps = prepare_scene(_scene(_thick_slab(direction, scale)), engine)
     try:
         paths = trace_view_paths(ps, show_progress=False)
-        img = RayMarch({"steps": 8}).render(ps, paths, Stats(), False).reshape(-1, 3)
+        img = RayMarch({"steps": 8}).run(ps, paths, Stats(), False).radiance().reshape(-1, 3)
         segs = paths.segments
         eye = ps.camera["origin"][:3].astype(np.float64)
         v = segs["b"][:, :3].astype(np.float64) - eye

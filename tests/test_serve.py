@@ -142,8 +142,43 @@ def test_initial_frames_are_preview_then_full(page):
     assert (frames[0]["width"], frames[0]["height"]) == (16, 12)      # 48/3 x 36/3, 1 spp
     assert (frames[1]["width"], frames[1]["height"]) == (48, 36)
     assert frames[0]["stats"]["stages_run"][0] == "prepare_scene"
+    assert frames[0]["notes"] == [] and frames[1]["notes"] == []   # raymarch drops nothing
     assert "bvh" in frames[1]["stats"]["reused"]           # the full render re-uses the BVH
     assert decode(frames[1]).shape == (36, 48, 3)
+
+
+def test_frames_carry_the_notes_that_leave_light_out(tmp_path, capsys):
+    """The page gets the plan's notes that leave light out of the image with every frame,
+    in the words ``clscatter render`` prints (``clscatter: note: ...``): raymarch on the
+    glass scene drops its caustics; switching to ``auto`` (which adds them) empties the
+    list. (The occluder page of the other tests never has any.)"""
+    from clscatter.cli import main
+    from clscatter.pipeline.planner import DROPS_LIGHT
+
+    tiny = ["camera.resolution=[32,24]", "camera.spp=1", 'render.method="raymarch"',
+            "render.raymarch.steps=16"]
+    with BackgroundServer("builtin:glass", tiny) as srv:
+        p = Page(srv)
+        try:
+            full = p.final(0)
+            frames = [m for m in p.seen if m["type"] == "frame"]
+            assert [f["level"] for f in frames] == ["preview", "full"]
+            notes = full["notes"]
+            assert len(notes) == 1 and notes[0].endswith(DROPS_LIGHT) and "caustics" in notes[0]
+            assert frames[0]["notes"] == notes              # the preview says it too
+            assert notes[0] in full["stats"]["plan"]
+            rid = p.set(['render.method="auto"'], mode="refine")
+            after = p.final(rid, timeout=120)
+            assert after["notes"] == [], after["notes"]
+            assert "lsg" in after["stats"]["method"]
+        finally:
+            p.close()
+    # the command line prints the same note
+    assert main(["render", "builtin:glass", "--no-progress", "-o", str(tmp_path / "x.png"),
+                 *[a for o in tiny for a in ("--set", o)]]) == 0
+    err = capsys.readouterr().err
+    assert [ln for ln in err.splitlines() if ln.startswith("clscatter: note: ")] == \
+        [f"clscatter: note: {notes[0]}"]
 
 
 def test_light_change_gives_new_frame_and_reuses_bvh(page):

@@ -78,6 +78,7 @@ def test_drag_light_type_sigma_and_screenshot(tmp_path):
             wait_final(page, 0)
             before = pixels(page)
             assert before[..., :3].max() > 50                      # a lit image, not black
+            assert not page.is_visible("#notes")                   # raymarch drops nothing here
 
             # drag the point light's handle 120 px right and 40 px up on the image
             handle = page.locator(".handle.position")
@@ -144,6 +145,35 @@ def test_drag_light_type_sigma_and_screenshot(tmp_path):
             page.screenshot(path=str(shot))
             assert shot.stat().st_size > 10_000
             print(f"screenshot: {shot}")
+            assert not errors, errors
+        finally:
+            browser.close()
+
+
+def test_notes_that_leave_light_out_are_shown():
+    """raymarch on the glass scene leaves its caustics out: the page shows the command
+    line's note above the image, and hides it again once ``auto`` (which adds them) ran."""
+    from clscatter.pipeline.planner import DROPS_LIGHT
+    from clscatter.serve import BackgroundServer
+
+    tiny = ["camera.resolution=[32,24]", "camera.spp=1", 'render.method="raymarch"',
+            "render.raymarch.steps=16"]
+    with BackgroundServer("builtin:glass", tiny) as srv, sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True)
+        try:
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(srv.url)
+            wait_final(page, 0)
+            assert page.is_visible("#notes")
+            lines = page.inner_text("#notes").strip().splitlines()
+            assert len(lines) == 1 and lines[0].startswith("note: raymarch does not compute")
+            assert lines[0].endswith(DROPS_LIGHT) and "caustics" in lines[0]
+            n = finals(page)
+            page.select_option("#method", "auto")
+            wait_final(page, n)
+            assert not page.is_visible("#notes") and page.inner_text("#notes") == ""
             assert not errors, errors
         finally:
             browser.close()

@@ -30,7 +30,7 @@ def test_struct_layouts_match(engine):
 def test_every_kernel_struct_has_a_host_twin_or_is_device_only():
     _registry()
     declared = {}
-    for path in sorted(kernel_dir().glob("*.[ch]*")):
+    for path in sorted(kernel_dir().rglob("*.[ch]*")):
         text = re.sub(r"/\*.*?\*/|//[^\n]*", " ", path.read_text(), flags=re.S)
         for m in re.finditer(r"typedef\s+struct\s*\w*\s*\{.*?\}\s*(\w+)\s*;", text, flags=re.S):
             declared[m.group(1)] = path.name

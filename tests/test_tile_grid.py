@@ -288,8 +288,8 @@ def test_shadow_rays_towards_a_point_light_through_its_cube(engine):
 
 
 def test_a_point_light_far_above_a_ball(engine):
-    """A ball on the axis of a far point light's cube (found by an outside check, which
-    crashed every method): for the four side faces the ball lies in front of the light
+    """A ball on the axis of a far point light's cube (a scene that once crashed every
+    method): for the four side faces the ball lies in front of the light
     by less than the clipping distance, with nothing left to project; it is left out
     there (no ray of those faces meets it; it was projected through a zero depth), the
     build raises no floating-point warning, and shadow rays through the cube are blocked exactly where the BVH says."""

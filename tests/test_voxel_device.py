@@ -150,7 +150,7 @@ def _host_view_pass(ps, pipe, chunk: int):
         for start in range(0, total, chunk):
             n = min(chunk, total - start)
             surf, rays, sg = _host_tracer(ps, "voxel_trace_camera", n, apps, **bounds,
-                                          cam=ps.dev.camera, seed=np.uint32(ps.scene.render.seed & 0xFFFFFFFF),
+                                          seed=np.uint32(ps.scene.render.seed & 0xFFFFFFFF),
                                           sample_offset=start, num_samples=n)
             _bincount(surface, np.arange(start, start + n) // spp, surf)
             seg_parts.append(sg)
@@ -164,7 +164,7 @@ def _host_view_pass(ps, pipe, chunk: int):
             n = len(rays)
             rin, rout, light = eng.to_device(rays), eng.empty(n * VOX_RAY.itemsize), eng.empty(16 * n)
             try:
-                eng.call("voxel", "voxel_view_march", n, rays=rin, count=n, radiance=light,
+                ps.call("voxel", "voxel_view_march", n, rays=rin, count=n, radiance=light,
                          rays_out=rout, **margs)
                 _bincount(inside, rays["pixel"], eng.read(light, (n, 4), np.float32))
                 out = eng.read(rout, n, VOX_RAY)
@@ -280,11 +280,10 @@ def test_segment_consumers_match_host_sums(staged, passes):
     med2[1]["bmin"][:3], med2[1]["bmax"][:3] = box.lo, box.hi
     segs, med = eng.to_device(host), eng.to_device(med2)
     try:
-        outer = _host_values(eng, n, lambda out: eng.call(
-            "voxel", "outer_view", n, segs=segs, count=n, medium=ps.dev.medium,
-            olo=rad.outer.lo4(), od=rad.outer.dims4(), oh=rad.outer.h, rad=rad.outer_rad,
+        outer = _host_values(eng, n, lambda out: ps.call(
+            "voxel", "outer_view", n, segs=segs, count=n, olo=rad.outer.lo4(), od=rad.outer.dims4(), oh=rad.outer.h, rad=rad.outer_rad,
             dirs=rad.outer_dirs, out=out))
-        direct = _host_values(eng, n, lambda out: eng.call(
+        direct = _host_values(eng, n, lambda out: ps.call(
             "voxel_direct", "raymarch", n, **ps.scene_args("voxel_direct", "raymarch", medium=med),
             medium=med, segs=segs, seg_offset=0, num_segs=n, scale=out, use_scale=0, steps=8,
             seed=np.uint32((ps.scene.render.seed * 7919 + 17) & 0xFFFFFFFF), out=out))
@@ -292,7 +291,7 @@ def test_segment_consumers_match_host_sums(staged, passes):
         eng.free(segs, med)
     _close(outer_view(ps, rad, dev), image(outer))
     _close(direct_outside(ps, box, dev, 8, per_launch=777), image(direct))
-    from clscatter.methods.lsg import Gatherer
+    from clscatter.estimators.line_gather import Gatherer
     ex = rad.exits
     assert len(ex) and np.array_equal(ex, ex[np.lexsort((ex["ray"], ex["light"]))])
     gat = Gatherer(eng, host, ps.medium, 0.02)

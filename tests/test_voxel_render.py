@@ -115,9 +115,7 @@ def test_relighter_runs_only_changed_stages(engine):
 def test_render_session_reuses_voxel_stages(engine):
     """The engine's generic RenderSession (clscatter relight) makes a new method object per
     frame; the voxel method still re-runs only the stages whose inputs changed."""
-    from clscatter.methods.voxel import Voxel
     from clscatter.pipeline.session import RenderSession
-    Voxel.release_cache(engine)        # earlier tests may have left this scene's stages
     d = _scene("volume_sphere", res=(32, 24))
     with RenderSession.from_data(d, ".", "test", engine=engine) as sess:
         r0 = sess.render(show_progress=False)

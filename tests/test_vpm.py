@@ -314,7 +314,7 @@ def _vpm_vs_segment_reference(engine, d, reference, **params):
     try:
         vp = trace_view_paths(ps, show_progress=False)
         stats = Stats()
-        img = VolumetricPhotonMapping(params).render(ps, vp, stats, False)
+        img = VolumetricPhotonMapping(params).run(ps, vp, stats, False).radiance()
     finally:
         ps.release()
     s, fr = vp.segments, ps.frame

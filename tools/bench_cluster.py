@@ -11,7 +11,7 @@ scene session), split into ``--units`` camera-sample sets. Writes JSON and a plo
 with t_unit the mean task time of the 1-worker run (that worker had the machine to itself)
 and t_fixed the rest of its wall time (the scene scatter, scheduling latency, the summation):
 a model of N workers on N machines like this one. The model says where adding workers stops
-paying: when ceil(U / N) reaches 1, or when t_fixed dominates. On this 2-core machine PoCL
+paying: when ceil(U / N) reaches 1, or when t_fixed dominates. On a 2-core machine PoCL
 already runs one process on both cores, so two worker processes share them.
 
 Usage: ``.venv/bin/python tools/bench_cluster.py [--scene builtin:shafts] [--units 8]``

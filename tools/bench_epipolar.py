@@ -2,7 +2,7 @@
 """Benchmark: the epipolar method (Baran et al. 2010) against brute-force ``raymarch``.
 
 For each scene of rising shadow complexity (``epi_window``, ``epi_grille``,
-``epi_forest``; clscatter/scene/builtin/epipolar.py), plus issue 8's thick fog seen from
+``epi_forest``; clscatter/scene/builtin/epipolar.py), plus a thick fog seen from
 outside with the sun behind the camera (``epi_fog``: optical depth 4.4, where the method
 raises its SVD terms/light rays on its own error estimate), at 1280 x 960, 1 spp:
 
@@ -61,7 +61,7 @@ from clscatter.methods.epipolar import Epipolar
 from clscatter.methods.raymarch import RayMarch
 from clscatter.transport.prepared import prepare_scene
 from clscatter.transport.view_paths import trace_view_paths
-from clscatter.scene.builtin.epipolar import load_epipolar_scene
+from clscatter.scene.loader import load_scene  # noqa: E402
 from clscatter.io.stats import Stats, write_json
 
 SCENES = ("epi_window", "epi_grille", "epi_forest", "epi_fog")
@@ -71,7 +71,7 @@ DOCS = REPO / "docs" / "bench"
 
 
 def prepared(name: str, w: int, h: int, engine):
-    scene = load_epipolar_scene(name, [f"camera.resolution=[{w}, {h}]", "camera.spp=1"])
+    scene = load_scene(f"builtin:{name}", [f"camera.resolution=[{w}, {h}]", "camera.spp=1"])
     ps = prepare_scene(scene, engine)
     paths = trace_view_paths(ps, show_progress=False)
     return ps, paths
@@ -83,7 +83,7 @@ def timed(method, ps, paths, repeats: int):
     for _ in range(max(1, repeats)):
         st = Stats()
         t = time.perf_counter()
-        img = method.render(ps, paths, st, show_progress=False)
+        img = method.run(ps, paths, st, show_progress=False).radiance()
         dt = time.perf_counter() - t
         if best is None or dt < best[1]:
             best = (img, dt, st)
@@ -97,7 +97,7 @@ def reference(name: str, ps, paths, w: int, h: int, steps: int) -> np.ndarray:
         return np.load(f)
     print(f"  reference: raymarch {steps} steps ...", flush=True)
     t = time.perf_counter()
-    img = RayMarch({"steps": steps}).render(ps, paths, Stats(), show_progress=True)
+    img = RayMarch({"steps": steps}).run(ps, paths, Stats(), show_progress=True).radiance()
     print(f"  reference done in {time.perf_counter() - t:.1f} s", flush=True)
     np.save(f, img)
     return img
@@ -188,8 +188,8 @@ def bench_scene(name, w, h, engine, args) -> dict:
         res = {"scene": name, "width": w, "height": h,
                "view_segments": len(paths.segments), "ref_steps": args.ref_steps}
         # warm-up: kernel builds out of the timings
-        Epipolar({"light_rays": 64, "shadow_map": 64, "slices": 64}).render(ps, paths, Stats(), False)
-        RayMarch({"steps": 1}).render(ps, paths, Stats(), False)
+        Epipolar({"light_rays": 64, "shadow_map": 64, "slices": 64}).run(ps, paths, Stats(), False).radiance()
+        RayMarch({"steps": 1}).run(ps, paths, Stats(), False).radiance()
         rm = raymarch_curve(ps, paths, ref, args.rm_steps, args.repeats)
         res["raymarch"] = rm
         model = raymarch_model(rm, args.ref_steps)
@@ -209,7 +209,7 @@ def bench_scene(name, w, h, engine, args) -> dict:
                    "slices_used": st.values.get("slices"), "tree_updates": st.values.get("tree_updates"),
                    "tree_queries": st.values.get("tree_queries"),
                    "svd_singular_values": st.values.get("svd_singular_values"),
-                   # what the accuracy control chose (issue 8) and what it cost
+                   # what the accuracy control chose and what it cost
                    "lights": [{k: li.get(k) for k in ("svd_terms", "svd_groups",
                                                       "svd_formulation", "light_ray_factor",
                                                       "slice_spacing_px", "fallback")}
@@ -235,7 +235,7 @@ def bench_ring(w, h, engine, args) -> dict:
     ring around it is ray marched (no reference needed, timings only)."""
     ps, paths = prepared("epi_sun", w, h, engine)
     try:
-        Epipolar({"light_rays": 64, "shadow_map": 64, "slices": 64}).render(ps, paths, Stats(), False)
+        Epipolar({"light_rays": 64, "shadow_map": 64, "slices": 64}).run(ps, paths, Stats(), False).radiance()
         _, dt, st = timed(Epipolar({}), ps, paths, args.repeats)
         li = st.values["epipolar_lights"][0]
         prim = int((paths.segments["depth"] == 0).sum())
@@ -258,7 +258,7 @@ def bench_complexity(engine, args) -> dict:
         h = w * 3 // 4
         ps, paths = prepared(name, w, h, engine)
         try:
-            Epipolar({"light_rays": 64, "shadow_map": 64, "slices": 64}).render(ps, paths, Stats(), False)
+            Epipolar({"light_rays": 64, "shadow_map": 64, "slices": 64}).run(ps, paths, Stats(), False).radiance()
             steps = max(2, w // 10)
             _, t_rm, _ = timed(RayMarch({"steps": steps}), ps, paths, args.repeats if w < 1280 else 2)
             _, t_ep, st = timed(Epipolar({"light_rays": 2 * w, "shadow_map": 2 * w}), ps, paths,

@@ -66,7 +66,7 @@ def builtin_costs(n: int = 1 << 22, repeats: int = 5) -> dict[str, float]:
     """ns per work-item of each kernel of SOURCE (median of ``repeats`` timed launches)."""
     eng = get_engine()
     cl = eng.cl
-    prog = cl.Program(eng.ctx, SOURCE).build(options=["-I", str(kernel_dir())])
+    prog = cl.Program(eng.ctx, SOURCE).build(options=["-I", str(kernel_dir() / "shared")])
     x = np.random.default_rng(1).random(n).astype(np.float32)
     xb, yb = eng.to_device(x), eng.empty(4 * n)
     out = {}

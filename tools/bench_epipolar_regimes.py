@@ -57,7 +57,7 @@ def timed(method, ps, paths):
     """(image, seconds, stats) of one render of ``method``."""
     st = Stats()
     t = time.perf_counter()
-    img = method.render(ps, paths, st, show_progress=False)
+    img = method.run(ps, paths, st, show_progress=False).radiance()
     return img, time.perf_counter() - t, st.values
 
 
@@ -68,7 +68,7 @@ def run_config(engine, kind, cam, light, depth, res, ref_steps) -> dict:
     ps = prepare_scene(scene, engine)
     try:
         paths = trace_view_paths(ps, show_progress=False)
-        ref = RayMarch({"steps": ref_steps}).render(ps, paths, Stats(), False)
+        ref = RayMarch({"steps": ref_steps}).run(ps, paths, Stats(), False).radiance()
         rm, t_rm, _ = timed(RayMarch({}), ps, paths)
         ep, t_ep, st = timed(Epipolar({}), ps, paths)
     finally:

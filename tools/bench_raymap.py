@@ -11,11 +11,12 @@ visualisation), in one process:
   and on a static tree (build time reported apart), a NumPy brute force over every
   segment (on a sample of queries), and scipy's ``cKDTree`` point kNN over the photons'
   hit points (the photon map's anchor; 1 thread); plus the share of tested references
-  that qualified ("successful tests"). The alternative of issue 11, **candidate lists
-  prepared on the host** (``knn_lists``: a vectorised walk collecting every leaf whose box
-  meets a query's search box, then one kernel over the lists), on the same queries and
-  trees: ``lists_lazy_ms`` (refinement + list building + kernel), ``lists_static_ms``
-  (list building + kernel; ``lists_static_host_ms`` the building alone).
+  that qualified ("successful tests"). The alternative to device traversal, **candidate
+  lists prepared on the host** (``knn_lists``: a vectorised walk collecting every leaf
+  whose box meets a query's search box, then one kernel over the lists), on the same
+  queries and trees: ``lists_lazy_ms`` (refinement + list building + kernel),
+  ``lists_static_ms`` (list building + kernel; ``lists_static_host_ms`` the building
+  alone).
 * **Whole-image density estimation**, ray map against photon map from the same lighting
   rays: seconds (trace + build + estimate) and relMSE of the surface-caustic image
   against a converged reference (the ray map with ``--ref-factor`` x the largest ray

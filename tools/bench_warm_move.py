@@ -1,5 +1,7 @@
 """A warm light move, taken apart: per-kernel device time, page faults, and what each of
-the ninth session's changes to the warm path is worth, switched off one at a time.
+the warm path's optimisations (one BLAS thread beside a CPU device, the buffer pool, no
+epipole ring where it misses the image, small event-sort buckets) is worth, switched off
+one at a time.
 
 One process, one :class:`~clscatter.pipeline.session.RenderSession` on ``--scene`` (default the
 demo, ``builtin:shafts``, at 640x480, 4 spp, by epipolar). The first light moves back and
@@ -47,7 +49,7 @@ from clscatter.pipeline.session import RenderSession
 
 @contextlib.contextmanager
 def variant(name: str, session: RenderSession):
-    """The engine with one change switched off (``final``: none)."""
+    """The engine with one optimisation switched off (``final``: none)."""
     eng = session.engine
     saved = (dev.POOL_MIN_BYTES, pipeline.EVENTS_PER_BIN, pipeline._ring_in_view,
              eng.quiet_host_threads)

@@ -59,8 +59,10 @@ of values:
   smaller side for small images (and one global window for images under 3 pixels).
 * ``max_error(a, b) = max(|d|)``.
 
-:func:`compare` returns all five as a dict of floats; :func:`to_json_safe` turns the
+:func:`compare` returns all five as a dict of floats; :func:`clscatter.io.stats.json_safe` turns the
 non-finite ones into the strings ``"inf"``, ``"-inf"`` and ``"nan"`` for JSON.
+:func:`check_comparable` refuses a pair of files of which one is linear (EXR, NPY, PFM)
+and the other tone-mapped (PNG): ``clscatter diff`` compares only like with like.
 """
 from __future__ import annotations
 
@@ -69,7 +71,7 @@ import os
 import re
 import secrets
 from pathlib import Path
-from typing import Any, Callable, Mapping, Union
+from typing import Callable, Union
 
 import numpy as np
 
@@ -78,6 +80,11 @@ from ..errors import ImageError
 PathLike = Union[str, "os.PathLike[str]"]
 
 SUPPORTED_SUFFIXES = (".exr", ".npy", ".pfm", ".png")
+
+#: Formats that store linear radiance as it was rendered (lossless float32).
+LINEAR_SUFFIXES = (".exr", ".npy", ".pfm")
+#: Formats that store a tone-mapped picture (exposure, clamping to [0, 1], 8-bit sRGB).
+TONE_MAPPED_SUFFIXES = (".png",)
 
 #: Default ``eps`` of :func:`relmse`.
 RELMSE_EPS = 1e-2
@@ -184,6 +191,32 @@ def sanitize(img: np.ndarray) -> tuple[np.ndarray, int]:
     if n_bad:
         arr[bad] = 0
     return arr, n_bad
+
+
+def is_tone_mapped(path: PathLike) -> bool:
+    """True for a file format that stores a tone-mapped picture (``.png``: exposure,
+    clamping and 8-bit sRGB), False for one that stores linear radiance (``.exr``,
+    ``.npy``, ``.pfm``). Reading a PNG inverts only the sRGB curve, so its values are not
+    comparable with a linear image's (radiance above 1 was clamped, the exposure is
+    unknown). Unsupported suffixes raise ImageError."""
+    return _suffix(path) in TONE_MAPPED_SUFFIXES
+
+
+def check_comparable(a_path: PathLike, b_path: PathLike) -> None:
+    """Raise ImageError (one line naming both files) when one of the two files is linear
+    and the other tone-mapped: metrics between them would mean nothing."""
+    a_tm, b_tm = is_tone_mapped(a_path), is_tone_mapped(b_path)
+    if a_tm == b_tm:
+        return
+
+    def kind(tone_mapped: bool) -> str:
+        return "tone-mapped (PNG: clamped 8-bit sRGB)" if tone_mapped else "linear"
+
+    raise ImageError(
+        f"{os.fspath(a_path)} is {kind(a_tm)} but {os.fspath(b_path)} is {kind(b_tm)}: "
+        "comparing a linear image with a tone-mapped one gives metrics that mean nothing; "
+        "compare two linear images (.exr, .npy, .pfm) or two PNGs"
+    )
 
 
 # ----------------------------------------------------------------------------- PFM
@@ -527,7 +560,7 @@ def compare(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
     """All metrics of test image ``a`` against reference ``b``, as plain floats.
 
     Keys: ``rmse``, ``relmse``, ``psnr``, ``ssim``, ``max_error`` (``psnr`` is
-    ``float('inf')`` for identical images; see :func:`to_json_safe`).
+    ``float('inf')`` for identical images; see :func:`clscatter.io.stats.json_safe`).
     """
     a, b = _pair(a, b)
     return {
@@ -537,17 +570,6 @@ def compare(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
         "ssim": ssim(a, b),
         "max_error": max_error(a, b),
     }
-
-
-def to_json_safe(metrics: Mapping[str, Any]) -> dict[str, Any]:
-    """Copy of ``metrics`` with non-finite floats as the strings "inf", "-inf", "nan"."""
-    out: dict[str, Any] = {}
-    for key, value in metrics.items():
-        if isinstance(value, float) and not math.isfinite(value):
-            out[key] = "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")
-        else:
-            out[key] = value
-    return out
 
 
 # ------------------------------------------------------------------------- heatmap
@@ -602,6 +624,10 @@ def write_heatmap(path: PathLike, a: np.ndarray, b: np.ndarray) -> None:
 
 __all__ = [
     "SUPPORTED_SUFFIXES",
+    "LINEAR_SUFFIXES",
+    "TONE_MAPPED_SUFFIXES",
+    "is_tone_mapped",
+    "check_comparable",
     "RELMSE_EPS",
     "METRIC_KEYS",
     "read_image",
@@ -616,7 +642,6 @@ __all__ = [
     "ssim",
     "max_error",
     "compare",
-    "to_json_safe",
     "heatmap",
     "write_heatmap",
 ]

@@ -69,7 +69,7 @@ class Stats:
         d.setdefault("peak_bytes", 0)
         d["seconds_total"] = time.perf_counter() - self._t0
         d["stages"] = dict(self.stages)
-        return _json_safe(d)
+        return json_safe(d)
 
     def write(self, path: str | Path) -> None:
         write_json(path, self.to_dict())
@@ -79,20 +79,26 @@ def write_json(path: str | Path, obj: Any) -> None:
     """Write ``obj`` as indented JSON, atomically (temp file + rename); inf/nan as strings."""
     p = Path(path)
     tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(json.dumps(_json_safe(obj), indent=2, sort_keys=True) + "\n")
+    tmp.write_text(json.dumps(json_safe(obj), indent=2, sort_keys=True) + "\n")
     tmp.replace(p)
 
 
-def _json_safe(v: Any) -> Any:
-    if isinstance(v, dict):
-        return {str(k): _json_safe(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_json_safe(x) for x in v]
-    if hasattr(v, "item") and callable(v.item):  # numpy scalar
-        v = v.item()
-    if isinstance(v, float) and not math.isfinite(v):
-        return str(v)
-    return v
+def json_safe(value: Any, nonfinite: str = "string") -> Any:
+    """``value`` ready for ``json.dumps(..., allow_nan=False)``: dict keys as strings, tuples
+    as lists, NumPy arrays and scalars as plain Python values, and non-finite floats as
+    the strings "inf", "-inf", "nan" (``nonfinite="string"``: statistics files, image
+    metrics) or as None (``nonfinite="null"``: the relighting page's messages)."""
+    if isinstance(value, dict):
+        return {str(k): json_safe(v, nonfinite) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v, nonfinite) for v in value]
+    if hasattr(value, "tolist") and callable(value.tolist):     # NumPy arrays and scalars
+        value = value.tolist()
+        if isinstance(value, list):
+            return json_safe(value, nonfinite)
+    if isinstance(value, float) and not math.isfinite(value):
+        return None if nonfinite == "null" else str(value)
+    return value
 
 
 def progress(total: int, desc: str, enabled: bool = True):

@@ -2,22 +2,31 @@
 
 Adding a method means adding one module (or package) here with one class decorated by
 ``@register`` (see :mod:`clscatter.methods.base` for what the class declares) and its
-``cl_kernels/<name>.cl``; nothing else names it: the scene loader keeps ``[render.<name>]``
-tables raw, :func:`configure` checks them against the class's ``PARAMS`` before any device
-work, and the ``auto`` planner chooses by the class's declared capabilities.
+``cl_kernels/methods/<name>.cl``; nothing else names it: the scene loader keeps
+``[render.<name>]`` tables raw, :func:`configure` checks them against the class's
+``PARAMS`` before any device work, and the ``auto`` planner chooses by the class's declared
+capabilities. A method may also live outside the package, in any importable module that
+registers it (and adds its kernel folder with :func:`clscatter.device.add_kernel_dir`):
+list the module in ``$CLSCATTER_METHODS`` (comma-separated) or import it before rendering.
 """
 from __future__ import annotations
 
+import difflib
 import importlib
+import os
 import pkgutil
 from typing import Any
 
 from ..errors import SceneError
-from ..scene.model import METHOD_NAMES
-from .base import TERMS, AutoRole, Method, Param, configure as _configure, param_table
+from .base import TERMS, AutoRole, Fallback, Method, Param, PassResult, param_table
+from .base import configure as _configure
 
-__all__ = ["AutoRole", "Method", "Param", "register", "available", "get_method", "configure",
+__all__ = ["AutoRole", "Fallback", "Method", "Param", "PassResult", "register", "available", "get_method", "configure",
            "all_methods", "param_table", "unavailable"]
+
+#: comma-separated modules outside the package imported with it: methods they register are
+#: available like the package's own
+ENV_METHODS = "CLSCATTER_METHODS"
 
 _REGISTRY: dict[str, type[Method]] = {}
 _BROKEN: dict[str, str] = {}     # module name -> why it could not be imported
@@ -51,12 +60,17 @@ def _load_all() -> None:
         return
     _LOADED = True
     for info in pkgutil.iter_modules(__path__):
-        if info.name == "base":
+        if info.name in ("base", "surface_density"):     # not methods: what methods share
             continue
         try:
             importlib.import_module(f"{__name__}.{info.name}")
         except ImportError as e:
             _BROKEN[info.name] = f"needs the Python package '{e.name or e}' ({e})"
+    for name in filter(None, (m.strip() for m in os.environ.get(ENV_METHODS, "").split(","))):
+        try:
+            importlib.import_module(name)
+        except ImportError as e:
+            raise SceneError(ENV_METHODS, f"cannot import method module {name!r}: {e}") from e
 
 
 def all_methods() -> dict[str, type[Method]]:
@@ -83,10 +97,10 @@ def get_method(name: str) -> type[Method]:
         return _REGISTRY[name]
     if name in _BROKEN:
         raise SceneError("render.method", f"method '{name}' is unavailable: {_BROKEN[name]}")
-    if name in METHOD_NAMES:
-        raise SceneError("render.method", f"method '{name}' is not implemented in this version "
-                         f"(available: {', '.join(available())})")
-    raise SceneError("render.method", f"unknown method {name!r} (one of {', '.join(METHOD_NAMES)})")
+    close = difflib.get_close_matches(str(name), available(), n=1)
+    hint = f" (did you mean '{close[0]}'?)" if close else ""
+    raise SceneError("render.method", f"unknown method {name!r}{hint}; one of "
+                     f"{', '.join(available())}")
 
 
 def configure(name: str, table: dict | None) -> dict[str, Any]:
@@ -95,14 +109,26 @@ def configure(name: str, table: dict | None) -> dict[str, Any]:
     :class:`SceneError` naming ``render.<name>.<key>``."""
     _load_all()
     if name not in _REGISTRY:
-        if table and name in _BROKEN:
-            raise SceneError(f"render.{name}", f"cannot check these parameters: method "
-                             f"'{name}' is unavailable ({_BROKEN[name]})")
-        if table and name in METHOD_NAMES:
-            raise SceneError(f"render.{name}", f"method '{name}' is not implemented in this "
-                             f"version, so its parameters cannot be used")
-        return dict(table or {})
+        if name in _BROKEN:
+            if table:
+                raise SceneError(f"render.{name}", f"cannot check these parameters: method "
+                                 f"'{name}' is unavailable ({_BROKEN[name]})")
+            return {}
+        if table is not None:
+            raise SceneError(f"render.{name}", f"unknown method table [render.{name}] "
+                             f"(methods: {', '.join(all_methods())})")
+        return {}
     return _configure(_REGISTRY[name], table)
+
+
+def check_method_param(owner: str, key: str, value: str, term: str) -> None:
+    """A parameter of method ``owner`` that names another method, which must be registered
+    and compute ``term`` (or be 'none'); else a :class:`SceneError` naming
+    ``render.<owner>.<key>``."""
+    ok = sorted(n for n, c in all_methods().items() if term in c.TERMS)
+    if value != "none" and value not in ok:
+        raise SceneError(f"render.{owner}.{key}", f"must be one of {', '.join(ok + ['none'])} "
+                         f"(got {value!r})")
 
 
 def configure_scene(scene, method: str | None = None) -> dict[str, dict[str, Any]]:
@@ -119,6 +145,12 @@ def configure_scene(scene, method: str | None = None) -> dict[str, dict[str, Any
     return out
 
 
+def summary(cls: type[Method]) -> str:
+    """The first paragraph of ``cls``'s docstring, on one line (never cut mid-sentence)."""
+    doc = (cls.__doc__ or "").strip().split("\n\n")[0]
+    return " ".join(doc.split())
+
+
 def methods_markdown() -> str:
     """``docs/methods.md``: every method's summary, terms, auto roles and parameter table,
     generated from the classes (``tools/write_method_docs.py`` writes it; a test checks
@@ -129,9 +161,8 @@ def methods_markdown() -> str:
            "`--set render.<method>.<parameter>=VALUE`. Radii and steps are relative to the",
            "longest side of the scene's bounding box.", ""]
     for name, cls in all_methods().items():
-        doc = (cls.__doc__ or "").strip().splitlines()
         roles = ", ".join(f"{t} (priority {r.priority})" for t, r in sorted(cls.AUTO.items()))
-        out += [f"## `{name}`", "", doc[0] if doc else "", "",
+        out += [f"## `{name}`", "", summary(cls), "",
                 f"- computes: {', '.join(sorted(cls.TERMS)) or 'nothing'}",
                 f"- lights: {', '.join(sorted(cls.LIGHTS))}",
                 f"- used by `auto` for: {roles or 'never (explicit only)'}", "",

@@ -12,7 +12,8 @@ A method is one class in one module (or package) of :mod:`clscatter.methods`:
   to a fallback it documents), ``AUTO`` (the roles it can take in an ``auto`` plan, with a
   priority and parameter overrides for that role), ``ALONE`` (once chosen it renders the
   whole image by itself: the voxel pipeline, which owns everything its grid touches);
-* ``render(ps, paths, stats, show_progress)`` — the radiance it adds to the image.
+* ``render(ctx)`` — given its :class:`~clscatter.transport.context.PassContext`, the
+  radiance it adds to the image as a :class:`PassResult`.
 
 Terms (the pieces an image is made of):
 
@@ -31,6 +32,8 @@ from typing import Any, ClassVar
 import numpy as np
 
 from ..errors import SceneError
+from ..io.stats import Stats
+from ..transport.context import PassContext
 
 TERMS = ("direct", "caustics", "surface_caustics", "volumes")
 LIGHT_KINDS = frozenset({"point", "spot", "directional"})
@@ -104,6 +107,57 @@ class Param:
 
 
 @dataclass(frozen=True)
+class Estimate:
+    """One stage's cost: ``bytes`` of working set, ``work`` operations of ``unit``, and
+    the scene ``key`` that scales them."""
+
+    stage: str
+    key: str
+    bytes: float
+    work: float = 0.0
+    unit: str = ""
+
+
+def camera_samples(scene) -> int:
+    """Camera samples of a render of ``scene`` (pixels times samples per pixel)."""
+    c = scene.camera
+    return int(c.width) * int(c.height) * int(c.spp)
+
+
+@dataclass
+class PassResult:
+    """What a pass adds to the image, (H, W, 3) float32 radiance each (None: nothing).
+
+    ``surface``: light on surfaces (surface caustics); ``medium``: light scattered in the
+    medium. ``view_surface``: set only by a pass that traced view paths of its own on a
+    prepared variant of the scene (the voxel pipeline with voxelised glass): their direct
+    light on surfaces, which then replaces the session's view paths' surface term."""
+
+    surface: np.ndarray | None = None
+    medium: np.ndarray | None = None
+    view_surface: np.ndarray | None = None
+
+    def radiance(self) -> np.ndarray:
+        """What the pass adds, surface and medium together (a pass that set
+        ``view_surface`` replaces the surface term instead: that is not included)."""
+        parts = [x for x in (self.surface, self.medium) if x is not None]
+        if not parts:
+            raise ValueError("the pass added nothing")
+        return parts[0] if len(parts) == 1 else parts[0] + parts[1]
+
+
+class Fallback(Exception):
+    """A fast method cannot meet its bound on part of the work (a light, a set of
+    segments) and hands that part to the estimator it falls back to. ``info``: what it
+    measured, for ``--stats``. Raised and caught only as this type, so that a defect
+    raising another exception is never mistaken for a fallback."""
+
+    def __init__(self, message: str, info: dict | None = None):
+        super().__init__(message)
+        self.info = dict(info or {})
+
+
+@dataclass(frozen=True)
 class AutoRole:
     """A role a method can take in an ``auto`` plan: the highest ``priority`` among the
     methods that suit the scene wins. ``params`` are what the role requires (they override
@@ -152,7 +206,7 @@ class Method:
 
     @classmethod
     def estimate(cls, scene, params: dict[str, Any]) -> list:
-        """Cost estimates (:class:`clscatter.pipeline.budget.Estimate`) of this pass on ``scene`` with
+        """Cost estimates (:class:`Estimate`) of this pass on ``scene`` with
         checked ``params``, made before anything is allocated; [] when negligible."""
         return []
 
@@ -185,9 +239,26 @@ class Method:
         none."""
         return []
 
-    def render(self, ps, paths, stats, show_progress: bool = True) -> np.ndarray:
-        """Radiance (H, W, 3) this method adds to the image (its ``TERMS``)."""
+    @classmethod
+    def companions(cls, params: dict[str, Any]) -> list[str]:
+        """Methods the planner runs beside this one when it is chosen explicitly, for the
+        terms it leaves to them (the ray map's medium term). Default: none."""
+        return []
+
+    def render(self, ctx: PassContext) -> PassResult:
+        """What this method adds to the image (its ``TERMS``), given its
+        :class:`~clscatter.transport.context.PassContext`."""
         raise NotImplementedError
+
+    def run(self, ps, paths, stats=None, show_progress: bool = False) -> PassResult:
+        """:meth:`render` on a prepared scene and its view paths outside a session (tests,
+        benchmarks): a fresh context and cache, released afterwards."""
+        with PassContext(ps, paths, stats if stats is not None else Stats(),
+                         show_progress) as ctx:
+            try:
+                return self.render(ctx)
+            finally:
+                ctx.cache.release()
 
 
 def configure(cls: type[Method], table: dict | None) -> dict[str, Any]:

@@ -14,11 +14,15 @@ segment, per photon), stated next to each number; ``clscatter check`` prints the
 """
 from __future__ import annotations
 
-import os
 import re
-from dataclasses import dataclass
 
+from ..device.memory import memory_budget
 from ..errors import ClscatterError
+from ..methods import configure, get_method
+from ..methods.base import Estimate, camera_samples
+
+__all__ = ["Estimate", "camera_samples", "memory_budget", "estimate", "view_path_estimate",
+           "check_budget", "peak_bytes", "human_bytes", "parse_bytes", "long_work_notes"]
 
 # bytes per camera sample kept by the view-path stage on the device: surface + escaped
 # (2 x float4), the diffuse hits a warm session keeps for re-shading (80 bytes, about one
@@ -28,23 +32,6 @@ BYTES_PER_SAMPLE = 32 + 80
 BYTES_PER_SAMPLE_MEDIUM = BYTES_PER_SAMPLE + 3 * 64 * 2
 # elementary operations above which a render is announced as long (~a minute on a CPU)
 LONG_WORK = 2e10
-
-
-@dataclass(frozen=True)
-class Estimate:
-    """One stage's cost: ``bytes`` of working set, ``work`` operations of ``unit``, and
-    the scene ``key`` that scales them."""
-
-    stage: str
-    key: str
-    bytes: float
-    work: float = 0.0
-    unit: str = ""
-
-
-def camera_samples(scene) -> int:
-    c = scene.camera
-    return int(c.width) * int(c.height) * int(c.spp)
 
 
 def view_path_estimate(scene) -> Estimate:
@@ -59,35 +46,12 @@ def view_path_estimate(scene) -> Estimate:
 def estimate(scene, passes, settings: dict) -> list[Estimate]:
     """Estimates of the view paths and of every pass of the plan (``settings``: checked
     parameters per method, :func:`clscatter.methods.configure_scene`)."""
-    from ..methods import configure, get_method
     out = [view_path_estimate(scene)]
     for p in passes:
         cls = get_method(p.method)
         params = configure(p.method, p.table(scene))
         out += cls.estimate(scene, params)
     return out
-
-
-def memory_budget(engine=None, max_memory: float | None = None) -> tuple[float, str]:
-    """(bytes, where the number comes from): ``max_memory`` if given, else the smaller of
-    the device's global memory and the machine's physical memory. ``engine`` is an
-    :class:`~clscatter.device.Engine` or a bare OpenCL device (``clscatter check``, which
-    builds no engine), or None for the machine's memory alone."""
-    if max_memory is not None:
-        return float(max_memory), "--max-memory"
-    limits = []
-    try:
-        limits.append((float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")),
-                       "physical memory"))
-    except (ValueError, OSError, AttributeError):
-        pass
-    if engine is not None:
-        try:
-            device = getattr(engine, "device", engine)
-            limits.append((float(device.global_mem_size), "device memory"))
-        except Exception:
-            pass
-    return min(limits) if limits else (float("inf"), "no limit known")
 
 
 def human_bytes(n: float) -> str:

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from ..methods import all_methods
+from ..methods import all_methods, configure
 from ..scene.model import Scene
 
 #: the ending of every plan note that says light the scene needs is left out of the image
@@ -77,17 +77,7 @@ def plan(scene: Scene, requested: str) -> tuple[list[Pass], list[str]]:
     terms, notes = needed_terms(scene)
     methods = all_methods()
     if requested != "auto":
-        cls = methods[requested]
-        if not terms:
-            return [], notes
-        missing = [t for t in terms if t not in cls.TERMS]
-        if len(missing) == len(terms):
-            notes.append(f"{requested} computes {', '.join(sorted(cls.TERMS))}, which this scene "
-                         f"does not need ({', '.join(terms)}): nothing to run, {DROPS_LIGHT}")
-            return [], notes
-        if missing:
-            notes.append(f"{requested} does not compute {', '.join(missing)}: {DROPS_LIGHT}")
-        return [Pass(requested, "all")], notes
+        return _explicit(scene, requested, terms, notes)
     passes: list[Pass] = []
     for term in terms:
         candidates = []
@@ -116,6 +106,31 @@ def plan(scene: Scene, requested: str) -> tuple[list[Pass], list[str]]:
                          + (f" (instead of {', '.join(others)})" if others else ""))
             return [Pass(p.method, "all", p.params, p.defaults)], notes
     return passes, notes
+
+
+def _explicit(scene: Scene, requested: str, terms: list[str],
+              notes: list[str]) -> tuple[list[Pass], list[str]]:
+    """The passes of an explicitly requested method: the method, and the methods it asks
+    to run beside it for the terms it leaves to them (:meth:`Method.companions`)."""
+    methods = all_methods()
+    cls = methods[requested]
+    if not terms:
+        return [], notes
+    companions = [c for c in cls.companions(configure(requested, scene.render.params.get(requested)))
+                  if methods[c].TERMS & set(terms)]      # only for terms the scene needs
+    computed = set(cls.TERMS).union(*(methods[c].TERMS for c in companions))
+    names = "+".join([requested, *companions])
+    missing = [t for t in terms if t not in computed]
+    if len(missing) == len(terms):
+        notes.append(f"{names} computes {', '.join(sorted(computed))}, which this scene "
+                     f"does not need ({', '.join(terms)}): nothing to run, {DROPS_LIGHT}")
+        return [], notes
+    if missing:
+        notes.append(f"{names} does not compute {', '.join(missing)}: {DROPS_LIGHT}")
+    for c in companions:
+        notes.append(f"{requested} runs {c} beside it for the medium "
+                     f"(render.{requested}.medium)")
+    return [Pass(requested, "all")] + [Pass(c, "medium") for c in companions], notes
 
 
 def dropped_light(notes: list[str]) -> list[str]:

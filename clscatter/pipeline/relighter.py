@@ -4,7 +4,8 @@ some of the stages need to be executed").
 
 A :class:`Relighter` is a :class:`~clscatter.pipeline.session.RenderSession` with the ``voxel``
 method and convenience setters; the session keeps the BVH, the device buffers and the view
-paths, and the voxel method keeps its grid stages between renders (``Voxel._CACHE``), so
+paths, and the voxel method keeps its grid stages between renders (its slot in the
+session, ``PassContext.cache``), so
 there is one warm-path mechanism for every method.
 
 =====================  ===========================================================

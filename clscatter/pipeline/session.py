@@ -4,18 +4,19 @@ A :class:`RenderSession` holds everything a render builds (the device and its pr
 normalised frame, the BVH and the scene's device buffers, the view paths) and, when the
 scene changes, re-runs only what the change invalidates:
 
-==========================  ==============================================================
-what changed                what runs again
-==========================  ==============================================================
-objects or volumes          everything (a new BVH; the normalised frame may move)
-materials                   the material buffer, view paths, passes
-lights                      the light buffer, the surface shading (re-shading the recorded
-                            diffuse hits, no camera path traced), passes
-camera                      the camera buffer, view paths, passes
-medium                      the medium buffer, view paths (segment weights), passes
-render.max_depth / seed     view paths, passes
-method or its parameters    passes only
-==========================  ==============================================================
+============================  ==============================================================
+what changed                  what runs again
+============================  ==============================================================
+objects' or volumes' shapes   everything (a new BVH; the normalised frame may move)
+a volume's coefficients       passes (the voxel pipeline from its material stage on)
+materials                     the material buffer, view paths, passes
+lights                        the light buffer, the surface shading (re-shading the recorded
+                              diffuse hits, no camera path traced), passes
+camera                        the camera buffer, view paths, passes
+medium                        the medium buffer, view paths (segment weights), passes
+render.max_depth / seed       view paths, passes
+method or its parameters      passes only
+============================  ==============================================================
 
 A one-off :func:`clscatter.pipeline.render.render` is a session used once, so a warm re-render and
 a fresh render run the same code and give the same image. ``stats["stages_run"]`` lists
@@ -30,37 +31,34 @@ from __future__ import annotations
 
 import copy
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from . import budget
 from ..device import Engine, get_engine
+from ..io.stats import Stats
 from ..methods import configure, get_method
-from ..transport.prepared import PreparedScene, prepare_scene, refresh, same_frame
+from ..scene.builtin import to_toml
 from ..scene.loader import apply_overrides, scene_from_dict, scene_source
 from ..scene.model import Scene
-from ..io.stats import Stats
-from .planner import dropped_light
+from ..transport.context import PassCache, PassContext
+from ..transport.prepared import (
+    PreparedScene,
+    geometry_key,
+    prepare_scene,
+    refresh,
+    same_frame,
+)
 from ..transport.view_paths import ViewPaths, shade_hits, trace_view_paths
+from . import budget
+from .check import check, scene_notes
+from .planner import dropped_light
 
 
 class Cancelled(Exception):
     """A render was stopped by its ``cancel`` callback (between stages)."""
-
-
-def _geometry_key(scene: Scene) -> tuple:
-    """Identity of the geometry: object and volume arrays (values, not object ids)."""
-    parts = []
-    for o in scene.objects:
-        parts.append((o.vertices.tobytes(), o.faces.tobytes(),
-                      None if o.normals is None else o.normals.tobytes()))
-    for v in scene.volumes:
-        parts.append((repr(v.key), None if v.mesh is None else v.mesh.vertices.tobytes(),
-                      None if v.grid is None else v.grid.tobytes(), repr(v.grid_bounds),
-                      float(v.ior), v.sigma_s.tobytes(), v.sigma_a.tobytes()))
-    return tuple(parts)
 
 
 def _view_key(scene: Scene) -> tuple:
@@ -88,6 +86,7 @@ class RenderSession:
         self._paths: ViewPaths | None = None
         self._paths_key: tuple | None = None
         self._pending: list[str] = []       # buffers re-uploaded since the last render
+        self._caches: dict[str, PassCache] = {}   # each method's slot (PassContext.cache)
         self._data: dict | None = None
         self._base_dir = Path.cwd()
         self._source = scene.source
@@ -119,7 +118,6 @@ class RenderSession:
         change (they apply to the source with the session's original overrides only: an
         animation frame), else they add to the current ones. Raises the CLI's one-line
         :class:`~clscatter.errors.ClscatterError`."""
-        from .render import check
         if self._data is None:
             raise TypeError("needs a session made by RenderSession.from_source")
         merged = (self._base_overrides if replace else self._overrides) + list(overrides)
@@ -151,7 +149,6 @@ class RenderSession:
     def to_toml(self) -> str:
         """The current scene as a TOML file that ``clscatter render`` reproduces exactly
         (relative mesh and grid paths made absolute)."""
-        from ..scene.builtin import to_toml
         return to_toml(self.current_data())
 
     @property
@@ -175,8 +172,6 @@ class RenderSession:
         of the plan (by index) and ``pass_params`` (``{index: {param: value}}``) overrides their
         parameters: how a cluster splits a render into tasks (:mod:`clscatter.cluster`).
         """
-        from .render import check, scene_notes
-
         scene = _preview_scene(self.scene) if preview else self.scene
         stats = stats or Stats()
         ran: list[str] = []
@@ -209,7 +204,7 @@ class RenderSession:
 
         # ---- prepared scene: BVH and device buffers ----
         with stats.stage("scene_structs"):
-            geometry = _geometry_key(scene)
+            geometry = geometry_key(scene)
             warm = (self._ps is not None and geometry == self._geometry
                     and same_frame(self._ps, scene))
         if warm:
@@ -254,57 +249,58 @@ class RenderSession:
 
         # ---- passes ----
         try:
-            return self._run_passes(scene, req, ps, paths, stats, show_progress,
-                                    stop_if_asked, ran, reused, preview, only,
-                                    pass_params or {}, clock, on_note)
+            return self._run_passes(_Run(scene, req, ps, paths, stats, show_progress,
+                                         stop_if_asked, ran, reused, preview, only,
+                                         pass_params or {}, clock, on_note))
         finally:
             engine.trim_pool()      # keep what this render freed for the next one
 
-    def _run_passes(self, scene, req, ps, paths, stats, show_progress, stop_if_asked, ran,
-                    reused, preview, only, pass_params, clock, on_note):
-        from .render import RenderResult
-        engine = ps.engine
+    def _run_passes(self, run: "_Run") -> RenderResult:
+        """Run the plan's passes, each with its own :class:`PassContext`, and compose the
+        image: the view paths' surface term (or the one a pass traced itself) plus every
+        pass's surface and medium radiance."""
+        scene, ps, stats = run.scene, run.ps, run.stats
         cam = scene.camera
-        surface = paths.surface            # never written in place: each pass adds a new one
+        base = run.paths.surface           # never written in place
+        added = np.zeros((cam.height, cam.width, 3), np.float32)
         medium = np.zeros((cam.height, cam.width, 3), np.float32)
-        for k, p in enumerate(req.passes):
-            if only is not None and k not in only:
+        for k, p in enumerate(run.req.passes):
+            if run.only is not None and k not in run.only:
                 continue
-            stop_if_asked()
+            run.stop_if_asked()
             cls = get_method(p.method)
-            table = {**p.table(scene), **pass_params.get(k, {})}
-            m = cls(cls.preview(table) if preview else table)
-            out = m.render(ps, paths, stats, show_progress)
-            ran.append(p.method)
-            if p.role == "surface_caustics":
-                surface = surface + out
-            elif isinstance(out, dict):      # a method that splits its own terms
-                surface = surface + out.get("surface", 0.0)
-                medium = medium + out.get("medium", 0.0)
-            else:
-                medium = medium + out
+            table = {**p.table(scene), **run.pass_params.get(k, {})}
+            method = cls(cls.preview(table) if run.preview else table)
+            with PassContext(ps, run.paths, stats, run.show_progress,
+                             self._caches.setdefault(p.method, PassCache())) as ctx:
+                out = method.render(ctx)
+            run.ran.append(p.method)
+            if out.view_surface is not None:
+                base = out.view_surface
+            if out.surface is not None:
+                added = added + out.surface
+            if out.medium is not None:
+                medium = medium + out.medium
+        surface = base + added
         with stats.stage("compose"):
-            image = surface + medium
-            bad = ~np.isfinite(image)
-            if bad.any():
-                count = int(bad.any(axis=-1).sum())
-                stats.set(nonfinite_pixels_zeroed=count)
-                image = np.where(bad, 0.0, image)
-                if on_note is not None:     # float32 overflow: say so, never silently
-                    on_note(f"{count} pixels overflowed float32 and were set to 0 (are the "
-                            "scene's intensities or coefficients extreme?)")
+            image = _finite(surface + medium, stats, run.on_note)
+        return self._result(run, image, surface, medium)
+
+    def _result(self, run: "_Run", image: np.ndarray, surface: np.ndarray,
+                medium: np.ndarray) -> RenderResult:
+        """The :class:`RenderResult` with the render's statistics."""
+        engine, cam, req, stats = run.ps.engine, run.scene.camera, run.req, run.stats
         chosen = "+".join(p.method for p in req.passes) or "none"
         # host time: the render (after device choice) minus the waits on the device
-        render_s = time.perf_counter() - clock[0]
-        wait_s = engine.wait_seconds - clock[1]
+        render_s = time.perf_counter() - run.clock[0]
+        wait_s = engine.wait_seconds - run.clock[1]
         stats.set(render_seconds=render_s, device_wait_seconds=wait_s,
                   host_seconds=max(render_s - wait_s, 0.0))
         stats.set(method=chosen, requested_method=req.requested, plan=req.notes,
                   passes=[{"method": p.method, "role": p.role} for p in req.passes],
                   device=engine.name, width=cam.width, height=cam.height, spp=cam.spp,
-                  peak_bytes=int(engine.bytes_peak), stages_run=ran, reused=reused,
-                  preview=bool(preview))
-        # the surface part is returned as a copy: paths.surface stays the session's own
+                  peak_bytes=int(engine.bytes_peak), stages_run=run.ran, reused=run.reused,
+                  preview=bool(run.preview))
         return RenderResult(image.astype(np.float32, copy=False), stats.to_dict(),
                             np.array(surface, np.float32), medium.astype(np.float32, copy=False))
 
@@ -314,7 +310,11 @@ class RenderSession:
         return self._paths.surface
 
     def release(self) -> None:
-        """Free the device buffers (the session can render again; it prepares anew)."""
+        """Free the device buffers and the methods' cached structures (the session can
+        render again; it prepares anew)."""
+        for cache in self._caches.values():
+            cache.release()
+        self._caches.clear()
         self._release_paths()
         if self._ps is not None:
             self._ps.release()
@@ -338,6 +338,49 @@ class RenderSession:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+@dataclass
+class RenderResult:
+    image: np.ndarray            # (H, W, 3) float32 linear radiance
+    stats: dict[str, Any]
+    surface: np.ndarray          # the surface part alone (direct light + surface caustics)
+    medium: np.ndarray           # the medium part alone
+
+
+@dataclass
+class _Run:
+    """One render's state, handed from the staging of :meth:`RenderSession.render` to its
+    passes."""
+
+    scene: Scene
+    req: Any
+    ps: PreparedScene
+    paths: ViewPaths
+    stats: Stats
+    show_progress: bool
+    stop_if_asked: Callable[[], None]
+    ran: list
+    reused: list
+    preview: bool
+    only: Sequence[int] | None
+    pass_params: dict
+    clock: tuple[float, float]
+    on_note: Callable[[str], None] | None
+
+
+def _finite(image: np.ndarray, stats: Stats, on_note) -> np.ndarray:
+    """``image`` with non-finite pixels (float32 overflow) set to 0, counted in the stats
+    and said in a note, never silently."""
+    bad = ~np.isfinite(image)
+    if not bad.any():
+        return image
+    count = int(bad.any(axis=-1).sum())
+    stats.set(nonfinite_pixels_zeroed=count)
+    if on_note is not None:
+        on_note(f"{count} pixels overflowed float32 and were set to 0 (are the scene's "
+                "intensities or coefficients extreme?)")
+    return np.where(bad, 0.0, image)
 
 
 def _programs(scene: Scene, req) -> list[tuple[str, dict | None]]:

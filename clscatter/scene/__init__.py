@@ -5,8 +5,23 @@
 :class:`~clscatter.errors.SceneError` naming the dotted key (see ``loader.py``).
 """
 from .builtin import BUILTIN, DEFAULT_BUILTIN, builtin_toml
-from .loader import apply_overrides, load_scene, read_toml, scene_from_dict, scene_source
-from .model import Camera, Light, Material, Medium, Object, RenderSettings, Scene, Volume
+from .loader import (
+    apply_overrides,
+    load_scene,
+    read_toml,
+    scene_from_dict,
+    scene_source,
+)
+from .model import (
+    Camera,
+    Light,
+    Material,
+    Medium,
+    Object,
+    RenderSettings,
+    Scene,
+    Volume,
+)
 
 __all__ = [
     "BUILTIN", "DEFAULT_BUILTIN", "builtin_toml",

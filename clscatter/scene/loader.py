@@ -48,8 +48,16 @@ except ModuleNotFoundError:  # Python 3.10
 from ..errors import SceneError
 from ..geometry import unit
 from . import shapes
-from .model import (METHOD_NAMES, Camera, Light, Material, Medium, Object, RenderSettings, Scene,
-                    Volume)
+from .model import (
+    Camera,
+    Light,
+    Material,
+    Medium,
+    Object,
+    RenderSettings,
+    Scene,
+    Volume,
+)
 
 _REQUIRED = object()
 
@@ -480,19 +488,19 @@ def _load_grid(path: Path, key: str, positive: bool = True) -> np.ndarray:
 
 
 def _render(root: _Table) -> RenderSettings:
+    """``[render]``: its own keys, and one raw table per method. The scene knows no
+    method: the names and the tables are checked against the registry of methods before
+    any device work (:func:`clscatter.methods.configure_scene`)."""
     t = root.table("render", {})
     for name, value in t.data.items():
-        if name in RENDER_KEYS or name in METHOD_NAMES:
-            continue
-        if isinstance(value, dict):
-            raise _err(t.k(name), f"unknown method table [render.{name}] (methods: "
-                       f"{', '.join(METHOD_NAMES)})")
-        raise _err(t.k(name), _unknown_key_message(name, (*RENDER_KEYS, *METHOD_NAMES), ""))
-    method = t.choice("method", METHOD_NAMES, "auto")
+        if name not in RENDER_KEYS and not isinstance(value, dict):
+            raise _err(t.k(name), _unknown_key_message(name, RENDER_KEYS, "") +
+                       " (or a [render.<method>] table)")
+    method = t.string("method", "auto")
     max_depth = t.integer("max_depth", 16, lo=0)
     seed = t.integer("seed", 0, lo=0)
     # method tables stay raw: clscatter.methods.configure checks them before any device work
-    params = {m: copy.deepcopy(t.table(m).data) for m in METHOD_NAMES if t.has(m)}
+    params = {m: copy.deepcopy(v) for m, v in t.data.items() if m not in RENDER_KEYS}
     return RenderSettings(method=method, max_depth=max_depth, seed=seed, params=params)
 
 

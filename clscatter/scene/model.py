@@ -101,7 +101,6 @@ class Volume:
 
 
 # the method names the scene format reserves (render.method, [render.<name>] tables)
-METHOD_NAMES = ("auto", "lsg", "epipolar", "voxel", "raymarch", "vpm", "raymap", "photonmap")
 
 
 @dataclass

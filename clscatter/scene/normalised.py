@@ -24,6 +24,7 @@ from ..device import structs
 from ..errors import SceneError
 from .model import Camera, Light, Medium, Scene
 
+
 def _fits_float32(value, key: str, what: str) -> np.ndarray:
     """``value`` (float64, normalised) if float32 holds it; else a SceneError naming the
     scene key whose value, rescaled for the frame, overflows."""

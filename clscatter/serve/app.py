@@ -31,8 +31,10 @@ page -> server
     (sent when a drag ends: its previews were already shown)
 server -> page
     ``hello`` (page id, scene state, methods), ``state`` (after an accepted change),
-    ``busy`` (a render started), ``frame`` (a PNG as base64, its stats), ``error`` (one line),
-    ``cancelled`` (the request's render was superseded), ``idle`` (nothing left to do).
+    ``busy`` (a render started), ``frame`` (a PNG as base64, its stats and ``notes``: the
+    plan's notes that leave light out of the image, which the command line prints as
+    ``clscatter: note: ...``), ``error`` (one line), ``cancelled`` (the request's render was
+    superseded), ``idle`` (nothing left to do).
 """
 from __future__ import annotations
 
@@ -42,7 +44,6 @@ import copy
 import io
 import json
 import logging
-import math
 import secrets
 import tempfile
 import threading
@@ -61,6 +62,7 @@ from starlette.staticfiles import StaticFiles
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from ..errors import ClscatterError
+from ..io.stats import json_safe
 
 STATIC = Path(__file__).resolve().parent / "static"
 LOG = logging.getLogger("clscatter.serve")
@@ -74,25 +76,9 @@ def one_line(err: BaseException) -> str:
     return " ".join(str(err).split())
 
 
-def json_safe(value: Any) -> Any:
-    """``value`` with numpy scalars/arrays made plain and NaN/Inf replaced by None, so that
-    ``json.dumps(..., allow_nan=False)`` never fails and no NaN/Inf reaches the page."""
-    if isinstance(value, dict):
-        return {str(k): json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_safe(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return json_safe(value.tolist())
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
 def dumps(msg: dict) -> str:
     """JSON text of a message; raises if anything non-finite slipped through."""
-    return json.dumps(json_safe(msg), allow_nan=False, separators=(",", ":"))
+    return json.dumps(json_safe(msg, "null"), allow_nan=False, separators=(",", ":"))
 
 
 def png_bytes(image: np.ndarray, exposure: float = 0.0) -> bytes:
@@ -374,7 +360,8 @@ class PageWorker:
                        "version": version, "seconds": seconds,
                        "width": int(result.image.shape[1]), "height": int(result.image.shape[0]),
                        "png": base64.b64encode(png_bytes(result.image)).decode("ascii"),
-                       "stats": frame_stats(result.stats)})
+                       "stats": frame_stats(result.stats),
+                       "notes": light_notes(result.stats)})
         self._send_idle(generation)
 
 
@@ -384,6 +371,14 @@ def frame_stats(stats: dict) -> dict:
             "seconds_total", "stages", "stages_run", "reused", "preview", "device",
             "peak_bytes", "nonfinite_pixels_zeroed")
     return {k: copy.deepcopy(stats[k]) for k in keep if k in stats}
+
+
+def light_notes(stats: dict) -> list[str]:
+    """The plan's notes that say light the scene needs is left out of the image (the lines
+    ``clscatter render`` prints as ``clscatter: note: ...``); the page shows them."""
+    from ..pipeline.planner import dropped_light
+
+    return list(dropped_light(list(stats.get("plan") or [])))
 
 
 # --------------------------------------------------------------------------------- app

@@ -49,10 +49,56 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..device import structs
+from ..geometry import box_corners, perpendicular_axes
 
 #: mixtures with more cones than this are merged into one cone per light (the kernel
 #: tests every cone for every ray)
 MAX_CONES = 8
+
+
+@dataclass
+class Emission:
+    power: np.ndarray          # rgb, normalised units
+    rect: np.ndarray           # (3, 4) float32: origin, u, v (directional lights only)
+
+
+def _region(ps) -> tuple[np.ndarray, np.ndarray]:
+    """Box (normalised frame) that lighting rays must cover: medium bounds and geometry."""
+    boxes = []
+    if ps.medium["bounded"]:
+        boxes.append((ps.medium["bmin"][:3], ps.medium["bmax"][:3]))
+    root = ps.bvh.nodes[0]
+    if np.all(root["bmin"] <= root["bmax"]):
+        boxes.append((root["bmin"], root["bmax"]))
+    if not boxes:
+        return np.full(3, -1.0), np.full(3, 1.0)
+    lo = np.min([b[0] for b in boxes], axis=0).astype(np.float64)
+    hi = np.max([b[1] for b in boxes], axis=0).astype(np.float64)
+    return lo, hi
+
+
+def emission(ps, index: int) -> Emission:
+    """Emitted power of light ``index`` and, for a directional light, its start rectangle."""
+    L = ps.lights[index]
+    I = L["power"][:3].astype(np.float64)
+    rect = np.zeros((3, 4), np.float32)
+    if L["type"] == structs.LIGHT_POINT:
+        return Emission(4 * math.pi * I, rect)
+    if L["type"] == structs.LIGHT_SPOT:
+        return Emission(2 * math.pi * (1 - float(L["cos_cutoff"])) * I, rect)
+    d = L["direction"][:3].astype(np.float64)
+    d /= np.linalg.norm(d)
+    e1, e2 = perpendicular_axes(d)
+    lo, hi = _region(ps)
+    corners = box_corners(lo, hi)
+    c1, c2, cd = corners @ e1, corners @ e2, corners @ d
+    pad = 1e-3 * float(np.max(hi - lo))
+    origin = (c1.min() - pad) * e1 + (c2.min() - pad) * e2 + (cd.min() - pad) * d
+    u = (c1.max() - c1.min() + 2 * pad) * e1
+    v = (c2.max() - c2.min() + 2 * pad) * e2
+    rect[0, :3], rect[1, :3], rect[2, :3] = origin, u, v
+    area = float(np.linalg.norm(u) * np.linalg.norm(v))
+    return Emission(I * area, rect)
 
 
 @dataclass
@@ -114,7 +160,6 @@ def _cone(p: np.ndarray, c: np.ndarray, r: float) -> tuple[np.ndarray, float, fl
 
 def targets(ps, index: int, spheres: list[tuple[np.ndarray, float]] | None = None) -> Targets:
     """The targeted emission of light ``index`` towards the specular objects of ``ps``."""
-    from .light_paths import emission
     spheres = specular_spheres(ps) if spheres is None else spheres
     L = ps.lights[index]
     I = L["power"][:3].astype(np.float64)
@@ -188,7 +233,6 @@ def targeted_fraction(ps) -> float:
     towards the specular objects: ``light_rays * fraction`` targeted rays carry the same
     flux per ray as ``light_rays`` untargeted ones (the same caustic noise, without the
     rays that cannot make a caustic). 0 when nothing is specular."""
-    from .light_paths import emission
     sph = specular_spheres(ps)
     full = sum(float(emission(ps, i).power.mean()) for i in range(ps.num_lights))
     part = sum(float(targets(ps, i, sph).power.mean()) for i in range(ps.num_lights))

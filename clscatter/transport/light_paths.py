@@ -23,63 +23,15 @@ first hit is a mirror or dielectric.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
-from typing import Iterator
 
 import numpy as np
 
-from ..device import structs
-from ..device import AppendBuffer
-from ..geometry import box_corners, perpendicular_axes
-from .prepared import PreparedScene
+from ..device import AppendBuffer, structs
 from ..io.stats import Stats, progress
-from .emission import specular_spheres, targets as emission_targets
-
-
-@dataclass
-class Emission:
-    power: np.ndarray          # rgb, normalised units
-    rect: np.ndarray           # (3, 4) float32: origin, u, v (directional lights only)
-
-
-def _region(ps: PreparedScene) -> tuple[np.ndarray, np.ndarray]:
-    """Box (normalised frame) that lighting rays must cover: medium bounds and geometry."""
-    boxes = []
-    if ps.medium["bounded"]:
-        boxes.append((ps.medium["bmin"][:3], ps.medium["bmax"][:3]))
-    root = ps.bvh.nodes[0]
-    if np.all(root["bmin"] <= root["bmax"]):
-        boxes.append((root["bmin"], root["bmax"]))
-    if not boxes:
-        return np.full(3, -1.0), np.full(3, 1.0)
-    lo = np.min([b[0] for b in boxes], axis=0).astype(np.float64)
-    hi = np.max([b[1] for b in boxes], axis=0).astype(np.float64)
-    return lo, hi
-
-
-def emission(ps: PreparedScene, index: int) -> Emission:
-    """Emitted power of light ``index`` and, for a directional light, its start rectangle."""
-    L = ps.lights[index]
-    I = L["power"][:3].astype(np.float64)
-    rect = np.zeros((3, 4), np.float32)
-    if L["type"] == structs.LIGHT_POINT:
-        return Emission(4 * math.pi * I, rect)
-    if L["type"] == structs.LIGHT_SPOT:
-        return Emission(2 * math.pi * (1 - float(L["cos_cutoff"])) * I, rect)
-    d = L["direction"][:3].astype(np.float64)
-    d /= np.linalg.norm(d)
-    e1, e2 = perpendicular_axes(d)
-    lo, hi = _region(ps)
-    corners = box_corners(lo, hi)
-    c1, c2, cd = corners @ e1, corners @ e2, corners @ d
-    pad = 1e-3 * float(np.max(hi - lo))
-    origin = (c1.min() - pad) * e1 + (c2.min() - pad) * e2 + (cd.min() - pad) * d
-    u = (c1.max() - c1.min() + 2 * pad) * e1
-    v = (c2.max() - c2.min() + 2 * pad) * e2
-    rect[0, :3], rect[1, :3], rect[2, :3] = origin, u, v
-    area = float(np.linalg.norm(u) * np.linalg.norm(v))
-    return Emission(I * area, rect)
+from .emission import Emission, emission, specular_spheres
+from .emission import targets as emission_targets
+from .prepared import PreparedScene
 
 
 def ray_counts(ps: PreparedScene, num_rays: int, targeted: bool = False) -> np.ndarray:
@@ -195,8 +147,3 @@ def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = No
     return LightPaths(out, counts, fluxes, spec)
 
 
-def iter_light_chunks(ps: PreparedScene, num_rays: int, chunks: int, stats: Stats | None = None,
-                      show_progress: bool = True) -> Iterator[LightPaths]:
-    """The lighting rays of :func:`trace_light_paths` in ``chunks`` parts, one at a time."""
-    for k in range(max(1, chunks)):
-        yield trace_light_paths(ps, num_rays, stats, show_progress, chunk=(k, max(1, chunks)))

@@ -10,18 +10,24 @@ from typing import Sequence
 
 import numpy as np
 
-from ..device import structs
 from ..accel import tile_grid
 from ..accel.bvh import BVH, build_bvh
-from ..device import Engine
-from ..scene.normalised import (Frame, camera_struct, light_structs, medium_struct, triangle_soup)
-from ..scene.model import Scene
+from ..device import Engine, structs
 from ..io.stats import Stats
+from ..scene.model import Scene
+from ..scene.normalised import (
+    Frame,
+    camera_struct,
+    light_structs,
+    medium_struct,
+    triangle_soup,
+)
 
 
 @dataclass
 class SceneBuffers:
-    """The scene's device buffers; names match the kernels' parameter names."""
+    """The scene's device buffers; names match the kernels' parameter names (the camera
+    binds as ``camera`` or ``cam``)."""
 
     nodes: object       # BVH nodes (structs.BVH_NODE)
     tris: object        # Woop-transformed triangles, BVH order
@@ -70,7 +76,7 @@ class PreparedScene:
 
     def scene_args(self, program: str, kernel: str, **given) -> dict[str, object]:
         """The scene's part of a kernel's arguments (parameters not in ``given``)."""
-        have = {**self.dev.as_dict(), "num_lights": self.num_lights}
+        have = {**self.dev.as_dict(), "cam": self.dev.camera, "num_lights": self.num_lights}
         return {p.name: have[p.name] for p in self.engine.signature(program, kernel)
                 if p.name in have and p.name not in given}
 
@@ -166,6 +172,22 @@ def _refresh_grid(ps: PreparedScene, changed: str, stats: Stats) -> None:
         grid = build(ps.bvh, getattr(ps, changed))
     ps.engine.free(getattr(ps.dev, field))
     setattr(ps.dev, field, tile_grid.upload(ps.engine, grid))
+
+
+def geometry_key(scene: Scene) -> tuple:
+    """Identity of the geometry: the objects' and volumes' shapes and grids (values, not
+    object ids). Materials, a volume's coefficients and everything else are left out: a
+    prepared scene is refreshed for those (:func:`refresh`), and a method's cached stages
+    check what they read themselves."""
+    parts = []
+    for o in scene.objects:
+        parts.append((o.vertices.tobytes(), o.faces.tobytes(),
+                      None if o.normals is None else o.normals.tobytes()))
+    for v in scene.volumes:
+        parts.append((repr(v.key), None if v.mesh is None else v.mesh.vertices.tobytes(),
+                      None if v.mesh is None else v.mesh.faces.tobytes(),
+                      None if v.grid is None else v.grid.tobytes(), repr(v.grid_bounds)))
+    return tuple(parts)
 
 
 def same_frame(ps: PreparedScene, scene: Scene) -> bool:

@@ -12,11 +12,10 @@ from collections.abc import Callable
 
 import numpy as np
 
-from . import primitives as prim
-from ..device import structs
-from ..device import AppendBuffer, Engine, launch_appending
-from .prepared import PreparedScene
+from ..device import AppendBuffer, Engine, launch_appending, structs
 from ..io.stats import Stats, progress
+from . import primitives as prim
+from .prepared import PreparedScene
 
 # camera samples per kernel launch (bounds the segment buffer; drives the progress bar)
 SAMPLES_PER_LAUNCH = 1 << 17
@@ -260,8 +259,8 @@ def _trace(ps: PreparedScene, sample_range, per_launch: int, shade: bool, want_s
             n = min(chunk, total - start)
             got = launch_appending(
                 eng, "view_paths", "trace_view", n, apps,
-                **ps.scene_args("view_paths", "trace_view"), cam=ps.dev.camera,
-                max_depth=ps.scene.render.max_depth, seed=seed, sample_offset=lo + start,
+                **ps.scene_args("view_paths", "trace_view"), max_depth=ps.scene.render.max_depth,
+                    seed=seed, sample_offset=lo + start,
                 num_samples=n, shade=int(shade), want_segs=int(want_segs),
                 want_hits=int(want_hits), out_offset=start if shade else 0, surface=out_surf,
                 escaped=out_esc)

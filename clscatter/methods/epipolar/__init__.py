@@ -1,20 +1,16 @@
 """Hierarchical volumetric shadows: epipolar rectification with Fenwick-tree integration."""
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 
 from ...device import structs
-from .pipeline import (LOOKUPS, MIN_LIGHT_RAYS, Settings, render_light, split_segments,
-                       start_defines)
-from ...transport.prepared import PreparedScene
-from ...transport.view_paths import ViewPaths
-from ...io.stats import Stats
-from .. import AutoRole, Method, Param, register
 from ...errors import SceneError
-from ..raymarch import march_segments
-
+from ...estimators.segment_march import march_lights
+from ...transport.context import PassContext
+from .. import register
+from ..base import AutoRole, Estimate, Fallback, Method, PassResult, camera_samples
+from .pipeline import render_light, split_segments, start_defines
+from .settings import MIN_LIGHT_RAYS, PARAMS, Settings
 
 # Where auto passes epipolar over (Epipolar.unreliable): its estimate exceeded the
 # tolerance there, or came near it, in the regime sweep (tools/bench_epipolar_regimes.py
@@ -69,7 +65,7 @@ class Epipolar(Method):
     opaque occluders in the shadow map (direct light only; caustics are not this
     method's job).
 
-    Accuracy control (issue 8; pipeline.py, svd.py): per light and frame the error is
+    Accuracy control (pipeline.py, svd.py): per light and frame the error is
     estimated on held-out camera samples (the truncated SVD and the tree's float32 sums,
     the sum over light rays, reading a sample in its neighbouring slices) and the
     cheapest setting within the tolerance (1 %, RMS relative) is used: more SVD terms
@@ -80,21 +76,14 @@ class Epipolar(Method):
 
     The default ``segment`` lookup is this implementation's choice over the paper's
     ``grid``: with many depth edges the grid's bilinear unrectification blends samples
-    across them (``epi_forest`` at 640 x 480: relMSE 1.9e-3 against 1.1e-5); prefiltering
-    cuts the error 3 .. 25 x at 160 light rays (thin occluders gain most).
+    across them; prefiltering helps thin occluders most.
 
-    Accuracy and limits (tests/test_epipolar*.py). Against raymarch with 256 steps at
-    64 x 48 the medium image's relMSE is 6e-5 .. 4e-4 on the built-in shaft scenes; with
-    no occluders a sample is within 2.5e-3 (99 %) of the closed form; over optical
-    depths 0.1 .. 10, camera inside/outside, light behind/beside/in front/along the view
-    axis, directional and spot (tests/test_epipolar_regimes.py) every image is within
-    relMSE 1e-4, the thick ones seen from outside by falling back where the estimate
-    says so. What remains: the shadow map's resolution (nearest texel); one slice's light
-    used for a sample up to half a pixel away (visible with wide spot cones, whose shafts
-    cross the epipolar lines: relMSE 9e-5 at 90 degrees against 3e-6 at 10 at 48 x 36);
-    the estimate's host time (0.06 .. 0.14 s per light at 320 x 240, more when it
-    escalates). ``auto`` passes the method over where its estimate is expected to fail
-    (:meth:`unreliable`: thick media, lights along the view seen from outside).
+    Limits (tests/test_epipolar*.py hold the measured bounds; docs/benchmarks.md the
+    numbers): the shadow map's resolution (nearest texel); one slice's light used for a
+    sample up to half a pixel away (visible with wide spot cones, whose shafts cross the
+    epipolar lines); the error estimate's host time. ``auto`` passes the method over where
+    its estimate is expected to fail (:meth:`unreliable`: thick media, lights along the
+    view seen from outside).
 
     Statistics: ``slices``, ``light_rays_per_slice``, ``rays_per_slice``,
     ``tree_updates``, ``tree_queries``, ``svd_singular_values``, ``svd_terms``,
@@ -110,37 +99,7 @@ class Epipolar(Method):
     """
 
     NAME = "epipolar"
-    PARAMS = (
-        Param("slices", 0, "0: the sinh distribution at one-pixel spacing (the half-pixel "
-              "bound); N: about N slices", lo=0),
-        Param("lookup", "segment", '"segment": every camera sample is swept at its own beta '
-              'and depth in its two neighbouring slices; "grid": the paper\'s rectified depth '
-              "map and bilinear unrectification", choices=LOOKUPS),
-        Param("rays_per_slice", 0, "grid lookup: view rays per slice (0: the longest slice's "
-              "length in pixels)", lo=0),
-        Param("depth_map", 0, "grid lookup: depth-map width (0: image width)", lo=0),
-        Param("light_rays", 0, "light rays per slice, d (0: max(W, H, 256), one per pixel of the "
-              "longer side, each with four depth sub-samples when prefiltering); not 1", lo=0),
-        Param("shadow_map", 0, "shadow map resolution (0: 2 max(W, H), clamped to 1024 .. 4096)",
-              lo=0),
-        Param("svd_terms", 4, "SVD terms N", lo=1, hi=16),
-        Param("svd_samples", 64, "the SVD samples an n x n grid (n >= svd_terms)", lo=1),
-        Param("prefilter", True, "four depth sub-samples per light ray, clustered into "
-              "weighted modes"),
-        Param("prefilter_tolerance", 1.0, "sub-samples within this many pixel angles of beta "
-              "form one mode", lo=0),
-        Param("epipole_ring", 2.0, "radius (degrees) around the epipole or anti-epipole that "
-              "is ray marched (0: none)", lo=0, hi=45),
-        Param("epipole_band", 1.0, "band beyond the ring where ray marching and the sweep "
-              "are blended, as a fraction of the ring's radius", lo=0),
-        Param("svd_tolerance", 0.01, "RMS relative error the sweep must meet on held-out "
-              "samples; above it more terms, light rays or slices, else raymarch", lo=0,
-              lo_open=True),
-        Param("svd_max_terms", 16, "most SVD terms the error control may use", lo=1, hi=16),
-        Param("raymarch_steps", 64, "steps of the ray marcher for the ring and the fallbacks",
-              lo=1),
-        Param("batch_slices", 256, "slices per kernel launch (memory/progress)", lo=1),
-    )
+    PARAMS = PARAMS
     TERMS = frozenset({"direct"})
     LIGHTS = frozenset({"spot", "directional"})
     AUTO = {"direct": AutoRole(priority=20)}
@@ -192,7 +151,6 @@ class Epipolar(Method):
 
     @classmethod
     def estimate(cls, scene, params):
-        from ...pipeline.budget import Estimate, camera_samples
         w, h = scene.camera.width, scene.camera.height
         smap = params["shadow_map"] or min(max(2 * max(w, h), 1024), 4096)
         d = params["light_rays"] or max(w, h, MIN_LIGHT_RAYS)
@@ -206,37 +164,7 @@ class Epipolar(Method):
 
     def __init__(self, params: dict | None = None):
         super().__init__(params)
-        p = self.params
-        self.settings = Settings(
-            slices=int(p["slices"]), rays_per_slice=int(p["rays_per_slice"]),
-            light_rays=int(p["light_rays"]), shadow_map=int(p["shadow_map"]),
-            depth_map=int(p["depth_map"]), svd_terms=int(p["svd_terms"]),
-            svd_samples=int(p["svd_samples"]), prefilter=bool(p["prefilter"]),
-            prefilter_tolerance=float(p["prefilter_tolerance"]),
-            epipole_ring=0.0, ring_degrees=float(p["epipole_ring"]),
-            ring_band=float(p["epipole_band"]), lookup=str(p["lookup"]),
-            batch_slices=max(1, int(p["batch_slices"])),
-            svd_tolerance=float(p["svd_tolerance"]), svd_max_terms=int(p["svd_max_terms"]))
-        self.raymarch_steps = max(1, int(p["raymarch_steps"]))
-
-    # ---- the fallback: raymarch on some segments with some lights ----
-    def _raymarch(self, ps: PreparedScene, segs, scale, lights, stats: Stats,
-                  show_progress: bool) -> np.ndarray:
-        """``raymarch`` over the segments of ``segs`` (device) times ``scale`` (one float
-        per segment, 0 skips it), with the lights ``lights`` only."""
-        lights = np.asarray(list(lights), np.int64)
-        if len(lights) == ps.num_lights:
-            sub_ps, buf = ps, None
-        else:
-            buf = ps.engine.to_device(ps.lights[lights])
-            sub_ps = dataclasses.replace(ps, lights=ps.lights[lights],
-                                         dev=dataclasses.replace(ps.dev, lights=buf))
-        try:
-            return march_segments(sub_ps, segs, self.raymarch_steps, stats,
-                                  show_progress, scale=scale)
-        finally:
-            if buf is not None:
-                ps.engine.free(buf)
+        self.settings = Settings.from_params(self.params)
 
     @classmethod
     def programs(cls, scene, params: dict) -> list[tuple[str, dict | None]]:
@@ -247,75 +175,72 @@ class Epipolar(Method):
             if m is not None else np.zeros(3)
         return [("epipolar", start_defines(params["svd_terms"], kappa))]
 
-    def render(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
-               show_progress: bool = True) -> np.ndarray:
-        """Single-scattered radiance (H, W, 3) for all view segments of ``paths``.
+    def render(self, ctx: PassContext) -> PassResult:
+        """Single-scattered radiance of every view segment, in the medium term.
 
         Everything per segment stays on the device (:func:`pipeline.render_light`); the
         ray-marched parts (segments behind mirrors and glass, point lights, the epipole
         ring, lights that fall back) run ``raymarch`` over the same device segments with a
         per-segment scale, and each part is summed into pixels there."""
-        cam = ps.scene.camera
-        img = np.zeros((cam.height, cam.width, 3), np.float32)
-        if len(paths) == 0 or ps.num_lights == 0 or not ps.has_medium:
-            return img
+        ps, stats, show_progress = ctx.ps, ctx.stats, ctx.show_progress
+        img = ctx.zeros()
+        if len(ctx.paths) == 0 or ps.num_lights == 0 or not ps.has_medium:
+            return PassResult(medium=img)
         eng = ps.engine
-        segs = paths.on_device(eng, cam.width, cam.height)
+        steps = self.settings.raymarch_steps
+        segs = ctx.segments()
         n = segs.count
         fallback: list[str] = []
         types = ps.lights["type"]
         handled = [i for i in range(ps.num_lights)
                    if types[i] in (structs.LIGHT_DIRECTIONAL, structs.LIGHT_SPOT)]
         others = [i for i in range(ps.num_lights) if i not in handled]
-        weighted = eng.empty(16 * n)
+        weighted = ctx.scratch(16 * n)
         defines = start_defines(self.settings.svd_terms, ps.medium["kappa"][:3])
-        try:
-            with stats.stage("epipolar_rectify"):
-                primary, deeper, n_deep = split_segments(eng, segs, defines)
-            with stats.stage("epipolar_fallback"):
-                if n_deep:
-                    img += self._raymarch(ps, segs, deeper, range(ps.num_lights), stats,
-                                          show_progress)
-                    fallback.append(f"raymarch: {n_deep} view segments behind "
-                                    "mirrors/glass (depth > 0)")
-                if others:
-                    img += self._raymarch(ps, segs, primary, others, stats, show_progress)
-                    fallback.append(f"raymarch: point lights {others} (no epipolar slices "
-                                    "for a point light's full sphere)")
-            per_light = []
-            for li in handled:
-                try:
-                    out = render_light(ps, li, segs, self.settings, stats, show_progress)
-                except ValueError as e:        # degenerate axis, or the SVD's error too large
-                    with stats.stage("epipolar_fallback"):
-                        # a thick medium is what sends lights here: the ray marcher's
-                        # transmittance strategy keeps its steps enough there
-                        img += self._raymarch(ps, segs, primary, [li], stats, show_progress)
-                    fallback.append(f"raymarch: light {li}: {e}")
-                    per_light.append({"light": li, "fallback": "raymarch", "reason": str(e),
-                                      **getattr(e, "info", {})})
-                    continue
-                try:
-                    with stats.stage("epipolar_unrectify"):
-                        eng.call("epipolar", "epi_weighted", n, defines, values=out.values_buf,
-                                 segs=segs.buf, n=n, weighted=weighted)
-                        img += segs.accumulate(weighted)
-                    if out.ring_samples:
-                        # the ring and its blended band: ray marched with weight ring_weight
-                        with stats.stage("epipolar_ring"):
-                            img += self._raymarch(ps, segs, out.ring_buf, [li], stats,
-                                                  show_progress)
-                        fallback.append(
-                            f"raymarch: light {li}: {out.ring_samples} samples in the "
-                            f"epipole ring ({out.info['ring_degrees']:.3g} degrees, "
-                            f"{out.info['ring_band_samples']} of them in its blended band)")
-                finally:
-                    out.release()
-                per_light.append({"light": li, **out.info})
-        finally:
-            eng.free(weighted)
+        with stats.stage("epipolar_rectify"):
+            primary, deeper, n_deep = split_segments(eng, segs, defines)
+        with stats.stage("epipolar_fallback"):
+            if n_deep:
+                img += march_lights(ps, segs, steps, stats, show_progress, deeper,
+                                    range(ps.num_lights))
+                fallback.append(f"raymarch: {n_deep} view segments behind "
+                                "mirrors/glass (depth > 0)")
+            if others:
+                img += march_lights(ps, segs, steps, stats, show_progress, primary, others)
+                fallback.append(f"raymarch: point lights {others} (no epipolar slices "
+                                "for a point light's full sphere)")
+        per_light = []
+        for li in handled:
+            try:
+                out = render_light(ps, li, segs, self.settings, stats, show_progress)
+            except Fallback as e:          # degenerate axis, or the SVD's error too large
+                with stats.stage("epipolar_fallback"):
+                    # a thick medium is what sends lights here: the ray marcher's
+                    # transmittance strategy keeps its steps enough there
+                    img += march_lights(ps, segs, steps, stats, show_progress, primary, [li])
+                fallback.append(f"raymarch: light {li}: {e}")
+                per_light.append({"light": li, "fallback": "raymarch", "reason": str(e),
+                                  **e.info})
+                continue
+            try:
+                with stats.stage("epipolar_unrectify"):
+                    ctx.call("epipolar", "epi_weighted", n, defines, values=out.values_buf,
+                             segs=segs.buf, n=n, weighted=weighted)
+                    img += segs.accumulate(weighted)
+                if out.ring_samples:
+                    # the ring and its blended band: ray marched with weight ring_weight
+                    with stats.stage("epipolar_ring"):
+                        img += march_lights(ps, segs, steps, stats, show_progress,
+                                            out.ring_buf, [li])
+                    fallback.append(
+                        f"raymarch: light {li}: {out.ring_samples} samples in the "
+                        f"epipole ring ({out.info['ring_degrees']:.3g} degrees, "
+                        f"{out.info['ring_band_samples']} of them in its blended band)")
+            finally:
+                out.release()
+            per_light.append({"light": li, **out.info})
         stats.set(epipolar_fallback=fallback, epipolar_lights=per_light,
-                  epipolar_ring_steps=self.raymarch_steps)
+                  epipolar_ring_steps=steps)
         swept = [x for x in per_light if "fallback" not in x]
         if swept:
             first = swept[0]
@@ -326,4 +251,4 @@ class Epipolar(Method):
                       svd_singular_values=first["svd_singular_values"],
                       svd_terms=max(x["svd_terms"] for x in swept),
                       svd_error=max(x["svd_error"]["rms"] for x in swept))
-        return img
+        return PassResult(medium=img)

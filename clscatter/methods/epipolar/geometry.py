@@ -38,6 +38,7 @@ import numpy as np
 
 from ...device import structs
 from ...geometry import perpendicular_axes
+from ..base import Fallback
 
 F4 = (np.float32, 4)
 
@@ -61,9 +62,9 @@ EPI_SLICE = np.dtype([
     ("phi", np.float32), ("group", np.int32),
 ], align=True)
 
-STRUCTS = {"EpiFrame": structs.register_struct("epipolar.h", "EpiFrame", EPI_FRAME),
-           "EpiSlice": structs.register_struct("epipolar.h", "EpiSlice", EPI_SLICE),
-           "EpiFace": structs.register_struct("epipolar.h", "EpiFace", EPI_FACE)}
+structs.register_struct("epipolar.h", "EpiFrame", EPI_FRAME)
+structs.register_struct("epipolar.h", "EpiSlice", EPI_SLICE)
+structs.register_struct("epipolar.h", "EpiFace", EPI_FACE)
 
 
 def _unit(v) -> np.ndarray:
@@ -169,14 +170,6 @@ class Axis:
             return np.arctan2(t * np.sin(beta), self.D - t * np.cos(beta))
         return t * np.sin(beta)
 
-    def blocker_beta(self, z: np.ndarray, rho: np.ndarray) -> np.ndarray:
-        """beta of the view ray through the slice point ``(z, rho)``."""
-        return np.arctan2(rho, z)
-
-    def slice_w(self, phi: np.ndarray) -> np.ndarray:
-        phi = np.asarray(phi, np.float64)
-        return np.cos(phi)[..., None] * self.b1 + np.sin(phi)[..., None] * self.b2
-
 
 def make_axis(light: np.ndarray, eye: np.ndarray) -> Axis:
     """The axis of a LIGHT struct (directional or spot) seen from ``eye``."""
@@ -189,7 +182,7 @@ def make_axis(light: np.ndarray, eye: np.ndarray) -> Axis:
         pos = np.asarray(light["position"][:3], np.float64)
         D = float(np.linalg.norm(pos - eye))
         if D <= 0.0:
-            raise ValueError("the spot light sits at the eye: no epipolar axis")
+            raise Fallback("the spot light sits at the eye: no epipolar axis")
         u = (pos - eye) / D
     else:
         raise ValueError("epipolar slices need a directional or spot light")

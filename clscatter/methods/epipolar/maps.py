@@ -14,8 +14,8 @@ import math
 
 import numpy as np
 
-from ...device import structs
 from ...accel import tile_grid
+from ...device import structs
 from ...geometry import box_corners, perpendicular_axes
 from ...transport.prepared import PreparedScene
 from .geometry import EPI_FACE, Axis, CameraGeom, medium_box
@@ -175,8 +175,7 @@ def trace_shadow_map(ps: PreparedScene, frame_buf, res: int, defines: dict | Non
                                      else {"kind": "bvh"})
     gb = tile_grid.upload(eng, grid)
     try:
-        eng.call("epipolar", "epi_shadow_map", n, defines, nodes=ps.dev.nodes, tris=ps.dev.tris,
-                 fr=frame_buf, faces=fb, grid=gb, ntex=n, out=out)
+        ps.call("epipolar", "epi_shadow_map", n, defines, fr=frame_buf, faces=fb, grid=gb, ntex=n, out=out)
     finally:
         eng.finish()
         eng.free(gb)
@@ -190,6 +189,5 @@ def trace_depth_map(ps: PreparedScene, width: int, height: int, defines: dict | 
     camera ray through each pixel centre of a width x height raster (T_INF: none)."""
     eng = ps.engine
     out = eng.empty(4 * width * height)
-    eng.call("epipolar", "epi_depth_map", width * height, defines, nodes=ps.dev.nodes,
-             tris=ps.dev.tris, cam=ps.dev.camera, w=width, h=height, out=out)
+    ps.call("epipolar", "epi_depth_map", width * height, defines, w=width, h=height, out=out)
     return out

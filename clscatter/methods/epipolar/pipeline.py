@@ -18,7 +18,7 @@ Two ways to read the integrated result back (``lookup``):
     rays per slice (uniform in beta); the sweep integrates those; each sample then takes
     the bilinear blend of the four grid rays around its (alpha, beta) (``epi_unrectify``).
 
-Accuracy control (issue 8). Before the sweep, per light and frame, the error of the
+Accuracy control. Before the sweep, per light and frame, the error of the
 result is estimated on held-out camera samples (svd.py: the SVD with the tree's float32
 sums, the sum over light rays, reading samples in neighbouring slices), and the cheapest
 setting within ``svd_tolerance`` (RMS relative error, sources in quadrature) is used:
@@ -39,49 +39,35 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...transport import primitives as prim
 from ...device import structs
-from ...transport.prepared import PreparedScene
 from ...io.stats import Stats, progress
+from ...transport import primitives as prim
+from ...transport.prepared import PreparedScene
+from ...transport.view_paths import ViewPaths
+from ..base import Fallback
 from . import geometry as geo
 from .maps import setup_shadow_map, trace_depth_map, trace_shadow_map
-from .svd import (REF_NODES, accepts, decompose, float32_bound, float32_error, heldout_error,
-                  node_extremes, references, riemann_rel, rms, slice_error,
-                  summarize, view_entry)
-
-LOOKUPS = ("segment", "grid")
-MIN_LIGHT_RAYS = 256       # the automatic light rays per slice never go below this
-
-
-@dataclass
-class Settings:
-    """The method's parameters (``0``: automatic, resolved per image by :func:`_auto`)."""
-
-    slices: int = 0
-    rays_per_slice: int = 0
-    light_rays: int = 0
-    shadow_map: int = 0
-    depth_map: int = 0
-    svd_terms: int = 4
-    svd_samples: int = 64
-    prefilter: bool = True
-    prefilter_tolerance: float = 1.0
-    epipole_ring: float = 0.0         # pixels; used only when ring_degrees <= 0
-    lookup: str = "segment"
-    batch_slices: int = 256
-    svd_tolerance: float = 0.01
-    svd_max_terms: int = 16
-    ring_degrees: float = 2.0         # epipole ring radius (angle); <= 0: epipole_ring pixels
-    ring_band: float = 1.0            # blended band: ring radius x (1 .. 1 + band)
+from .settings import MIN_LIGHT_RAYS, Settings
+from .svd import (
+    REF_NODES,
+    accepts,
+    decompose,
+    float32_bound,
+    float32_error,
+    heldout_error,
+    node_extremes,
+    references,
+    riemann_rel,
+    rms,
+    slice_error,
+    summarize,
+    view_entry,
+)
 
 
-class SVDFallback(ValueError):
+class SVDFallback(Fallback):
     """The SVD's estimated error stays above the tolerance at the most terms allowed: the
     light is ray marched instead (``info``: the estimate, for --stats)."""
-
-    def __init__(self, message: str, info: dict):
-        super().__init__(message)
-        self.info = info
 
 
 class LightOutput:
@@ -190,14 +176,13 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
     eng = ps.engine
     cam = geo.CameraGeom.from_struct(ps.camera)
     if isinstance(segs, np.ndarray):
-        from ...transport.view_paths import ViewPaths
         segs = ViewPaths(None, None, segs).on_device(eng, cam.width, cam.height)
     axis = geo.make_axis(ps.lights[li], cam.origin)
     st = _auto(st, cam)
     n = segs.count
     box = geo.medium_box(ps.medium)
     if box is None and not axis.spot:
-        raise ValueError("a directional light needs a bounded medium")
+        raise Fallback("a directional light needs a bounded medium")
     kappa = np.asarray(ps.medium["kappa"][:3], np.float64)
     defines = start_defines(st.svd_terms, kappa)
     nch = defines["EPI_NCH"]
@@ -223,8 +208,7 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
         # neighbouring slices is estimated to be off by more than a quarter of the
         # tolerance (thick media lit through grazing box faces).
         spacing = _spacing(st, axis, cam)
-        ring_rad = math.radians(st.ring_degrees) if st.ring_degrees > 0 else \
-            st.epipole_ring * cam.pixel_angle()
+        ring_rad = math.radians(st.epipole_ring)
         ring_px = ring_rad / cam.pixel_angle()          # for the slices' beta ranges
         geo_buf, idx_buf = scratch(16 * max(n, 1)), scratch(16 * max(n, 1))
         live = None
@@ -250,15 +234,15 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
                 # the ring is decided below, in angle (the kernel's pixel disc is off)
                 no_ring = np.array([slices.P[0], slices.P[1], -1.0, 0.0], np.float32)
                 dirs_buf, ta_buf = view_dirs(eng, segs, frame["eye"], defines)
-                eng.call("epipolar", "epi_samples", n, defines, fr=frame_buf, phis=phi_buf,
+                ps.call("epipolar", "epi_samples", n, defines, fr=frame_buf, phis=phi_buf,
                          nslices=S, full=slices.full, lut=lut_buf, bins=len(lut) - 1,
-                         cam=ps.dev.camera, ring=no_ring, dirs=dirs_buf, ta=ta_buf, n=n,
+                         ring=no_ring, dirs=dirs_buf, ta=ta_buf, n=n,
                          geo=geo_buf, idx=idx_buf)
                 if live is None:            # beta, hence the ring, does not depend on slices
                     ring_in_view = _ring_in_view(cam, axis, slices.front, ring_rad,
-                                                 st.ring_band)
+                                                 st.epipole_band)
                     live = (_live_samples(eng, segs, geo_buf, idx_buf, wr_buf, slices.front,
-                                          ring_rad, st.ring_band, defines, bufs)
+                                          ring_rad, st.epipole_band, defines, bufs)
                             if ring_in_view else
                             _primary_samples(eng, segs, geo_buf, idx_buf, defines))
                 views = DeviceViews(eng, geo_buf, idx_buf, live.buf, live.count, S, defines)
@@ -360,13 +344,12 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
             for s0 in range(0, S, batch):
                 nb = min(batch, S - s0)
                 with stats.stage("epipolar_rectify"):
-                    eng.call("epipolar", "epi_rectify_shadow", nb * d, defines, fr=frame_buf,
+                    ps.call("epipolar", "epi_rectify_shadow", nb * d, defines, fr=frame_buf,
                              slices=slice_buf, slice0=s0, nbatch=nb, faces=faces_buf, smap=smap,
                              term=term)
                     if st.lookup == "grid":
-                        eng.call("epipolar", "epi_rectify_depth", nb * R, defines, fr=frame_buf,
-                                 slices=slice_buf, slice0=s0, nbatch=nb, medium=ps.dev.medium,
-                                 cam=ps.dev.camera, depth=depth, dw=dw, dh=dh, events=ev_buf)
+                        ps.call("epipolar", "epi_rectify_depth", nb * R, defines, fr=frame_buf,
+                                 slices=slice_buf, slice0=s0, nbatch=nb, depth=depth, dw=dw, dh=dh, events=ev_buf)
                     eng.finish()
                 with stats.stage("epipolar_integrate"):
                     _launch_slices(eng, "epi_integrate", nb, defines, fr=frame_buf,
@@ -396,12 +379,12 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
                 live_segs = eng.read(rows, live.count, structs.VIEW_SEGMENT)
                 dbuf = up(segment_dirs(live_segs, cam.origin))
                 acc = scratch(16 * live.count)
-                eng.call("epipolar", "epi_unrectify", live.count, defines, fr=frame_buf,
+                ps.call("epipolar", "epi_unrectify", live.count, defines, fr=frame_buf,
                          slices=slice_buf, phis=phi_buf, nslices=S, full=slices.full,
                          lut=lut_buf, bins=len(lut) - 1, R=R,
                          grid=out, dirs=dbuf, n=live.count, out=acc)
                 inv_buf = acc                       # unused with use_acc
-            eng.call("epipolar", "epi_sample_values", live.count, defines, res=out,
+            ps.call("epipolar", "epi_sample_values", live.count, defines, res=out,
                      inv=inv_buf, idx=idx_buf, live=live.buf, L=live.count, acc=acc,
                      use_acc=int(st.lookup == "grid"), wr=wr_buf, colour=colour,
                      values=values_buf)

@@ -7,284 +7,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...transport import primitives as prim
-from ...device import structs
-from .linetree import (LINE_NODE, LineTree, PluckerFrame, build_linetree, canonical_signs,
-                              plucker)
-from ...device import Engine
-from ...geometry import slab_interval
+from ...estimators.line_gather import BYTES_PER_SEGMENT, Gatherer
+from ...io.stats import Stats, Timer, progress
+from ...transport.context import PassContext
 from ...transport.emission import targeted_fraction
 from ...transport.light_paths import ray_counts, trace_light_paths
 from ...transport.prepared import PreparedScene
-from ...transport.view_paths import DeviceSegments, ViewPaths
-from ...io.stats import Stats, Timer, progress
-from .. import AutoRole, Method, Param, register
-
-F4 = structs.F4
-
-# ``LsgLine`` in cl_kernels/lsg.h
-LSG_LINE = np.dtype([("a", *F4), ("u", *F4), ("flux", *F4)], align=True)
-
-# name in cl_kernels/lsg.h -> dtype; used by the layout test
-STRUCTS = {"LineNode": structs.register_struct("lsg.h", "LineNode", LINE_NODE),
-           "LsgLine": structs.register_struct("lsg.h", "LsgLine", LSG_LINE)}
-
-# Host + device bytes one lighting segment costs while its chunk is processed, as
-# PreparedLines.nbytes and Gatherer.add count them: the traced LightSegment (64), the
-# clipped float64 copy (ids, a, u, length, flux: 80), Plücker points (float64 48 +
-# float32 24 + canonical copy 24), the tree build's per-level arrays (sorted copy 24,
-# key 8, node index 8, permutation 8, order 8), LsgLine (48) and Plücker float8 (32) on
-# the host and again on the device, the id (4) and the tree's share (nodes, leaf ranges,
-# order: < 24 host + 16 device) -- about 500. Used to plan chunks against max_bytes; the
-# measured working set of every chunk is reported as lsg_chunk_bytes_max.
-BYTES_PER_SEGMENT = 512
-
-
-@dataclass
-class PreparedLines:
-    """One chunk's lighting segments, clipped, in tree order, with their 8-ary tree."""
-
-    lines: np.ndarray          # LSG_LINE in tree order
-    points: np.ndarray         # (N, 8) float32 Plücker points (u, m, 0, 0) in tree order
-    ids: np.ndarray            # int32: index of each line in the input segment array
-    tree: LineTree
-    frame: PluckerFrame
-    max_m1: float              # largest |m|_1 (for the kernel's rounding allowance)
-    nbytes: int                # host working set of the preparation (peak estimate)
-
-
-def clip_segments(segs: np.ndarray, lo, hi, kappa) -> tuple[np.ndarray, ...]:
-    """Cut LIGHT_SEGMENT pieces to the box [lo, hi] (float64, vectorised slab test).
-
-    Returns ``(ids, a, u, length, flux)`` of the non-empty pieces; ``flux`` is attenuated
-    by ``exp(-kappa s0)`` to the new start (segments lie inside the medium).
-    """
-    a = segs["a"][:, :3].astype(np.float64)
-    d = segs["b"][:, :3].astype(np.float64) - a
-    length = np.linalg.norm(d, axis=1)
-    ok = length > 0
-    u = np.zeros_like(d)
-    u[ok] = d[ok] / length[ok, None]
-    s0, s1 = slab_interval(a, u, lo, hi, length)
-    keep = np.flatnonzero(ok & (s1 > s0))
-    s0 = s0[keep]
-    flux = segs["flux"][keep, :3].astype(np.float64) * np.exp(-np.outer(s0, np.asarray(kappa)[:3]))
-    return (keep.astype(np.int32), a[keep] + s0[:, None] * u[keep], u[keep], s1[keep] - s0, flux)
-
-
-def continue_across_faces(segs: np.ndarray, medium: np.ndarray, radius: float) -> np.ndarray:
-    """``segs`` with every lighting segment that starts where light enters a bounded
-    medium (on a face of its box, heading in) continued backwards until it lies
-    ``radius`` beyond the face (``radius / cos``), its flux continued exponentially
-    (times ``exp(kappa back)`` at the new start, so that it is unchanged from the face
-    on); every segment that ends where light leaves it continued forwards likewise.
-
-    The gather averages the light over a disc of radius r around each view point; a view
-    point within r of a face would find lighting segments over only the part of its disc
-    inside the medium, an underestimate that grows with the optical depth where light
-    enters (the lit layer behind the face is 1/kappa deep: 0.9 % of the image at optical
-    depth 10 seen from outside with r = 0.004, tests/test_lsg.py; 0.01 % continued).
-    Continued, the disc sees the same smooth field as in the interior. Segments that
-    start or end elsewhere (at a light, a mirror, glass, an occluder) are unchanged; an
-    unbounded medium has no faces."""
-    m = medium.reshape(-1)[0]
-    if not int(m["bounded"]) or radius <= 0.0 or not len(segs):
-        return segs
-    lo, hi = m["bmin"][:3].astype(np.float64), m["bmax"][:3].astype(np.float64)
-    a = segs["a"][:, :3].astype(np.float64)
-    d = segs["b"][:, :3].astype(np.float64) - a
-    eps = 1e-5 * float(np.max(hi - lo))
-    length = np.linalg.norm(d, axis=1)
-    b = a + d
-    face = ((np.abs(a - lo) <= eps) & (d > 0)) | ((np.abs(a - hi) <= eps) & (d < 0))
-    exit_ = ((np.abs(b - lo) <= eps) & (d < 0)) | ((np.abs(b - hi) <= eps) & (d > 0))
-    idx = np.flatnonzero((face.any(1) | exit_.any(1)) & (length > 0))
-    if not len(idx):
-        return segs
-    out = segs.copy()
-    u = d[idx] / length[idx, None]
-    # far enough to lie r beyond the face: r / cos of the crossing angle (a corner's
-    # steepest face; capped at 10 r for grazing crossings); 0 where it does not cross
-    def beyond(mask):
-        cos = np.max(np.where(mask[idx], np.abs(u), 0.0), axis=1)
-        return np.where(mask[idx].any(1), radius / np.maximum(cos, 0.1), 0.0)
-    back, ahead = beyond(face), beyond(exit_)
-    out["a"][idx, :3] = a[idx] - back[:, None] * u
-    out["b"][idx, :3] = b[idx] + ahead[:, None] * u
-    out["flux"][idx, :3] *= np.exp(np.outer(back, m["kappa"][:3].astype(np.float64)))
-    return out
-
-
-def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa, leaf_size: int = 4,
-                  frame: PluckerFrame | None = None) -> PreparedLines:
-    """Clip lighting segments to the view segments' box grown by ``radius`` (no pair closer
-    than r lies outside it), form canonical Plücker points and build the 8-ary tree."""
-    margin = radius * 1.001 + 1e-5
-    ids, a, u, length, flux = clip_segments(segs, np.asarray(view_lo) - margin,
-                                            np.asarray(view_hi) + margin, kappa)
-    if frame is None:
-        ends = np.concatenate([a, a + length[:, None] * u]) if len(a) else np.zeros((1, 3))
-        frame = PluckerFrame.for_box(ends.min(axis=0), ends.max(axis=0))
-    u32 = u.astype(np.float32)
-    pts = plucker(a, u32.astype(np.float64), frame).astype(np.float32)   # (u32, m32)
-    pts[:, :3] = u32
-    tree = build_linetree(pts * canonical_signs(u32)[:, None], leaf_size)
-    o = tree.order
-    lines = np.zeros(len(o), LSG_LINE)
-    lines["a"][:, :3] = a[o]
-    lines["a"][:, 3] = length[o]
-    lines["u"][:, :3] = pts[o, :3]
-    lines["flux"][:, :3] = flux[o]
-    points = np.zeros((len(o), 8), np.float32)
-    points[:, :6] = pts[o]
-    max_m1 = float(np.abs(pts[:, 3:]).sum(axis=1).max()) if len(pts) else 0.0
-    n = len(segs)
-    nbytes = int(segs.nbytes + 80 * n + 96 * len(o) + 56 * len(o) + lines.nbytes + points.nbytes
-                 + tree.nbytes)
-    return PreparedLines(lines, points, ids[o].astype(np.int32), tree, frame, max_m1, nbytes)
-
-
-@dataclass
-class ChunkResult:
-    pair_tests: int
-    valid_pairs: int
-    kept: int                  # lighting segments left after clipping
-    nbytes: int                # host + device working set of this chunk
-    tree_seconds: float
-    gather_seconds: float
-    pairs: np.ndarray | None   # (k, 2) int32 (view index, input light index) if recorded
-    leaf_points: int = 0       # points in the leaves the hierarchy visited (paper's count)
-
-
-class Gatherer:
-    """View segments on the device plus an accumulator; gathers chunks of lighting segments.
-
-    ``add(segments)`` clips them, builds the tree, runs ``lsg_gather`` (exhaustively, no
-    tree, with ``bruteforce=True``) and adds the estimate of every view segment
-    into the accumulator; :meth:`values` reads the sum, ``(n_views, 4)`` rgb.
-    ``record_pairs > 0`` also returns up to that many valid (view, light) pairs per chunk.
-    ``clip = False`` keeps lighting segments whole (otherwise they are cut to the view
-    segments' box grown by the radius); ``frame`` fixes the Plücker frame (tests).
-    ``views_buf``: the same view segments already on the device (a render's
-    :class:`~clscatter.transport.view_paths.DeviceSegments` buffer; not freed here), else uploaded.
-
-    Per view segment, the estimate and the work counters (tests, valid pairs, leaf points)
-    accumulate on the device; an :meth:`add` reads back the counters' totals only, and
-    :meth:`image` sums the estimate into pixels there. The host needs the view segments
-    for the box that clips the lighting segments, and :attr:`valid_per_view` (the
-    automatic radius's pilot) reads one count per view.
-    """
-
-    def __init__(self, engine: Engine, views: np.ndarray, medium: np.ndarray, radius: float,
-                 min_sin: float = 1e-6, leaf_size: int = 4, per_launch: int = 65536,
-                 record_pairs: int = 0, show_progress: bool = False, clip: bool = True,
-                 frame: PluckerFrame | None = None, views_buf=None):
-        self.eng = engine
-        self.views = views
-        self.n = len(views)
-        self.medium = np.asarray(medium).reshape(1)
-        self.radius = float(radius)
-        self.min_sin = float(min_sin)
-        self.leaf_size = int(leaf_size)
-        self.per_launch = max(1, int(per_launch))
-        self.record = int(record_pairs)
-        self.show_progress = show_progress
-        ab = np.concatenate([views["a"][:, :3], views["b"][:, :3]]).astype(np.float64)
-        self.lo = ab.min(axis=0) if len(ab) else np.zeros(3)
-        self.hi = ab.max(axis=0) if len(ab) else np.zeros(3)
-        if not clip:   # (tests) keep the lighting segments whole
-            self.lo, self.hi = np.full(3, -np.inf), np.full(3, np.inf)
-        self.frame = frame
-        self._own_views = views_buf is None
-        self.views_buf = engine.to_device(views) if views_buf is None else views_buf
-        self.medium_buf = engine.to_device(self.medium)
-        self.out_buf = engine.zeros(max(self.n, 1) * 16)
-        # per view: (tests, valid pairs, leaf points, 0) summed over add() calls
-        self.counts_buf = engine.zeros(max(self.n, 1) * 16)
-        self._totals = np.zeros(4, np.int64)     # their totals after the last add()
-        self.pairs_buf = engine.empty(max(self.record, 1) * 8)
-        self.pair_count = engine.empty(4)
-
-    # ---- one chunk ----
-    def add(self, segs: np.ndarray, bruteforce: bool = False) -> ChunkResult:
-        eng = self.eng
-        t_build, t_gather = Timer(), Timer()
-        kappa = self.medium["kappa"][0]
-        # bruteforce: a one-leaf tree (the lines in input order, clipped like the tree's)
-        leaf = 1 << 62 if bruteforce else self.leaf_size
-        with t_build:
-            segs = continue_across_faces(segs, self.medium, self.radius)
-            prep = prepare_lines(segs, self.lo, self.hi, self.radius, kappa, leaf, self.frame)
-        with t_gather:
-            eng.note_host(prep.nbytes)
-            lines_buf = eng.to_device(prep.lines)
-            points_buf = eng.to_device(prep.points)
-            ids_buf = eng.to_device(prep.ids)
-            nodes_buf = eng.to_device(prep.tree.nodes)
-            ranges_buf = eng.to_device(prep.tree.leaf_ranges)
-            dev_bytes = (prep.lines.nbytes + prep.points.nbytes + prep.ids.nbytes
-                         + prep.tree.nodes.nbytes + prep.tree.leaf_ranges.nbytes)
-            # the host arrays that stay alive beside the new device buffers
-            eng.note_host(prep.nbytes - prep.lines.nbytes - prep.points.nbytes)
-            eng.cl.enqueue_fill_buffer(eng.queue, self.pair_count, np.zeros(1, np.int32), 0, 4)
-            fr = prep.frame
-            centre = structs.vec4(fr.centre)
-            tests = valid = leaf = 0
-            if len(prep.lines) and self.n:
-                with progress(self.n, "lsg gather", self.show_progress) as bar:
-                    for start in range(0, self.n, self.per_launch):
-                        m = min(self.per_launch, self.n - start)
-                        eng.call("lsg", "lsg_gather", m, nodes=nodes_buf, leaf_ranges=ranges_buf,
-                                 first_leaf=prep.tree.first_leaf, lines=lines_buf,
-                                 points=points_buf, line_ids=ids_buf, num_lines=len(prep.lines),
-                                 max_m1=prep.max_m1, views=self.views_buf, view_offset=start,
-                                 num_views=m, pl_centre=centre, pl_inv_scale=1.0 / fr.scale,
-                                 radius=self.radius, min_sin=self.min_sin, medium=self.medium_buf,
-                                 exhaustive=int(bruteforce), out=self.out_buf,
-                                 counts=self.counts_buf, pairs=self.pairs_buf,
-                                 pair_count=self.pair_count, max_pairs=self.record)
-                        eng.finish()
-                        bar.update(m)
-                totals = prim.int_totals(eng, self.counts_buf, self.n, 4)
-                tests, valid, leaf = (int(x) for x in (totals - self._totals)[:3])
-                self._totals = totals
-            pairs = None
-            if self.record:
-                got = int(eng.read(self.pair_count, 1, np.int32)[0])
-                if got > self.record:
-                    raise RuntimeError(f"{got} valid pairs exceed record_pairs={self.record}")
-                pairs = eng.read(self.pairs_buf, (got, 2), np.int32)
-            eng.free(lines_buf, points_buf, ids_buf, nodes_buf, ranges_buf)
-        return ChunkResult(tests, valid, len(prep.lines), int(prep.nbytes + dev_bytes),
-                           t_build.seconds, t_gather.seconds, pairs, leaf)
-
-    def reset(self) -> None:
-        """Zero the accumulator and the per-view counters."""
-        q = self.eng.queue
-        for buf in (self.out_buf, self.counts_buf):
-            self.eng.cl.enqueue_fill_buffer(q, buf, np.zeros(1, np.float32), 0, max(self.n, 1) * 16)
-        self._totals[:] = 0
-
-    @property
-    def valid_per_view(self) -> np.ndarray:
-        """Valid pairs per view segment, summed over the add() calls since the last
-        reset(), (n_views,) int64 (read from the device)."""
-        c = self.eng.read(self.counts_buf, (max(self.n, 1), 4), np.int32)[:self.n]
-        return c[:, 1].astype(np.int64)
-
-    def values(self) -> np.ndarray:
-        """The accumulated estimate per view segment, ``(n_views, 4)`` float32."""
-        return self.eng.read(self.out_buf, (max(self.n, 1), 4), np.float32)[:self.n]
-
-    def image(self, segs: DeviceSegments, scale: float = 1.0) -> np.ndarray:
-        """The accumulated estimate summed into an (H, W, 3) image on the device, times
-        ``scale``; ``segs`` holds the same view segments in the same order (its pixel
-        offsets)."""
-        return segs.accumulate(self.out_buf) * np.float32(scale)
-
-    def release(self) -> None:
-        self.eng.free(*([self.views_buf] if self._own_views else []), self.medium_buf,
-                      self.out_buf, self.counts_buf, self.pairs_buf, self.pair_count)
+from .. import register
+from ..base import AutoRole, Estimate, Method, Param, PassResult, camera_samples
 
 
 def _chunk_rays(counts: np.ndarray, k: int, n: int) -> int:
@@ -331,94 +61,48 @@ class LineSpaceGathering(Method):
 
     Lighting rays leave the lights (stratified; flux = power / rays) and are traced through
     mirrors and glass (Fresnel split, TIR, interior absorption, ``render.max_depth``); every
-    straight piece inside the medium is kept with the flux at its start. Each such
-    *lighting segment* becomes a 6-D Plücker point; the points go into a balanced
-    median-split kd-tree collapsed into a perfect 8-ary tree (``clscatter.methods.lsg.linetree``).
-    Every view segment (seen directly or through mirrors and glass) is a 6-D hyperplane;
-    a stackless walk of the tree finds the lighting lines that may pass within ``radius``
-    (``|P . w| = d sin theta <= d``), an exact segment-to-segment distance keeps the pairs
-    closer than ``radius``, and each adds the cylinder-kernel estimate
+    straight piece inside the medium is kept with the flux at its start. Each *lighting
+    segment* becomes a 6-D Plücker point in a perfect 8-ary tree; every view segment is a
+    6-D hyperplane whose plane query finds the lighting lines within ``radius``, and each
+    pair closer than ``radius`` adds the cylinder-kernel estimate
 
         sigma_s p(cos) Phi / (pi r^2) * int_chord exp(-kappa (s + t(s))) ds
 
-    (``cl_kernels/lsg.h`` derives it: a track-length estimate over the cylinder of radius
-    r around the view segment; exact for a uniform beam). LSG is a density estimator:
-    the image has bias from ``radius`` (blur of sharp caustics, of the 1/d^2 glow near a
-    point light, and of shadow edges) and noise from ``light_rays`` (relative noise per
-    view segment ~ 1/sqrt(expected lighting rays through its cylinder), which grows like
-    ``light_rays * radius``). Halving ``radius`` needs twice the rays for the same noise.
-    Where light enters or leaves a bounded medium its lighting segments are continued
-    ``radius`` / cos beyond the face (:func:`continue_across_faces`), so that a view point
-    near a face gathers over its whole disc (optical depth 10 seen from outside: the
-    image's deficit 0.9 % -> 0.01 %; thin media 0.2 % -> 0.1 %).
+    (derived in ``cl_kernels/estimators/lsg.h``; the gathering itself is the shared
+    :mod:`clscatter.estimators.line_gather`). The image has bias from ``radius`` (a blur of
+    caustics, glows and shadow edges) and noise from ``light_rays`` (per view segment, about
+    1 / sqrt of the lighting segments its cylinder catches).
 
     *Targeted emission.* With ``min_light_depth >= 1`` (a caustic pass, as ``auto`` runs
-    it) and ``targeted`` (default), every light emits only towards the bounding spheres
-    of the mirrors and glass (directional lights: their projected footprint), each ray
-    weighted by its exact pdf (``clscatter.transport.emission``), so the expected image is the same
-    and no ray is spent on light that cannot make a caustic. ``light_rays`` keeps its
-    meaning (rays over the whole emission); only the part of them that would have gone
-    towards the mirrors and glass is traced (``light_rays`` in ``--stats``), so the noise
-    is that of ``light_rays`` untargeted rays at a fraction of the cost (a glass ball
-    under a point light: ~3%).
+    it) and ``targeted``, lights emit only towards the bounding spheres of the mirrors and
+    glass, each ray weighted by its exact pdf (:mod:`clscatter.transport.emission`): the same
+    expected image, the noise of ``light_rays`` untargeted rays, the cost of the part of
+    them that reaches the mirrors and glass.
 
-    *Automatic radius* (``radius = 0``, the default). A pilot traces ``light_rays / 8``
-    rays (at least 2000) and gathers them at a trial radius r0 (a quarter of the pixel
-    footprint at the median view-segment distance, doubled until 64 view segments find a
-    pair), counting
-    the valid pairs of every view segment. The number of lighting segments a view
-    segment's cylinder catches grows linearly with r (lines crossing a segment within
-    distance r), so, scaled to the full ``light_rays``, the median count c over the lit
-    view segments gives ``r_n = r0 * auto_count / c``: the radius at which a typical lit
-    view segment gathers ``auto_count`` lighting segments (relative noise per segment
-    ~ 1 / sqrt(auto_count); 16 by default: on caustic_sphere the blur bias of a larger
-    count outweighed the noise it saves, e.g. at 24 x 18 and 200k rays the relMSE
-    against a converged reference was 0.043 / 0.49 / 9.7 for 16 / 48 / 128, the noise
-    part 0.005 / 0.002 / 0.0007). The radius is not allowed below 1/16 of the median pixel
-    footprint f at those segments (a blur that small is invisible even with 16 x 16
-    samples per pixel, while the noise keeps growing as r shrinks):
-    ``r = max(r_n, f / 16)``. At the default 200k rays on caustic_sphere this gives
-    r ~ 0.003 of the extent, the best fixed radius measured by hand before (relMSE 6.7e-4,
-    9.7e-5, 6.7e-5, 1.7e-4, 5.3e-4 at 0.001, 0.002, 0.003, 0.005, 0.01; 128 x 96 against
-    a 1.6M-ray render). Both terms are measured in the data,
-    in the normalised frame, so the same physical scene gets the same radius at any
-    scale and with objects added far away (tests/test_invariance.py); the bounding box
-    plays no part. ``radius > 0`` overrides it (a multiple of the scene extent, as before).
-    The pilot's rays are not part of the image.
+    *Automatic radius* (``radius = 0``). A pilot of ``light_rays / 8`` rays (at least 2000)
+    is gathered at a trial radius r0; the median number c of pairs per lit view segment,
+    scaled to ``light_rays``, gives ``r = max(r0 * auto_count / c, f / 16)`` with f the
+    median pixel footprint there: a typical lit view segment gathers ``auto_count``
+    lighting segments, and no blur is smaller than a sixteenth of a pixel. Both terms are
+    measured in the normalised frame, so the radius does not depend on the scene's scale
+    or on objects far away. The pilot's rays are not part of the image.
 
-    *Progressive passes* (``passes`` > 1 or ``time_budget`` > 0): pass i traces
-    ``light_rays`` fresh rays (an independent rotation of the stratified set) and gathers
-    them with radius ``r_i``, ``r_{i+1} = r_i (i + alpha) / (i + 1)`` (:func:`ppb_radii`,
-    the progressive photon beams rule); the image is the mean of the passes, which
-    converges to the exact single scattering (no radius bias floor). With
-    ``time_budget`` S, passes run while the time of the passes so far plus one more
-    (the mean pass time) fits in S; at least one pass runs, and ``passes`` > 1 is then
-    an upper bound.
+    *Progressive passes* (``passes`` > 1 or ``time_budget`` > 0): pass i traces fresh rays
+    and gathers them with ``r_{i+1} = r_i (i + alpha) / (i + 1)`` (:func:`ppb_radii`); the
+    image is the mean of the passes and converges without a radius bias floor. With a
+    ``time_budget``, passes run while one more fits in it (at least one runs).
 
-    Lighting rays are processed in chunks whose estimates are summed (with a fixed radius
-    the sum equals one pass over all rays), so that one chunk's working set (traced
-    segments, tree, device buffers; ~500 bytes per lighting segment) stays within
-    ``max_bytes``; a chunk that turns out larger is re-traced in smaller parts. The view
-    segments and the accumulator (80 bytes per view segment) are a fixed cost.
+    Rays are processed in chunks whose working set stays within ``max_bytes``; a chunk that
+    turns out larger is traced again in smaller parts.
 
-    Statistics: ``light_segments`` (traced), ``lsg_light_segments_kept`` (after clipping
-    to the view segments' box grown by r), ``view_segments``, ``pair_tests`` (exact
-    segment tests after the tree and per-point plane culling), ``pair_tests_bruteforce``
-    (light segments x view segments), ``valid_pairs`` (closer than r),
-    ``lsg_cull_fraction`` (1 - pair_tests / bruteforce), ``lsg_valid_fraction`` (valid /
-    tested); counted the paper's way (sec. 4.3: the share of exhaustive "line
-    intersection tests" the hierarchy culls, and the valid share of the rest):
-    ``lsg_leaf_points_tested`` (points in the leaves the tree walk reaches, before the
-    per-point plane test), ``lsg_cull_fraction_paper`` (1 - that / (lighting segments
-    kept after clipping x view segments)), ``lsg_valid_fraction_paper`` (valid /
-    leaf points); ``tree_build_seconds`` (clipping, Plücker points, tree), ``gather_seconds``,
-    ``chunks``, ``lsg_chunks_retraced``, ``lsg_chunk_bytes_max`` (largest chunk working
-    set), ``lsg_radius`` (first pass, normalised units; ``lsg_radius_world`` in scene
-    units), ``lsg_radius_last``,
-    ``lsg_passes``, ``lsg_pass_seconds``, ``lsg_time_budget``, ``lsg_auto_radius`` (what
-    the automatic radius was chosen from), ``lsg_targeted``,
-    ``light_rays_specular_fraction`` (emitted rays whose first hit is a mirror or glass);
-    ``peak_bytes`` covers the whole render.
+    Statistics: ``light_segments``, ``lsg_light_segments_kept``, ``view_segments``,
+    ``pair_tests``, ``pair_tests_bruteforce``, ``valid_pairs``, ``lsg_cull_fraction``,
+    ``lsg_valid_fraction`` (and the paper's way of counting them, sec. 4.3:
+    ``lsg_leaf_points_tested``, ``lsg_cull_fraction_paper``, ``lsg_valid_fraction_paper``),
+    ``tree_build_seconds``, ``gather_seconds``, ``chunks``, ``lsg_chunks_retraced``,
+    ``lsg_chunk_bytes_max``, ``lsg_radius`` (normalised; ``lsg_radius_world`` in scene
+    units), ``lsg_radius_last``, ``lsg_passes``, ``lsg_pass_seconds``, ``lsg_time_budget``,
+    ``lsg_auto_radius``, ``lsg_targeted``, ``light_rays_specular_fraction``.
 
     Usage: ``clscatter render scene.toml --method lsg --set render.lsg.light_rays=1000000
     --set render.lsg.time_budget=30``
@@ -462,7 +146,6 @@ class LineSpaceGathering(Method):
         """Working set: one chunk of lighting segments (bounded by ``max_bytes``; ~3
         segments per ray at BYTES_PER_SEGMENT each) plus 80 bytes per view segment; work:
         the segments traced over all passes (the gather's pair tests scale with them)."""
-        from ...pipeline.budget import Estimate, camera_samples
         views = 2.0 * camera_samples(scene)
         rays = float(params["light_rays"])
         chunk = min(float(params["max_bytes"]), rays * 3 * BYTES_PER_SEGMENT)
@@ -486,10 +169,9 @@ class LineSpaceGathering(Method):
             n = max(1, math.ceil(n * targeted_fraction(ps)))
         return n
 
-    def render(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
-               show_progress: bool = True) -> np.ndarray:
-        """Single-scattered radiance (H, W, 3) gathered from the lighting rays."""
-        cam = ps.scene.camera
+    def render(self, ctx: PassContext) -> PassResult:
+        """Single-scattered radiance gathered from the lighting rays, in the medium term."""
+        ps, paths, stats, show_progress = ctx.ps, ctx.paths, ctx.stats, ctx.show_progress
         views = paths.segments
         p = self.params
         stats.set(view_segments=int(len(views)), lsg_targeted=self.targeted())
@@ -497,10 +179,10 @@ class LineSpaceGathering(Method):
         if len(views) == 0 or ps.num_lights == 0 or p["light_rays"] == 0:
             stats.set(pair_tests=0, pair_tests_bruteforce=0, valid_pairs=0, chunks=0,
                       lsg_radius=0.0, lsg_passes=0)
-            return np.zeros((cam.height, cam.width, 3), np.float32)
+            return PassResult(medium=ctx.zeros())
         eng = ps.engine
         r_fixed = p["radius"] * ps.scene.scene_extent() / ps.frame.scale
-        dev = paths.on_device(eng, cam.width, cam.height)     # the same segments, in order
+        dev = ctx.segments()                                  # the same segments, in order
         gat = Gatherer(eng, views, ps.medium, r_fixed or 1.0, p["min_sin"], p["leaf_size"],
                        p["segments_per_launch"], show_progress=False, views_buf=dev.buf)
         try:
@@ -529,7 +211,7 @@ class LineSpaceGathering(Method):
                   lsg_radius_world=float(r1) * ps.frame.scale,
                   lsg_pass_seconds=pass_seconds, lsg_time_budget=p["time_budget"],
                   light_rays_specular_fraction=spec / max(rays, 1))
-        return image
+        return PassResult(medium=image)
 
     # ---- automatic radius ----
     def auto_radius(self, ps: PreparedScene, gat: Gatherer, views: np.ndarray) -> AutoRadius:

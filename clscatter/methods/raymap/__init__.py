@@ -6,68 +6,15 @@ directional nodes), :mod:`.queries` (batched device queries and their NumPy refe
 """
 from __future__ import annotations
 
-import numpy as np
-
-from ...transport.prepared import PreparedScene
-from ...io.stats import Stats
-from ...transport.view_paths import ViewPaths
 from .. import register
-from ..base import AutoRole, Method, Param
-from .density import DensitySettings, surface_caustics
+from ..base import AutoRole, Param
+from ..surface_density import DENSITY_PARAMS, SurfaceDensityMethod
+from .density import DensitySettings
 from .kdtree import TreeParams
-
-MEDIUM_METHODS = ("lsg", "raymarch", "vpm", "none")
-
-
-def medium_term(ps: PreparedScene, paths: ViewPaths, stats: Stats, name: str,
-                show_progress: bool = True) -> np.ndarray:
-    """The medium's single scattering by the engine's method ``name`` (its own
-    ``[render.<name>]`` table applies), or zeros for "none" or no medium."""
-    from .. import get_method
-    cam = ps.scene.camera
-    zero = np.zeros((cam.height, cam.width, 3), np.float32)
-    if name == "none" or not ps.has_medium or ps.num_lights == 0:
-        return zero
-    m = get_method(name)(ps.scene.render.params.get(name) or {})
-    out = m.render(ps, paths, stats, show_progress)
-    if isinstance(out, dict):
-        return out.get("medium", zero)
-    return out
-
-
-def scene_relative(ps: PreparedScene) -> float:
-    """Normalised length of one scene extent (radii are given relative to it)."""
-    return ps.scene.scene_extent() / ps.frame.scale
-
-
-COMMON_PARAMS = (
-    Param("photons", 50_000, "lighting rays aimed at mirrors and glass, shared among lights by "
-          "the power they send there", lo=1),
-    Param("k", 64, "nearest rays (photons) per estimate", lo=2, hi=1024),
-    Param("kernel", "epanechnikov", "density estimation kernel", choices=("epanechnikov", "box")),
-    Param("max_radius", 0.05, "largest estimation radius, relative to the scene extent", lo=0,
-          lo_open=True),
-    Param("batch", 32768, "queries per kernel launch (and per lazy refinement step)", lo=1),
-    Param("medium", "lsg", "method for the medium term when run alone ('none': surfaces only)",
-          choices=MEDIUM_METHODS),
-)
-
-
-def render_surface_and_medium(method: Method, estimator: str, settings: DensitySettings,
-                              ps: PreparedScene, paths: ViewPaths, stats: Stats,
-                              show_progress: bool) -> np.ndarray | dict:
-    """Surface caustics (and the medium term unless ``medium`` is "none")."""
-    p = method.params
-    settings.max_radius = p["max_radius"] * scene_relative(ps)
-    surf = surface_caustics(ps, estimator, p["photons"], settings, stats, show_progress,
-                            sample_range=paths.sample_range)
-    if p["medium"] == "none":
-        return surf
-    return {"surface": surf, "medium": medium_term(ps, paths, stats, p["medium"], show_progress)}
 
 
 @register
-class RayMapMethod(Method):
+class RayMapMethod(SurfaceDensityMethod):
     """``raymap``: diffuse surfaces lit through mirrors and glass, by density estimation over
     a ray map (Havran et al. 2005), plus the medium by the engine's ``medium`` method.
 
@@ -90,9 +37,9 @@ class RayMapMethod(Method):
     as if the surface went on, so edges and corners keep their brightness where a photon
     map darkens them (boundary bias).
 
-    Run alone it renders the whole picture: direct surface light (view paths) + surface
-    caustics + the medium (``medium``: ``lsg`` by default, which gives direct single
-    scattering and volumetric caustics). In ``auto`` it is the surface-caustic pass only.
+    Chosen explicitly it renders the whole picture: the planner runs the ``medium`` method
+    beside it (``lsg`` by default: direct single scattering and volumetric caustics). In
+    ``auto`` it is the surface-caustic pass only.
 
     Statistics: ``raymap_rays_stored``, ``diffuse_hits``, ``raymap_tree_nodes``,
     ``raymap_tree_refs``, ``raymap_index_peak_bytes``, ``raymap_collapses``,
@@ -103,7 +50,7 @@ class RayMapMethod(Method):
     """
 
     NAME = "raymap"
-    PARAMS = COMMON_PARAMS + (
+    PARAMS = DENSITY_PARAMS + (
         Param("c_min", 32, "split kd-tree nodes with more references than this (C_min)", lo=1),
         Param("r_min", 0.001, "... whose diagonal exceeds this fraction of the scene diagonal (R_min)",
               lo=0),
@@ -112,8 +59,6 @@ class RayMapMethod(Method):
         Param("memory_mb", 128.0, "LRU bound on the kd-tree index in MB (0: none)", lo=0),
         Param("lazy", True, "build the kd-tree lazily, driven by the queries"),
     )
-    TERMS = frozenset({"surface_caustics", "direct", "caustics"})
-    PREVIEW_SCALE = {"photons": 0.125}
     AUTO = {"surface_caustics": AutoRole(priority=10, params={"medium": "none"})}
 
     def settings(self) -> DensitySettings:
@@ -121,15 +66,3 @@ class RayMapMethod(Method):
         tree = TreeParams(c_min=p["c_min"], r_min=p["r_min"], d_max=p["d_max"], alpha_deg=p["alpha"],
                           max_bytes=int(p["memory_mb"] * (1 << 20)))
         return DensitySettings(k=p["k"], kernel=p["kernel"], batch=p["batch"], lazy=p["lazy"], tree=tree)
-
-    def render(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
-               show_progress: bool = True) -> np.ndarray | dict:
-        """Surface caustics (H, W, 3); run alone, ``{"surface", "medium"}``."""
-        return render_surface_and_medium(self, "raymap", self.settings(), ps, paths, stats,
-                                         show_progress)
-
-    def surface_caustics(self, ps: PreparedScene, stats: Stats, show_progress: bool = True) -> np.ndarray:
-        """The surface-caustic image alone (H, W, 3)."""
-        s = self.settings()
-        s.max_radius = self.params["max_radius"] * scene_relative(ps)
-        return surface_caustics(ps, "raymap", self.params["photons"], s, stats, show_progress)

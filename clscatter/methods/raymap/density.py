@@ -23,10 +23,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...transport import primitives as prim
 from ...device import structs
-from ...transport.light_paths import trace_light_paths
 from ...io.stats import Stats, progress
+from ...transport import primitives as prim
+from ...transport.light_paths import trace_light_paths
+from ...transport.view_paths import trace_diffuse_hits_on_device
 from .kdtree import TreeParams
 from .queries import RayMap, _f4, heap_define, heap_scratch
 
@@ -161,7 +162,6 @@ def surface_caustics(ps, estimator: str, rays: int, settings: DensitySettings, s
     normals are read once for the host-built tree, which the queries refine lazily batch by
     batch. Each hit's irradiance, its weighted value and the per-pixel sums stay on the
     device; the work counters are totalled there."""
-    from ...transport.view_paths import trace_diffuse_hits_on_device
     cam = ps.scene.camera
     img = np.zeros((cam.height, cam.width, 3), np.float32)
     if ps.num_lights == 0:
@@ -185,7 +185,7 @@ def surface_caustics(ps, estimator: str, rays: int, settings: DensitySettings, s
                                                   estimator, settings, show_progress)
                 visited, tested = prim.int_totals(eng, w_buf, nh, 2)
                 v_buf = eng.empty(16 * nh)
-                eng.call("raymap", "rm_weigh_hits", nh, hits=dev.buf, e=e_buf, n=nh, out=v_buf)
+                ps.call("raymap", "rm_weigh_hits", nh, hits=dev.buf, e=e_buf, n=nh, out=v_buf)
                 img = dev.accumulate(v_buf)
             t = rmap.tree
             stats.set(**{f"{estimator}_tree_nodes": int(t.n), f"{estimator}_tree_refs": int(t.num_refs),

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ...device import AppendBuffer
-from .kdtree import SegmentTree, TreeParams
+from .kdtree import DIRECTIONAL, LEAF, SegmentTree, TreeParams, clip_segments
 
 METRICS = {"plane": 0, "segment": 1, "line": 2, "hemidisc": 3}
 DOMAINS = {"none": 0, "sphere": 1, "hemisphere": 2}
@@ -136,7 +136,6 @@ def candidate_lists(rmap: RayMap, x: np.ndarray, n: np.ndarray, radius: float,
     queries covered by the reference direction take the back child only). A vectorised
     level-by-level walk over (query, node) pairs, then (query, segment) pairs made
     unique. Returns (offsets int32 (Q + 1), ids int32, nodes visited per query)."""
-    from .kdtree import DIRECTIONAL, LEAF
     nodes, refs = rmap.tree.device_arrays()
     nq = len(x)
     lo = nodes["lo"][:, :3].astype(np.float64)
@@ -318,7 +317,6 @@ def meets_np(kind: str, x, n, r, a, b, d) -> np.ndarray:
     if kind == "sphere":
         return seg_dist(xx, a, b) <= r
     if kind == "box":
-        from .kdtree import clip_segments
         return clip_segments(a, b, xx, nn)
     inc = np.einsum("ij,ij->i", d, nn) < 0
     if kind == "hemisphere":

@@ -3,14 +3,23 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+from dataclasses import dataclass
 
 import numpy as np
 
 from ...errors import SceneError
-from ...transport.prepared import prepare_scene
+from ...estimators.segment_march import march_segments
 from ...scene.model import Scene, Volume
-from ..base import AutoRole, Method, Param
+from ...transport.context import PassContext
+from ...transport.prepared import (
+    PreparedScene,
+    geometry_key,
+    prepare_scene,
+    refresh,
+    same_frame,
+)
 from .. import register
+from ..base import AutoRole, Estimate, Method, Param, PassResult, camera_samples
 from .pipeline import Pipeline
 
 
@@ -113,7 +122,6 @@ class Voxel(Method):
         """Working set: the grid (its resolution cubed, an upper bound), the outer grid,
         the photon states of one light (48 bytes each) and the view rays (2 x 64 bytes per
         camera sample, an upper bound)."""
-        from ...pipeline.budget import Estimate, camera_samples
         if not scene.volumes and not any(o.material.type == "dielectric" for o in scene.objects):
             return []
         grid = float(params["resolution"]) ** 3
@@ -130,61 +138,83 @@ class Voxel(Method):
         if params["step_max"] < params["step_min"]:
             raise SceneError("render.voxel.step_max", f"must be >= step_min (got {params['step_max']!r})")
 
-    def render(self, ps, paths, stats, show_progress: bool = True) -> dict:
-        """``{"surface": correction, "medium": radiance}``: the surface term seen through
-        the grid minus the engine's straight one (``paths.surface``), and the medium."""
+    def render(self, ctx: PassContext) -> PassResult:
+        """The medium seen through the grid and outside it, and the surface term of the
+        pipeline's own view paths (bent through the grid), which replaces the session's."""
+        ps, stats = ctx.ps, ctx.stats
         scene = as_volume_scene(ps.scene, self.params["voxelise_dielectrics"])
-        cam = ps.scene.camera
-        zero = np.zeros((cam.height, cam.width, 3), np.float32)
         if not scene.volumes:
             stats.set(voxel_note="no volumes (and no dielectric objects to voxelise): nothing to do")
-            from ..raymarch import RayMarch
-            return {"surface": zero, "medium": RayMarch({"steps": self.params["direct_steps"]}).render(
-                ps, paths, stats, show_progress)}
-        own = scene is not ps.scene
-        vps = prepare_scene(scene, ps.engine, stats) if own else ps
-        pipe = self._pipeline(vps)
+            if len(ctx.paths) == 0 or ps.num_lights == 0:
+                return PassResult(medium=ctx.zeros())
+            return PassResult(medium=march_segments(ps, ctx.segments(), self.params["direct_steps"],
+                                                    stats, ctx.show_progress))
+        vps = self._variant(ctx, scene) if scene is not ps.scene else ps
+        pipe = self._pipeline(ctx, vps)
         try:
-            out = pipe.update(vps, stats, show_progress)
+            out = pipe.update(vps, stats, ctx.show_progress)
         except BaseException:
-            self.release_cache(ps.engine)
+            ctx.cache.release()
             raise
-        finally:
-            if own:
-                vps.release()
         stats.set(**{k: v for k, v in pipe.counters.items()}, voxel_stages_run=list(pipe.ran),
                   voxel_stage_seconds=dict(pipe.timings))
-        return {"surface": out["surface"] - paths.surface, "medium": out["medium"]}
+        return PassResult(medium=out["medium"], view_surface=out["surface"])
 
-    # ---- stage reuse across renders (a RenderSession re-renders with new instances) ----
-    _CACHE: dict = {}       # id(engine) -> (stage keys, Pipeline): the last scene's stages
+    # ---- what the session keeps between renders (ctx.cache) ----
+    @staticmethod
+    def _variant(ctx: PassContext, scene: Scene) -> PreparedScene:
+        """The prepared scene with dielectrics voxelised, kept in the session: prepared (a
+        BVH build) once per geometry, its light, camera, medium and material buffers
+        refreshed after other changes."""
+        key = geometry_key(scene)
+        old = ctx.cache.get("variant")
+        if old is not None and old.key == key and same_frame(old.ps, scene):
+            refresh(old.ps, scene, ctx.stats)
+            return old.ps
+        if old is not None:
+            old.release()
+        ctx.cache["variant"] = _Variant(key, prepare_scene(scene, ctx.engine, ctx.stats))
+        return ctx.cache["variant"].ps
 
-    def _pipeline(self, ps) -> Pipeline:
-        """The pipeline of the previous render on this engine with the stages whose inputs
+    def _pipeline(self, ctx: PassContext, ps: PreparedScene) -> Pipeline:
+        """The pipeline of the session's previous render with the stages whose inputs
         changed dropped (a fresh one the first time): a warm re-render after a light move
-        runs lighting and view only, as a :class:`~.relight.Relighter` does."""
+        runs lighting and view only."""
         keys = stage_keys(ps, self.params)
-        old = Voxel._CACHE.get(id(ps.engine))
+        old = ctx.cache.get("pipeline")
         if old is None:
-            pipe = Pipeline(self.params)
+            pipe = Pipeline(self.params, engine=ps.engine)
         else:
-            pipe = old[1]
+            pipe = old.pipe
             pipe.params = self.params
-            for stage, k_old, k_new in zip(("geometry", "material", "lighting"), old[0], keys):
+            for stage, k_old, k_new in zip(("geometry", "material", "lighting"), old.keys, keys):
                 if k_old != k_new:
                     pipe.invalidate(stage, ps.engine)
                     break
-        Voxel._CACHE[id(ps.engine)] = (keys, pipe)
+        ctx.cache["pipeline"] = _Kept(keys, pipe)
         return pipe
 
-    @classmethod
-    def release_cache(cls, engine=None) -> None:
-        """Free the kept stages (of ``engine``, or all)."""
-        for key in list(cls._CACHE):
-            if engine is None or key == id(engine):
-                _, pipe = cls._CACHE.pop(key)
-                if engine is not None:
-                    pipe.release(engine)
+
+@dataclass
+class _Variant:
+    """A prepared variant of the scene and the geometry it was prepared for."""
+
+    key: tuple
+    ps: PreparedScene
+
+    def release(self) -> None:
+        self.ps.release()
+
+
+@dataclass
+class _Kept:
+    """The voxel stages of the last render and the fingerprints of their inputs."""
+
+    keys: tuple
+    pipe: Pipeline
+
+    def release(self) -> None:
+        self.pipe.release()
 
 
 def _digest(*parts) -> str:

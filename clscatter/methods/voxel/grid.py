@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...device import structs
-from ...scene.normalised import Frame
 from ...scene.model import Scene, Volume
+from ...scene.normalised import Frame
 
 F4 = (np.float32, 4)
 

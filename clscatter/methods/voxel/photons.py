@@ -31,13 +31,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...transport import primitives as prim
-from ...device import structs
-from ...device import AppendBuffer, Engine
+from ...device import AppendBuffer, Engine, structs
 from ...geometry import box_corners, perpendicular_axes
+from ...transport import primitives as prim
 from .grid import GridBox
 from .octree import Octree, build_octree
-from .voxelise import SMOOTH_TAPS, blur_buffers, gradient
+from .voxelise import SMOOTH_TAPS, blur_buffers, gradient, medium_at_centres
 
 
 @dataclass
@@ -245,7 +244,6 @@ def light_pass(eng: Engine, fields: Fields, ps, photons: int, ms: MarchSettings,
     smooth. ``ps.dev`` supplies the scene BVH, lights and medium. Photons that leave the
     grid become lighting segments (``exits``, sorted by (light, photon)) and, with an
     ``outer`` grid, are also deposited there as straight lines (``photon_outer``)."""
-    from .voxelise import medium_at_centres
     box = fields.box
     rad, dirs = eng.zeros(16 * box.size), eng.zeros(16 * box.size)
     orad = odirs = okappa = None
@@ -267,8 +265,7 @@ def light_pass(eng: Engine, fields: Fields, ps, photons: int, ms: MarchSettings,
         st = MarchState(eng.empty(16 * N), eng.empty(16 * N), eng.empty(16 * N), N)
         try:
             prim.fill_int(eng, entering, 1, 0)
-            eng.call("voxel", "photon_emit", N, nodes=ps.dev.nodes, tris=ps.dev.tris,
-                     lights=ps.dev.lights, light_index=li, medium=ps.dev.medium, S=em.S,
+            ps.call("voxel", "photon_emit", N, light_index=li, S=em.S,
                      seed=seed, axis=em.axis, cos_max=em.cos_max, rect_o=em.rect[0],
                      rect_u=em.rect[1], rect_v=em.rect[2], flux_per_photon=em.flux,
                      glo=box.lo4(), ghi=box.hi4(), dims=box.dims4(), h=box.h, n_grid=fields.n,
@@ -276,12 +273,11 @@ def light_pass(eng: Engine, fields: Fields, ps, photons: int, ms: MarchSettings,
             alive = int(eng.read(entering, 1, np.int32)[0])
             c = march(eng, fields, st, rad, dirs, ms, (ps.dev.nodes, ps.dev.tris), test_surfaces)
             got = app.call_on_device("voxel", "photon_exits", N, pos=st.pos, vel=st.vel,
-                                     flux=st.flux, count=N, light_index=li, nodes=ps.dev.nodes,
-                                     tris=ps.dev.tris, medium=ps.dev.medium)
+                                     flux=st.flux, count=N, light_index=li,
+                                     **ps.scene_args("voxel", "photon_exits"))
             exits.append(exits_by_photon(eng, app, got, N))
             if outer is not None:
-                eng.call("voxel", "photon_outer", N, pos=st.pos, vel=st.vel, flux=st.flux, count=N,
-                         nodes=ps.dev.nodes, tris=ps.dev.tris, medium=ps.dev.medium,
+                ps.call("voxel", "photon_outer", N, pos=st.pos, vel=st.vel, flux=st.flux, count=N,
                          olo=outer.lo4(), ohi=outer.hi4(), od=outer.dims4(), oh=outer.h,
                          okappa=okappa, rad=orad, dirs=odirs)
         finally:

@@ -20,11 +20,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ...estimators.line_gather import Gatherer
 from ...transport.view_paths import DeviceSegments, ViewPaths
 from .grid import GridBox, make_box, scene_box
 from .photons import Fields, MarchSettings, Radiance, light_pass, upload_fields
 from .view import view_pass
-from .voxelise import blur, gaussian_taps, medium_at_centres, mix, volume_fields, volume_weight
+from .voxelise import (
+    blur,
+    gaussian_taps,
+    medium_at_centres,
+    mix,
+    volume_fields,
+    volume_weight,
+)
 
 STAGES = ("geometry", "material", "lighting", "view")
 
@@ -34,6 +42,7 @@ class Pipeline:
     """Stage results of one scene on one device, kept between frames."""
 
     params: dict
+    engine: object = None                            # the device its stages live on
     box: GridBox | None = None
     weights: list = field(default_factory=list)
     fields: Fields | None = None
@@ -57,8 +66,9 @@ class Pipeline:
             self.box = None
             self.weights = []
 
-    def release(self, eng) -> None:
-        self.invalidate("geometry", eng)
+    def release(self, eng=None) -> None:
+        """Free every stage's device buffers."""
+        self.invalidate("geometry", eng if eng is not None else self.engine)
 
     def _timed(self, name: str, stats, fn):
         t = time.perf_counter()
@@ -147,10 +157,10 @@ def direct_outside(ps, box: GridBox, segs: DeviceSegments, steps: int,
     med_buf, out = eng.to_device(med2), eng.empty(16 * max(n, 1))
     seed = np.uint32((ps.scene.render.seed * 7919 + 17) & 0xFFFFFFFF)   # as raymarch
     try:
-        scene = ps.scene_args("voxel_direct", "raymarch", medium=med_buf)   # box rides in medium
         for start in range(0, n, chunk):
             m = min(chunk, n - start)
-            eng.call("voxel_direct", "raymarch", m, **scene, medium=med_buf, segs=segs.buf,
+            # the grid's box rides in a second medium record
+            ps.call("voxel_direct", "raymarch", m, medium=med_buf, segs=segs.buf,
                      seg_offset=start, num_segs=m, scale=out, use_scale=0, steps=steps,
                      seed=seed, out=out)
         return segs.accumulate(out)
@@ -163,11 +173,10 @@ def gather_exits(ps, segs: DeviceSegments, exits: np.ndarray, radius: float,
     """Single scattering outside the grid of the light that left it (the photons' straight
     continuations), by lsg's line-space gathering with ``radius`` (normalised units).
 
-    lsg's :class:`~clscatter.methods.lsg.Gatherer` needs the view segments on the host
+    The :class:`~clscatter.estimators.line_gather.Gatherer` needs the view segments on the host
     (their bounding box clips the lighting segments before its host line tree is built),
     so they are read back once for it; it gathers over the device copy itself, and its
     per-segment estimates stay on the device, summed into pixels there."""
-    from ..lsg import Gatherer
     views = ViewPaths(None, None, device=segs).segments
     gat = Gatherer(ps.engine, views, ps.medium, radius, show_progress=show_progress,
                    views_buf=segs.buf)
@@ -198,8 +207,8 @@ def outer_view(ps, radiance: Radiance, segs: DeviceSegments) -> np.ndarray:
     ob = radiance.outer
     out = eng.empty(16 * max(segs.count, 1))
     try:
-        eng.call("voxel", "outer_view", segs.count, segs=segs.buf, count=segs.count,
-                 medium=ps.dev.medium, olo=ob.lo4(), od=ob.dims4(), oh=ob.h,
+        ps.call("voxel", "outer_view", segs.count, segs=segs.buf, count=segs.count,
+                 olo=ob.lo4(), od=ob.dims4(), oh=ob.h,
                  rad=radiance.outer_rad, dirs=radiance.outer_dirs, out=out)
         return segs.accumulate(out)
     finally:

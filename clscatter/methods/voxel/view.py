@@ -22,11 +22,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...transport import primitives as prim
-from ...device import structs
-from ...device import AppendBuffer, Engine, launch_appending
+from ...device import AppendBuffer, Engine, launch_appending, structs
 from ...io.stats import progress
-from ...transport.view_paths import SAMPLES_PER_LAUNCH, DeviceSegments, _first_samples, _Store
+from ...transport import primitives as prim
+from ...transport.view_paths import (
+    SAMPLES_PER_LAUNCH,
+    DeviceSegments,
+    _first_samples,
+    _Store,
+)
 from .grid import VOX_RAY, GridBox
 from .photons import Fields, Radiance
 
@@ -87,7 +91,7 @@ class _Pass:
         eng, ps = self.eng, self.ps
         store = _Store(eng, VOX_RAY)
         surface = eng.empty(16 * self.chunk)
-        args = {**ps.scene_args("voxel", "voxel_trace_camera"), "cam": ps.dev.camera,
+        args = {**ps.scene_args("voxel", "voxel_trace_camera"),
                 "max_depth": ps.scene.render.max_depth,
                 "seed": np.uint32(ps.scene.render.seed & 0xFFFFFFFF)}
         pixels = self.surface.reshape(-1, 3)
@@ -113,7 +117,7 @@ class _Pass:
         light, out = eng.empty(16 * n), eng.empty(n * VOX_RAY.itemsize)
         kept = None
         try:
-            eng.call("voxel", "voxel_view_march", n, rays=rays.buf, count=n, radiance=light,
+            self.ps.call("voxel", "voxel_view_march", n, rays=rays.buf, count=n, radiance=light,
                      rays_out=out, **march_args)
             self.inside += rays.accumulate(light)
             if last:
@@ -192,7 +196,7 @@ def march_args(ps, fields: Fields, radiance: Radiance, test_surfaces: bool) -> d
     return dict(glo=box.lo4(), ghi=box.hi4(), dims=box.dims4(), h=box.h, n_grid=fields.n,
                 grad=fields.grad, sigma_s=fields.sigma_s, kappa=fields.kappa, rad=radiance.rad,
                 dirs=radiance.dirs, g_phase=float(ps.medium["g"]), max_steps=4 * sum(box.dims),
-                nodes=ps.dev.nodes, tris=ps.dev.tris, test_surfaces=int(test_surfaces))
+                test_surfaces=int(test_surfaces))
 
 
 def view_pass(ps, fields: Fields, radiance: Radiance, max_rounds: int = 4,

@@ -29,8 +29,8 @@ import numpy as np
 
 from ...accel.bvh import build_bvh
 from ...device import Engine
-from ...scene.normalised import Frame
 from ...scene.model import Volume
+from ...scene.normalised import Frame
 from .grid import GridBox
 
 GAUSS_WINDOW = 9        # taps per axis (the paper's 9^3 window)
@@ -137,7 +137,7 @@ def sample_grid(box: GridBox, values: np.ndarray, bmin, bmax) -> np.ndarray:
     cx, cy, cz = box.centres()
     coords = [(c - bmin[a]) / (bmax[a] - bmin[a]) * shape[a] - 0.5 for a, c in enumerate((cx, cy, cz))]
     X, Y, Z = np.meshgrid(*coords, indexing="ij")
-    from scipy.ndimage import map_coordinates   # lazily: scipy is slow to import
+    from scipy.ndimage import map_coordinates  # lazily: scipy is slow to import
     return map_coordinates(np.asarray(values, np.float64), [X, Y, Z], order=1, mode="nearest").astype(np.float32)
 
 

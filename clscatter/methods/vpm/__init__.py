@@ -5,14 +5,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .photontree import (BUILD_BYTES_PER_PHOTON, PHOTON, PhotonTree, build_tree,
-                                encode_direction, encode_rgb9e5)
+from ...io.stats import Stats, progress
 from ...transport import primitives as prim
+from ...transport.context import PassContext
 from ...transport.light_paths import trace_light_paths
 from ...transport.prepared import PreparedScene
-from ...transport.view_paths import ViewPaths
-from ...io.stats import Stats, progress
-from .. import Method, Param, register
+from .. import register
+from ..base import Estimate, Method, Param, PassResult, camera_samples
+from .photontree import (
+    BUILD_BYTES_PER_PHOTON,
+    PHOTON,
+    PhotonTree,
+    build_tree,
+    encode_direction,
+    encode_rgb9e5,
+)
 
 # photons deposited per NumPy batch (bounds the float64 temporaries of the deposition)
 DEPOSIT_BATCH = 1 << 16
@@ -219,11 +226,8 @@ class VolumetricPhotonMapping(Method):
     *Bias.* Apart from the kernel's blur (width ~r; a point light's glow peak and sharp
     caustics come out wider and lower) the estimate is unbiased for Poisson-like photon
     sets. Photons stratified along fewer, denser rays are less noisy but more regular
-    than Poisson, which biases the kNN estimate a little low: on a directional beam in a
-    box (``knn`` 32) the total came out 0.3% low at 2 photons per ray, 0.9% at 8 and 1.5%
-    at 16 to 32; on ``caustic_sphere`` (160 x 120, 1M photons, ``knn`` 32) the relMSE
-    against a converged LSG render was 6.2e-4, 4.8e-4, 3.8e-4, 3.3e-4 and 3.3e-4 at 2, 8,
-    16, 32 and 64 photons per ray (stratified). Those correlated photons make VPM look
+    than Poisson, which biases the kNN estimate a little low, and makes its error look
+    smaller than it is. Those correlated photons would make VPM look
     better than the method is (32 photons on one line are worth far fewer than 32
     independent ones, and the benchmark then weighs LSG against a cheaper tracer), so
     the defaults are the classic photon map: independent photons, one per lighting ray
@@ -274,7 +278,6 @@ class VolumetricPhotonMapping(Method):
 
     @classmethod
     def estimate(cls, scene, params):
-        from ...pipeline.budget import Estimate, camera_samples
         photons = float(params["photons"])
         segs = 2.0 * camera_samples(scene)
         steps = segs / params["dx"]                # an upper bound: every segment spans the scene
@@ -319,12 +322,12 @@ class VolumetricPhotonMapping(Method):
                   photon_map_bytes=tree.nbytes, photon_tree_levels=tree.levels)
         return tree
 
-    def render(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
-               show_progress: bool = True) -> np.ndarray:
-        """Single-scattered radiance (H, W, 3) for all view segments of ``paths``."""
+    def render(self, ctx: PassContext) -> PassResult:
+        """Single-scattered radiance of every view segment, in the medium term."""
+        ps, paths, stats, show_progress = ctx.ps, ctx.paths, ctx.stats, ctx.show_progress
         cam = ps.scene.camera
         if len(paths) == 0 or ps.num_lights == 0:
-            return np.zeros((cam.height, cam.width, 3), np.float32)
+            return PassResult(medium=ctx.zeros())
         eng = ps.engine
         tree = self.build_photon_map(ps, stats, show_progress)
         pmap = DevicePhotonMap.upload(eng, tree)
@@ -334,7 +337,7 @@ class VolumetricPhotonMapping(Method):
         seed = (ps.scene.render.seed * 7919 + 29) & 0xFFFFFFFF
         # per segment everything stays on the device: the gather's values are summed into
         # pixels there and its work counters totalled there
-        segs = paths.on_device(eng, cam.width, cam.height)
+        segs = ctx.segments()
         with stats.stage("vpm_gather") as t_gather:
             p = self.params
             values, work = gather_on_device(eng, ps.medium, pmap, segs.buf, segs.count, p["knn"],
@@ -349,4 +352,4 @@ class VolumetricPhotonMapping(Method):
         stats.set(gather_seconds=t_gather.seconds,
                   gather_steps=int(sums[:, 3].astype(np.float64).sum()),
                   knn_boxes_tested=int(boxes), knn_photons_tested=int(tested))
-        return sums[:, :3].reshape(cam.height, cam.width, 3)
+        return PassResult(medium=sums[:, :3].reshape(cam.height, cam.width, 3))

@@ -17,7 +17,9 @@ file; ``builtin_toml(NAME)`` writes one out as a TOML file to start from. All re
 """
 from __future__ import annotations
 
-from .parts import RENDER as _RENDER, camera as _camera, floor as _floor
+from .parts import RENDER as _RENDER
+from .parts import camera as _camera
+from .parts import floor as _floor
 
 
 def shafts() -> dict:

@@ -24,7 +24,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable
 
-from .parts import RENDER as _RENDER, camera as _camera, floor as _floor
+from .parts import RENDER as _RENDER
+from .parts import camera as _camera
+from .parts import floor as _floor
 
 MESH_DIR = Path(__file__).resolve().parents[1] / "meshes"
 

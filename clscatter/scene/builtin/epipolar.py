@@ -12,8 +12,8 @@ medium; the lead registers :data:`EPIPOLAR_SCENES` in ``BUILTIN``. All render at
 ``epi_spot``       the grate lit by a spot light above it instead of the sun
 ``epi_sun``        the forest seen against the sun: the epipole on screen, rays
                    converging on it
-``epi_fog``        issue 8: a thick fog box (optical depth 4.4) seen from outside with
-                   the sun behind the camera, four black pillars
+``epi_fog``        a thick fog box (optical depth 4.4) seen from outside with the sun
+                   behind the camera, four black pillars
 ``epi_wide_spot``  the grate under a 90-degree spot light (a hemisphere of light)
 =================  =====================================================================
 """
@@ -143,8 +143,8 @@ def epi_spot() -> dict:
 
 
 def epi_sun() -> dict:
-    """``epi_forest`` from inside, looking towards the low sun: the epipole is on screen
-    (left of and above the image centre) and the shafts converge on it."""
+    """The forest of ``epi_forest`` from inside, looking towards the low sun: the epipole
+    is on screen (left of and above the image centre) and the shafts converge on it."""
     scene = epi_forest()
     d = scene["lights"][0]["direction"]
     eye = [7.5, 1.5, 6.5]
@@ -167,13 +167,13 @@ _FOG_PILLARS = [(-1.0, -0.5), (0.4, 0.6), (1.1, -1.2), (-0.3, -1.5)]
 
 def epi_sweep(depth: float = 4.4, light: str = "behind", camera: str = "outside",
               kind: str = "directional", resolution=(320, 240), cutoff: float = 40.0) -> dict:
-    """A 4 x 3 x 4 box of fog (albedo 0.9, isotropic) with four black pillars, in the
-    regimes of issue 8: ``depth`` the optical depth across the box (kappa x 4),
-    ``camera`` ``"outside"`` (5 units in front of the box, looking in) or ``"inside"``,
-    ``light`` relative to the view direction ``f``: ``"behind"`` (light travelling
-    roughly along ``f``: the anti-solar point on screen, off centre), ``"axis"`` (exactly
-    along ``f``: the anti-solar point at the image centre), ``"beside"`` (across the view)
-    or ``"front"`` (towards the camera: the light/epipole on screen); ``kind``
+    """A 4 x 3 x 4 box of fog (albedo 0.9, isotropic) with four black pillars, thin to
+    thick, lit and seen from several sides: ``depth`` the optical depth across the box
+    (kappa x 4), ``camera`` ``"outside"`` (5 units in front of the box, looking in) or
+    ``"inside"``, ``light`` relative to the view direction ``f``: ``"behind"`` (light
+    travelling roughly along ``f``: the anti-solar point on screen, off centre), ``"axis"``
+    (exactly along ``f``: the anti-solar point at the image centre), ``"beside"`` (across
+    the view) or ``"front"`` (towards the camera: the light/epipole on screen); ``kind``
     ``"directional"`` or ``"spot"`` (placed on the same side, aimed at the box centre,
     cone half-angle ``cutoff``)."""
     kappa = depth / 4.0
@@ -213,16 +213,17 @@ def epi_sweep(depth: float = 4.4, light: str = "behind", camera: str = "outside"
 
 
 def epi_fog() -> dict:
-    """Issue 8's thick fog seen from outside (sigma_s = 1, sigma_a = 0.1, optical depth 4.4
-    across the box), the sun behind the camera, four black pillars."""
+    """A box of thick fog (optical depth 4.4 across it, albedo 0.9) with four black
+    pillars, seen from outside with the sun behind the camera."""
     scene = epi_sweep(4.4, "behind", "outside", "directional")
     scene["camera"]["spp"] = 4
     return scene
 
 
 def epi_wide_spot(cutoff: float = 90.0, resolution=(320, 240)) -> dict:
-    """The grate of ``epi_grille`` under a spot light of half-angle ``cutoff`` (up to 90
-    degrees: a hemisphere) just above it: shafts fanning out to the medium's walls."""
+    """The grate of ``epi_grille`` under a spot light just above it whose cone is a
+    hemisphere (half-angle ``cutoff``, 90 degrees): shafts fanning out to the medium's
+    walls."""
     scene = epi_grille()
     scene["lights"] = [{"type": "spot", "position": [0.2, 4.4, -0.3], "target": [0.2, 0.0, -0.3],
                         "intensity": 30.0, "cutoff_angle": float(cutoff)}]
@@ -241,12 +242,3 @@ EPIPOLAR_SCENES: dict[str, Callable[[], dict]] = {
 }
 
 
-def load_epipolar_scene(name: str, overrides=()):
-    """``load_scene("builtin:NAME")`` for these scenes, also before they are registered."""
-    from ...errors import SceneError
-    from ..loader import apply_overrides, scene_from_dict
-
-    if name not in EPIPOLAR_SCENES:
-        raise SceneError(f"builtin:{name}", f"unknown scene (one of {', '.join(EPIPOLAR_SCENES)})")
-    return scene_from_dict(apply_overrides(EPIPOLAR_SCENES[name](), list(overrides)), ".",
-                           f"builtin:{name}")

@@ -17,7 +17,9 @@ from __future__ import annotations
 
 from typing import Callable
 
-from .parts import RENDER as _RENDER, camera as _camera, floor as _floor
+from .parts import RENDER as _RENDER
+from .parts import camera as _camera
+from .parts import floor as _floor
 
 _BOX = {"min": [-2.0, 0.0, -2.0], "max": [2.0, 3.4, 2.0]}
 _FOG = {"sigma_s": 0.15, "sigma_a": 0.02, "g": 0.2}

@@ -185,6 +185,7 @@ function showFrame(m) {
     canvas.dataset.level = m.level;
     finalCurrent = m.final;
     showStats(m);
+    showNotes(m.notes || []);
     placeHandles();
     updateSave();
   };
@@ -208,6 +209,20 @@ function showStats(m) {
   }
   $("stats-run").textContent = "ran: " + ((s.stages_run || []).join(", ") || "nothing");
   $("stats-reused").textContent = "re-used: " + ((s.reused || []).join(", ") || "nothing");
+}
+
+// the plan's notes that leave light out of the image (the command line's
+// "clscatter: note: ..." lines): shown above the image while they apply
+function showNotes(notes) {
+  const box = $("notes");
+  box.innerHTML = "";
+  for (const text of notes) {
+    const li = document.createElement("li");
+    li.textContent = "note: " + text;
+    box.append(li);
+  }
+  box.classList.toggle("hidden", notes.length === 0);
+  box.dataset.count = String(notes.length);
 }
 
 function updateSave() {

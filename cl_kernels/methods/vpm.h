@@ -16,6 +16,7 @@
 #ifndef CLSCATTER_VPM_H
 #define CLSCATTER_VPM_H
 #include "common.h"
+#include "knn_heap.h"
 
 #ifndef KNN
 #define KNN 32
@@ -60,36 +61,6 @@ float node_dist2(__global const PhotonNode *nd, float4 p) {
     return dx * dx + dy * dy + dz * dz;
 }
 
-/* Max-heap insertion of (d2, i) into a heap of `count` < KNN entries. */
-void heap_push(float *hd, int *hi, int count, float d2, int i) {
-    int c = count;
-    while (c > 0) {
-        int parent = (c - 1) >> 1;
-        if (hd[parent] >= d2) break;
-        hd[c] = hd[parent];
-        hi[c] = hi[parent];
-        c = parent;
-    }
-    hd[c] = d2;
-    hi[c] = i;
-}
-
-/* Replace the root of a full heap (KNN entries) by (d2, i) and restore the order. */
-void heap_replace_root(float *hd, int *hi, float d2, int i) {
-    int c = 0;
-    while (1) {
-        int l = 2 * c + 1;
-        if (l >= KNN) break;
-        int m = (l + 1 < KNN && hd[l + 1] > hd[l]) ? l + 1 : l;
-        if (hd[m] <= d2) break;
-        hd[c] = hd[m];
-        hi[c] = hi[m];
-        c = m;
-    }
-    hd[c] = d2;
-    hi[c] = i;
-}
-
 /* The (at most) KNN photons nearest to p with squared distance < r2_search, as a
  * max-heap (hd, hi); returns how many were found. work[0] += boxes tested, work[1] +=
  * photons tested (statistics). */
@@ -112,13 +83,8 @@ int knn_query(__global const Photon *photons, int n, __global const PhotonNode *
             for (int i = start; i < end; ++i) {
                 float d2 = photon_dist2(&photons[i], p);
                 if (d2 >= r2) continue;
-                if (count < KNN) {
-                    heap_push(hd, hi, count, d2, i);
-                    if (++count == KNN) r2 = hd[0];
-                } else {
-                    heap_replace_root(hd, hi, d2, i);
-                    r2 = hd[0];
-                }
+                knn_heap_insert(hd, hi, &count, KNN, d2, i);
+                if (count == KNN) r2 = hd[0];
             }
         } else {
             int c = 2 * node + 1;

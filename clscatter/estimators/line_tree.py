@@ -113,10 +113,6 @@ class LineTree:
         return (8 ** self.levels - 1) // 7
 
     @property
-    def num_leaves(self) -> int:
-        return 8 ** self.levels
-
-    @property
     def nbytes(self) -> int:
         return int(self.nodes.nbytes + self.leaf_ranges.nbytes + self.order.nbytes)
 

@@ -243,13 +243,19 @@ int4 voxel_of(float4 x, float4 lo, int4 dims, float inv_h) {
 /* ----------------------------------------------------------------- deposition -- */
 
 /* Float atomic add by compare-and-swap on the bit pattern (OpenCL 1.2 has no float
- * atomics): retry until no other work-item wrote the word between our read and swap. */
+ * atomics): retry until no other work-item wrote the word between our read and swap.
+ * The word is read atomically, and a failed swap hands back the value it found, which
+ * the next try starts from: no plain read races with another work-item's swap. */
 void atomic_add_f(volatile __global float *p, float v) {
+    volatile __global uint *w = (volatile __global uint *)p;
     union { uint u; float f; } old, upd;
-    do {
-        old.f = *p;
+    old.u = atomic_or(w, 0u);
+    for (;;) {
         upd.f = old.f + v;
-    } while (atomic_cmpxchg((volatile __global uint *)p, old.u, upd.u) != old.u);
+        uint seen = atomic_cmpxchg(w, old.u, upd.u);
+        if (seen == old.u) break;
+        old.u = seen;
+    }
 }
 
 /* A deposit not yet written: consecutive pieces of one photon's path often lie in the

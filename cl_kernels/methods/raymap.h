@@ -41,6 +41,8 @@
 #else
 #define RM_HEAP
 #endif
+#define KNN_HEAP RM_HEAP
+#include "knn_heap.h"
 
 #define RM_LEAF 0
 #define RM_SPATIAL 1
@@ -119,39 +121,12 @@ int rm_covered(__global const RMNode *nd, float4 n, float cos_alpha) {
     return dot3(nd->aux, n) >= cos_alpha;
 }
 
-/* ---- bounded max-heap of (distance, index) ---- */
-void rm_heap_sift_down(RM_HEAP float *hd, RM_HEAP int *hx, int count) {
-    int i = 0;
-    for (;;) {
-        int l = 2 * i + 1, r = l + 1, m = i;
-        if (l < count && hd[l] > hd[m]) m = l;
-        if (r < count && hd[r] > hd[m]) m = r;
-        if (m == i) return;
-        float td = hd[i]; hd[i] = hd[m]; hd[m] = td;
-        int tx = hx[i]; hx[i] = hx[m]; hx[m] = tx;
-        i = m;
-    }
-}
-
+/* Keep segment idx at distance v in the heap, once (a segment listed by several
+ * leaves is offered by each). */
 void rm_heap_push(RM_HEAP float *hd, RM_HEAP int *hx, int *count, int k, float v, int idx) {
     for (int j = 0; j < *count; ++j)
-        if (hx[j] == idx) return;                       /* listed by another leaf: once */
-    if (*count < k) {
-        int i = (*count)++;
-        while (i > 0) {                                  /* sift up */
-            int p = (i - 1) / 2;
-            if (hd[p] >= v) break;
-            hd[i] = hd[p];
-            hx[i] = hx[p];
-            i = p;
-        }
-        hd[i] = v;
-        hx[i] = idx;
-    } else if (v < hd[0]) {
-        hd[0] = v;
-        hx[0] = idx;
-        rm_heap_sift_down(hd, hx, *count);
-    }
+        if (hx[j] == idx) return;
+    knn_heap_insert(hd, hx, count, k, v, idx);
 }
 
 /* Test one candidate segment s (incoming, domain, metric <= r) and keep it in the heap

@@ -1,0 +1,99 @@
+"""What a pass gets: one object holding the prepared scene, the view paths, the stats and a
+launch call that binds the scene's buffers by the kernels' declared names.
+
+A method's ``render(ctx)`` reads everything through its :class:`PassContext`:
+
+* ``ctx.scene``, ``ctx.ps`` (the :class:`~clscatter.transport.prepared.PreparedScene`),
+  ``ctx.paths`` (the session's :class:`~clscatter.transport.view_paths.ViewPaths`),
+  ``ctx.stats``, ``ctx.show_progress``, ``ctx.engine``;
+* ``ctx.call(program, kernel, size, defines, **args)``: the one launch call. Every kernel
+  parameter named like a scene buffer (``nodes``, ``tris``, ``lights``, ``medium``,
+  ``camera`` or ``cam``, ...) and ``num_lights`` is bound from the prepared scene unless
+  given; a misspelled or missing argument is an error;
+* ``ctx.scratch(nbytes)``: a device buffer released when the pass ends (whatever happens);
+* ``ctx.cache``: this method's slot in the session, kept between renders and released
+  when the session closes (values with a ``release()`` have it called): where a method
+  keeps structures that survive a change that does not touch them.
+"""
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..io.stats import Stats
+from .prepared import PreparedScene
+from .view_paths import DeviceSegments, ViewPaths
+
+
+class PassCache(dict):
+    """A method's slot in a session: ``{key: value}`` kept between renders. :meth:`release`
+    calls ``release()`` on every value that has one and empties the slot."""
+
+    def release(self) -> None:
+        for value in self.values():
+            free = getattr(value, "release", None)
+            if callable(free):
+                free()
+        self.clear()
+
+
+class PassContext:
+    """One pass's view of the render (see the module docstring). A context is used once,
+    inside ``with``: leaving it frees the scratch buffers the pass took."""
+
+    def __init__(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
+                 show_progress: bool = True, cache: PassCache | None = None):
+        self.ps = ps
+        self.paths = paths
+        self.stats = stats
+        self.show_progress = show_progress
+        self.cache = cache if cache is not None else PassCache()
+        self._scratch: list = []
+
+    @property
+    def scene(self):
+        return self.ps.scene
+
+    @property
+    def engine(self):
+        return self.ps.engine
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """The image's shape, (H, W, 3)."""
+        cam = self.ps.scene.camera
+        return cam.height, cam.width, 3
+
+    def zeros(self) -> np.ndarray:
+        """A black (H, W, 3) float32 image."""
+        return np.zeros(self.shape, np.float32)
+
+    def segments(self) -> DeviceSegments:
+        """The view segments on the device, sorted, with each pixel's run."""
+        cam = self.ps.scene.camera
+        return self.paths.on_device(self.ps.engine, cam.width, cam.height)
+
+    def call(self, program: str, kernel: str, global_size: int | Sequence[int],
+             defines: dict[str, object] | None = None, **args: Any) -> None:
+        """Launch ``program``/``kernel`` over ``global_size`` with keyword arguments, the
+        scene's buffers bound by name (:meth:`PreparedScene.call`)."""
+        self.ps.call(program, kernel, global_size, defines, **args)
+
+    def scratch(self, nbytes: int):
+        """A device buffer of ``nbytes`` (contents undefined) freed when the pass ends."""
+        buf = self.ps.engine.empty(nbytes)
+        self._scratch.append(buf)
+        return buf
+
+    def close(self) -> None:
+        """Free the scratch buffers (the session calls it when the pass ends)."""
+        if self._scratch:
+            self.ps.engine.free(*self._scratch)
+        self._scratch = []
+
+    def __enter__(self) -> "PassContext":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,50 @@
+"""Every method under a second OpenCL implementation: Oclgrind, a strict simulator that
+also reports invalid memory accesses and data races. Each method renders a tiny built-in
+scene (12 x 9, 1 spp) with the simulator as its only device; any report, or a failed or
+non-finite render, fails. The set-up installs Oclgrind (Debian's ``oclgrind``); without it
+these tests are skipped."""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from method_scenes import scene_for
+
+TINY = ["camera.resolution=[12,9]", "camera.spp=1", "render.lsg.light_rays=2000",
+        "render.vpm.photons=5000", "render.raymap.photons=2000", "render.photonmap.photons=2000",
+        "render.voxel.resolution=8", "render.voxel.photons=256",
+        "render.voxel.outer_resolution=8"]
+METHODS = ["raymarch", "epipolar", "lsg", "vpm", "raymap", "photonmap", "voxel"]
+# what Oclgrind prints when it finds a defect
+REPORTS = ("Invalid read", "Invalid write", "data race", "Uninitialized", "error:",
+           "Undefined external function", "Work-group divergence", "out-of-bounds")
+
+pytestmark = [pytest.mark.slow,
+              pytest.mark.skipif(shutil.which("oclgrind") is None,
+                                 reason="oclgrind is not installed (scripts/setup.sh installs it)")]
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_method_runs_clean_under_oclgrind(method, tmp_path):
+    out = tmp_path / "img.npy"
+    args = ["oclgrind", "--data-races", sys.executable, "-m", "clscatter", "render",
+            scene_for(method), "--method", method, "--no-progress", "-o", str(out)]
+    for kv in TINY:
+        args += ["--set", kv]
+    env = {**os.environ, "CLSCATTER_CACHE_DIR": str(tmp_path / "cache")}
+    env.pop("CLSCATTER_DEVICE", None)
+    r = subprocess.run(args, capture_output=True, text=True, timeout=600, env=env)
+    log = r.stdout + r.stderr
+    assert r.returncode == 0, log[-3000:]
+    assert "Oclgrind" in subprocess.run(
+        ["oclgrind", sys.executable, "-m", "clscatter", "devices"], capture_output=True,
+        text=True, timeout=120, env=env).stdout            # the simulator was the device
+    found = [line for line in log.splitlines() if any(k in line for k in REPORTS)]
+    assert not found, "\n".join(found[:20])
+    img = np.load(out)
+    assert img.shape == (9, 12, 3) and np.isfinite(img).all()
