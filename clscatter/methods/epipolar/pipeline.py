@@ -172,136 +172,205 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
     The host reads back: a few hundred held-out rows for the error estimate and their
     light-ray sums, the slices' event offsets (S + 1 ints: batch sizes), per-group ranges
     and envelope nodes, and counters. The grid lookup (not the
-    default) reads the live segments back to trace its direction table on the host."""
-    eng = ps.engine
+    default) reads the live segments back to trace its direction table on the host.
+    Raises :class:`~clscatter.methods.base.Fallback` where the light must be ray marched."""
     cam = geo.CameraGeom.from_struct(ps.camera)
     if isinstance(segs, np.ndarray):
-        segs = ViewPaths(None, None, segs).on_device(eng, cam.width, cam.height)
-    axis = geo.make_axis(ps.lights[li], cam.origin)
-    st = _auto(st, cam)
-    n = segs.count
-    box = geo.medium_box(ps.medium)
-    if box is None and not axis.spot:
-        raise Fallback("a directional light needs a bounded medium")
-    kappa = np.asarray(ps.medium["kappa"][:3], np.float64)
-    defines = start_defines(st.svd_terms, kappa)
-    nch = defines["EPI_NCH"]
-    g_hg = float(ps.medium["g"])
-    d = int(st.light_rays)
-    bufs = []
-
-    def up(arr):
-        b = eng.to_device(arr)
-        bufs.append(b)
-        return b
-
-    def scratch(nbytes):
-        b = eng.empty(nbytes)
-        bufs.append(b)
-        return b
-
-    values_buf, wr_buf = eng.zeros(16 * max(n, 1)), eng.zeros(4 * max(n, 1))
+        segs = ViewPaths(None, None, segs).on_device(ps.engine, cam.width, cam.height)
+    run = _LightRun(ps, li, segs, _auto(st, cam), cam, stats)
     ok = False
     try:
-        # ---- slices, and every sample's coordinates (rectification of the view rays) ----
-        # The slice spacing is halved (twice at most) while reading the samples in their
-        # neighbouring slices is estimated to be off by more than a quarter of the
-        # tolerance (thick media lit through grazing box faces).
-        spacing = _spacing(st, axis, cam)
-        ring_rad = math.radians(st.epipole_ring)
-        ring_px = ring_rad / cam.pixel_angle()          # for the slices' beta ranges
-        geo_buf, idx_buf = scratch(16 * max(n, 1)), scratch(16 * max(n, 1))
-        live = None
+        run.rectify()
+        if run.live.count == 0:
+            ok = True
+            return run.output()
+        run.maps()
+        run.events()
+        run.svd()
+        run.integrate(show_progress)
+        run.unrectify()
+        ok = True
+    finally:
+        run.release(keep_output=ok)
+    run.finish_info()
+    return run.output()
+
+
+class _LightRun:
+    """One light's epipolar pass, stage by stage (:func:`render_light`): the state the
+    stages hand on (slices, maps, events, the SVD's tables) and the device buffers they
+    allocate, all freed by :meth:`release` except the two results."""
+
+    def __init__(self, ps: PreparedScene, li: int, segs, st: Settings,
+                 cam: geo.CameraGeom, stats: Stats):
+        self.ps, self.li, self.segs, self.st, self.cam, self.stats = ps, li, segs, st, cam, stats
+        self.eng = ps.engine
+        self.axis = geo.make_axis(ps.lights[li], cam.origin)
+        self.n = segs.count
+        self.box = geo.medium_box(ps.medium)
+        if self.box is None and not self.axis.spot:
+            raise Fallback("a directional light needs a bounded medium")
+        self.kappa = np.asarray(ps.medium["kappa"][:3], np.float64)
+        self.defines = start_defines(st.svd_terms, self.kappa)
+        self.nch = self.defines["EPI_NCH"]
+        self.g_hg = float(ps.medium["g"])
+        self.d = int(st.light_rays)
+        self.bufs: list = []
+        self.values_buf = self.eng.zeros(16 * max(self.n, 1))
+        self.wr_buf = self.eng.zeros(4 * max(self.n, 1))
+        self.R = 0
+        self.depth = None
+        self.dw = self.dh = 0
+
+    def up(self, arr):
+        b = self.eng.to_device(arr)
+        self.bufs.append(b)
+        return b
+
+    def scratch(self, nbytes: int):
+        b = self.eng.empty(nbytes)
+        self.bufs.append(b)
+        return b
+
+    def release(self, keep_output: bool) -> None:
+        self.eng.free(*self.bufs)
+        self.bufs = []
+        if not keep_output:
+            self.eng.free(self.values_buf, self.wr_buf)
+
+    def output(self) -> LightOutput:
+        return LightOutput(self.eng, self.n, self.values_buf, self.wr_buf, self.info,
+                           self.live.ring)
+
+    # ---- slices, and every sample's coordinates (rectification of the view rays) ----
+    def rectify(self) -> None:
+        """The slices and each sample's place in them. The slice spacing is halved (twice
+        at most) while reading the samples in their neighbouring slices is estimated to be
+        off by more than a quarter of the tolerance (thick media lit through grazing box
+        faces)."""
+        st, cam, n = self.st, self.cam, self.n
+        spacing = _spacing(st, self.axis, cam)
+        self.ring_rad = math.radians(st.epipole_ring)
+        ring_px = self.ring_rad / cam.pixel_angle()          # for the slices' beta ranges
+        self.geo_buf, self.idx_buf = self.scratch(16 * max(n, 1)), self.scratch(16 * max(n, 1))
+        self.live = None
         for attempt in range(3):
-            with stats.stage("epipolar_rectify"):
-                slices = geo.make_slices(axis, cam, box, spacing, ring_px)
-                S = len(slices)
-                frame = geo.frame_struct(axis, ps.medium, d)
-                frame["prefilter"] = int(bool(st.prefilter))
-                frame["beta_tol"] = st.prefilter_tolerance * cam.pixel_angle()
-                frame["nch"] = nch
-                faces = setup_shadow_map(frame, axis, ps, int(st.shadow_map))
-                R = 0
-                if st.lookup == "grid":
-                    R = int(st.rays_per_slice) if st.rays_per_slice > 0 else \
-                        max(2, int(math.ceil(float(slices.length.max()))))
-                    frame["rays"] = R
-                frame_buf = up(frame.reshape(1))
-                slice_buf = up(slices.table)
-                phi_buf = up(slices.phi.astype(np.float32))
-                lut = slices.lookup_table()
-                lut_buf = up(lut)
-                # the ring is decided below, in angle (the kernel's pixel disc is off)
-                no_ring = np.array([slices.P[0], slices.P[1], -1.0, 0.0], np.float32)
-                dirs_buf, ta_buf = view_dirs(eng, segs, frame["eye"], defines)
-                ps.call("epipolar", "epi_samples", n, defines, fr=frame_buf, phis=phi_buf,
-                         nslices=S, full=slices.full, lut=lut_buf, bins=len(lut) - 1,
-                         ring=no_ring, dirs=dirs_buf, ta=ta_buf, n=n,
-                         geo=geo_buf, idx=idx_buf)
-                if live is None:            # beta, hence the ring, does not depend on slices
-                    ring_in_view = _ring_in_view(cam, axis, slices.front, ring_rad,
-                                                 st.epipole_band)
-                    live = (_live_samples(eng, segs, geo_buf, idx_buf, wr_buf, slices.front,
-                                          ring_rad, st.epipole_band, defines, bufs)
-                            if ring_in_view else
-                            _primary_samples(eng, segs, geo_buf, idx_buf, defines))
-                views = DeviceViews(eng, geo_buf, idx_buf, live.buf, live.count, S, defines)
-            if st.lookup != "segment" or live.count == 0:
+            with self.stats.stage("epipolar_rectify"):
+                self._slices(spacing, ring_px)
+            if st.lookup != "segment" or self.live.count == 0:
                 slice_err = summarize(np.zeros(0))
                 break
-            with stats.stage("epipolar_svd"), np.errstate(all="ignore"):   # as in _svd below
-                slice_err = _slice_check(axis, box, kappa[:nch], g_hg, slices, cam.origin,
-                                         live.rows(segs, np.random.default_rng(54321), 200))
+            with self.stats.stage("epipolar_svd"), np.errstate(all="ignore"):   # as in svd()
+                slice_err = _slice_check(self.axis, self.box, self.kappa[:self.nch], self.g_hg,
+                                         self.slices, cam.origin,
+                                         self.live.rows(self.segs, np.random.default_rng(54321),
+                                                        200))
             if slice_err["rms"] <= 0.25 * st.svd_tolerance or attempt == 2:
                 break
             spacing *= 0.5
-        info: dict = {"epipole_px": [float(slices.P[0]), float(slices.P[1])],
-                      "epipole_in_front": bool(slices.front), "ring_samples": live.ring,
-                      "ring_degrees": math.degrees(ring_rad),
-                      "ring_band_samples": live.band, "ring_in_view": bool(ring_in_view),
-                      "slice_spacing_px": float(spacing),
-                      "slice_error": {k: v for k, v in slice_err.items() if k != "errors"}}
-        if live.count == 0:
-            ok = True
-            return LightOutput(eng, n, values_buf, wr_buf, info, live.ring)
+        self.slice_err = slice_err
+        slices, live = self.slices, self.live
+        self.info: dict = {
+            "epipole_px": [float(slices.P[0]), float(slices.P[1])],
+            "epipole_in_front": bool(slices.front), "ring_samples": live.ring,
+            "ring_degrees": math.degrees(self.ring_rad),
+            "ring_band_samples": live.band, "ring_in_view": bool(self.ring_in_view),
+            "slice_spacing_px": float(spacing),
+            "slice_error": {k: v for k, v in slice_err.items() if k != "errors"}}
 
-        # ---- maps ----
-        with stats.stage("epipolar_maps"):
+    def _slices(self, spacing: float, ring_px: float) -> None:
+        """Slices at ``spacing`` pixels, the frame, and the samples' slice coordinates; the
+        live samples (outside the ring) the first time."""
+        st, cam, eng, n, defines = self.st, self.cam, self.eng, self.n, self.defines
+        slices = self.slices = geo.make_slices(self.axis, cam, self.box, spacing, ring_px)
+        self.S = len(slices)
+        frame = self.frame = geo.frame_struct(self.axis, self.ps.medium, self.d)
+        frame["prefilter"] = int(bool(st.prefilter))
+        frame["beta_tol"] = st.prefilter_tolerance * cam.pixel_angle()
+        frame["nch"] = self.nch
+        self.faces = setup_shadow_map(frame, self.axis, self.ps, int(st.shadow_map))
+        if st.lookup == "grid":
+            self.R = int(st.rays_per_slice) if st.rays_per_slice > 0 else \
+                max(2, int(math.ceil(float(slices.length.max()))))
+            frame["rays"] = self.R
+        self.frame_buf = self.up(frame.reshape(1))
+        self.slice_buf = self.up(slices.table)
+        self.phi_buf = self.up(slices.phi.astype(np.float32))
+        self.lut = slices.lookup_table()
+        self.lut_buf = self.up(self.lut)
+        # the ring is decided below, in angle (the kernel's pixel disc is off)
+        no_ring = np.array([slices.P[0], slices.P[1], -1.0, 0.0], np.float32)
+        dirs_buf, ta_buf = view_dirs(eng, self.segs, frame["eye"], defines)
+        self.ps.call("epipolar", "epi_samples", n, defines, fr=self.frame_buf, phis=self.phi_buf,
+                     nslices=self.S, full=slices.full, lut=self.lut_buf,
+                     bins=len(self.lut) - 1, ring=no_ring, dirs=dirs_buf, ta=ta_buf, n=n,
+                     geo=self.geo_buf, idx=self.idx_buf)
+        if self.live is None:            # beta, hence the ring, does not depend on slices
+            self.ring_in_view = _ring_in_view(cam, self.axis, slices.front, self.ring_rad,
+                                              st.epipole_band)
+            self.live = (_live_samples(eng, self.segs, self.geo_buf, self.idx_buf, self.wr_buf,
+                                       slices.front, self.ring_rad, st.epipole_band, defines,
+                                       self.bufs)
+                         if self.ring_in_view else
+                         _primary_samples(eng, self.segs, self.geo_buf, self.idx_buf, defines))
+        self.views = DeviceViews(eng, self.geo_buf, self.idx_buf, self.live.buf,
+                                 self.live.count, self.S, defines)
+
+    # ---- maps ----
+    def maps(self) -> None:
+        """The shadow map (and the grid lookup's depth map)."""
+        st, cam = self.st, self.cam
+        with self.stats.stage("epipolar_maps"):
             if st.lookup == "grid":
-                dw = int(st.depth_map)
-                dh = max(1, int(round(dw * cam.height / cam.width)))
-                depth = trace_depth_map(ps, dw, dh, defines)
-                bufs.append(depth)
-            faces_buf = up(faces)
-            smap = trace_shadow_map(ps, frame_buf, int(st.shadow_map), defines, faces, faces_buf,
-                                    frame=frame, info=info)
-            bufs.append(smap)
-            eng.finish()
+                self.dw = int(st.depth_map)
+                self.dh = max(1, int(round(self.dw * cam.height / cam.width)))
+                self.depth = trace_depth_map(self.ps, self.dw, self.dh, self.defines)
+                self.bufs.append(self.depth)
+            self.faces_buf = self.up(self.faces)
+            self.smap = trace_shadow_map(self.ps, self.frame_buf, int(st.shadow_map),
+                                         self.defines, self.faces, self.faces_buf,
+                                         frame=self.frame, info=self.info)
+            self.bufs.append(self.smap)
+            self.eng.finish()
 
-        # ---- the view rays of the sweep (events) and the SVD ----
-        with stats.stage("epipolar_rectify"):
+    # ---- the view rays of the sweep (events) ----
+    def events(self) -> None:
+        """The sweep's events per slice and their offsets."""
+        st, S, slices = self.st, self.S, self.slices
+        with self.stats.stage("epipolar_rectify"):
             if st.lookup == "segment":
-                ev_buf, off_buf, inv_buf, off = _segment_events(eng, geo_buf, idx_buf, live, S,
-                                                                defines, bufs, slice_buf)
-                cnt_off = merged_offsets(off, slices.full)
-                n_out = 2 * live.count                  # two results per sample
-                b_range = views.ranges(1)[0] or (0.0, 0.0)
+                self.ev_buf, self.off_buf, self.inv_buf, off = _segment_events(
+                    self.eng, self.geo_buf, self.idx_buf, self.live, S, self.defines,
+                    self.bufs, self.slice_buf)
+                self.cnt_off = merged_offsets(off, slices.full)
+                self.n_out = 2 * self.live.count                  # two results per sample
+                self.b_range = self.views.ranges(1)[0] or (0.0, 0.0)
             else:
-                off = cnt_off = (np.arange(S + 1) * R).astype(np.int32)
-                n_out = S * R
-                ev_buf = scratch(16 * n_out)
-                off_buf = up(off)
+                off = self.cnt_off = (np.arange(S + 1) * self.R).astype(np.int32)
+                self.n_out = S * self.R
+                self.ev_buf = self.scratch(16 * self.n_out)
+                self.off_buf = self.up(off)
+                self.inv_buf = None
                 tab = slices.table
-                b_range = (float(tab["beta_lo"].min()), float(tab["beta_hi"].max()))
-            n_ev = int(cnt_off[S])
-            cnt_off_buf = up(cnt_off)
-            g_range = (float(slices.table["gamma_lo"].min()), float(slices.table["gamma_hi"].max()))
-        with stats.stage("epipolar_svd"), np.errstate(all="ignore"):
+                self.b_range = (float(tab["beta_lo"].min()), float(tab["beta_hi"].max()))
+            self.n_ev = int(self.cnt_off[S])
+            self.cnt_off_buf = self.up(self.cnt_off)
+            self.g_range = (float(slices.table["gamma_lo"].min()),
+                            float(slices.table["gamma_hi"].max()))
+
+    # ---- the SVD, with its error control ----
+    def svd(self) -> None:
+        """The truncated SVD of the visibility-free term, at the cheapest setting whose
+        estimated error meets the tolerance; :class:`SVDFallback` when none does."""
+        st, info = self.st, self.info
+        with self.stats.stage("epipolar_svd"), np.errstate(all="ignore"):
             # overflows of thick media's exponentials are expected here: they make
             # per-sample errors non-finite, which summarize counts as failures
-            sv, tried = _svd(axis, box, ps, kappa[:nch], slices, views, live, segs, st, R,
-                             DeviceRiemann(eng, frame_buf, slice_buf, defines, g_hg),
-                             extra=slice_err["rms"])
+            sv, tried = _svd(self.axis, self.box, self.ps, self.kappa[:self.nch], self.slices,
+                             self.views, self.live, self.segs, st, self.R,
+                             DeviceRiemann(self.eng, self.frame_buf, self.slice_buf,
+                                           self.defines, self.g_hg),
+                             extra=self.slice_err["rms"])
             err = {k: v for k, v in sv.error.items() if k != "errors"}
             info.update(svd_error=err, svd_tried=tried, svd_terms=sv.terms,
                         light_ray_factor=sv.ray_mult,
@@ -310,102 +379,113 @@ def render_light(ps: PreparedScene, li: int, segs, st: Settings, stats: Stats,
             if not sv.accepted:
                 raise SVDFallback(
                     f"estimated error {err['rms']:.3g} (SVD {err['svd']:.3g}, light rays "
-                    f"{err['light_rays']:.3g}, slices {slice_err['rms']:.3g} in quadrature, RMS over "
-                    f"{err['samples']} held-out samples"
+                    f"{err['light_rays']:.3g}, slices {self.slice_err['rms']:.3g} in quadrature, "
+                    f"RMS over {err['samples']} held-out samples"
                     + (f", {err['nonfinite']} of them not finite" if err.get("nonfinite") else "")
                     + ") > "
                     f"tolerance {st.svd_tolerance:g} at the best of {len(tried)} settings "
                     f"({sv.terms} terms, {len(sv.ranges)} groups, {sv.ray_mult}x light rays)", info)
-            defines = {"EPI_NT": int(sv.terms), "EPI_NCH": nch}
-            d = int(st.light_rays) * sv.ray_mult
-            frame["d"] = d
-            frame["lspan"] = sv.span
-            frame_buf = up(frame.reshape(1))
-            slices.table["group"] = sv.group
-            slice_buf = up(slices.table)
-            gtab_buf, btab_buf = up(sv.gtab), up(sv.btab)
-            gref_buf, bref_buf, grp_buf = up(sv.gref), up(sv.bref), up(sv.ranges)
+            self.defines = {"EPI_NT": int(sv.terms), "EPI_NCH": self.nch}
+            self.d = int(st.light_rays) * sv.ray_mult
+            self.frame["d"] = self.d
+            self.frame["lspan"] = sv.span
+            self.frame_buf = self.up(self.frame.reshape(1))
+            self.slices.table["group"] = sv.group
+            self.slice_buf = self.up(self.slices.table)
+            self.sv = sv
 
-        # ---- per batch of slices: rectify the shadow map, integrate ----
-        nv = int(sv.terms) * nch
+    # ---- per batch of slices: rectify the shadow map, integrate ----
+    def integrate(self, show_progress: bool) -> None:
+        """The sweep: per batch of slices, the rectified shadow map and the Fenwick-tree
+        integration of every event."""
+        st, S, d, sv, defines = self.st, self.S, self.d, self.sv, self.defines
+        gtab_buf, btab_buf = self.up(sv.gtab), self.up(sv.btab)
+        gref_buf, bref_buf, grp_buf = self.up(sv.gref), self.up(sv.bref), self.up(sv.ranges)
+        nv = int(sv.terms) * self.nch
+        cnt_off = self.cnt_off
         # at most ~32 MB of tree per batch (more light rays in thick media)
         batch = max(1, min(int(st.batch_slices), S, (1 << 23) // max(d * nv, 1)))
         max_ev = int(max(cnt_off[min(s + batch, S)] - cnt_off[s] for s in range(0, S, batch)))
-        term = scratch(8 * batch * d * 4)
-        tree = scratch(4 * batch * d * nv)
-        leaf = scratch(4 * batch * d * nv)
-        cnt = scratch(4 * (max_ev + batch))
-        merged = scratch(16 * (max_ev + batch) if st.lookup == "segment" else 16)
-        dst = scratch(4 * (max_ev + batch))
-        srt = scratch(8 * batch * d * 4)
-        out = scratch(16 * max(n_out, 1))
-        work = scratch(8 * S)
+        term = self.scratch(8 * batch * d * 4)
+        tree = self.scratch(4 * batch * d * nv)
+        leaf = self.scratch(4 * batch * d * nv)
+        cnt = self.scratch(4 * (max_ev + batch))
+        merged = self.scratch(16 * (max_ev + batch) if st.lookup == "segment" else 16)
+        dst = self.scratch(4 * (max_ev + batch))
+        srt = self.scratch(8 * batch * d * 4)
+        self.out = self.scratch(16 * max(self.n_out, 1))
+        self.work = self.scratch(8 * S)
         with progress(S, "epipolar slices", show_progress) as bar:
             for s0 in range(0, S, batch):
                 nb = min(batch, S - s0)
-                with stats.stage("epipolar_rectify"):
-                    ps.call("epipolar", "epi_rectify_shadow", nb * d, defines, fr=frame_buf,
-                             slices=slice_buf, slice0=s0, nbatch=nb, faces=faces_buf, smap=smap,
-                             term=term)
+                with self.stats.stage("epipolar_rectify"):
+                    self.ps.call("epipolar", "epi_rectify_shadow", nb * d, defines,
+                                 fr=self.frame_buf, slices=self.slice_buf, slice0=s0, nbatch=nb,
+                                 faces=self.faces_buf, smap=self.smap, term=term)
                     if st.lookup == "grid":
-                        ps.call("epipolar", "epi_rectify_depth", nb * R, defines, fr=frame_buf,
-                                 slices=slice_buf, slice0=s0, nbatch=nb, depth=depth, dw=dw, dh=dh, events=ev_buf)
-                    eng.finish()
-                with stats.stage("epipolar_integrate"):
-                    _launch_slices(eng, "epi_integrate", nb, defines, fr=frame_buf,
-                                   slices=slice_buf, slice0=s0, nbatch=nb, term=term,
-                                   ev_off=off_buf, two_runs=int(st.lookup == "segment"),
-                                   wrap=int(slices.full), nslices=S, cnt_off=cnt_off_buf,
-                                   events=ev_buf, gtab_all=gtab_buf,
-                                   n_g=sv.gtab.shape[1], btab_all=btab_buf, n_b=sv.btab.shape[1],
-                                   gref_all=gref_buf, bref_all=bref_buf, groups=grp_buf,
-                                   tree=tree, leaf=leaf, cnt_all=cnt, merged_all=merged,
-                                   dst_all=dst, sorted_all=srt, out=out,
-                                   work=work)
-                    eng.finish()
+                        self.ps.call("epipolar", "epi_rectify_depth", nb * self.R, defines,
+                                     fr=self.frame_buf, slices=self.slice_buf, slice0=s0,
+                                     nbatch=nb, depth=self.depth, dw=self.dw, dh=self.dh,
+                                     events=self.ev_buf)
+                    self.eng.finish()
+                with self.stats.stage("epipolar_integrate"):
+                    _launch_slices(self.eng, "epi_integrate", nb, defines, fr=self.frame_buf,
+                                   slices=self.slice_buf, slice0=s0, nbatch=nb, term=term,
+                                   ev_off=self.off_buf, two_runs=int(st.lookup == "segment"),
+                                   wrap=int(self.slices.full), nslices=S,
+                                   cnt_off=self.cnt_off_buf, events=self.ev_buf,
+                                   gtab_all=gtab_buf, n_g=sv.gtab.shape[1], btab_all=btab_buf,
+                                   n_b=sv.btab.shape[1], gref_all=gref_buf, bref_all=bref_buf,
+                                   groups=grp_buf, tree=tree, leaf=leaf, cnt_all=cnt,
+                                   merged_all=merged, dst_all=dst, sorted_all=srt, out=self.out,
+                                   work=self.work)
+                    self.eng.finish()
                 bar.update(nb)
 
-        # ---- back to the samples ----
-        with stats.stage("epipolar_unrectify"):
+    # ---- back to the samples ----
+    def unrectify(self) -> None:
+        """Each live sample's value from its slices' results, times the light's colour,
+        into the output buffers."""
+        st, eng, live, defines = self.st, self.eng, self.live, self.defines
+        with self.stats.stage("epipolar_unrectify"):
             colour = np.zeros(4, np.float32)
-            colour[:3] = (np.asarray(ps.medium["sigma_s"][:3], np.float64)
-                          * np.asarray(ps.lights[li]["power"][:3], np.float64))
-            acc = out
+            colour[:3] = (np.asarray(self.ps.medium["sigma_s"][:3], np.float64)
+                          * np.asarray(self.ps.lights[self.li]["power"][:3], np.float64))
+            acc, inv_buf = self.out, self.inv_buf
             if st.lookup == "grid":
                 # the grid's lookup needs each live sample's direction: read back (not the
                 # default lookup; the host computes the directions as geometry.py does)
-                rows = prim.gather(eng, segs.buf, live.buf, live.count, SEGMENT_BYTES)
-                bufs.append(rows)
+                rows = prim.gather(eng, self.segs.buf, live.buf, live.count, SEGMENT_BYTES)
+                self.bufs.append(rows)
                 live_segs = eng.read(rows, live.count, structs.VIEW_SEGMENT)
-                dbuf = up(segment_dirs(live_segs, cam.origin))
-                acc = scratch(16 * live.count)
-                ps.call("epipolar", "epi_unrectify", live.count, defines, fr=frame_buf,
-                         slices=slice_buf, phis=phi_buf, nslices=S, full=slices.full,
-                         lut=lut_buf, bins=len(lut) - 1, R=R,
-                         grid=out, dirs=dbuf, n=live.count, out=acc)
+                dbuf = self.up(segment_dirs(live_segs, self.cam.origin))
+                acc = self.scratch(16 * live.count)
+                self.ps.call("epipolar", "epi_unrectify", live.count, defines, fr=self.frame_buf,
+                             slices=self.slice_buf, phis=self.phi_buf, nslices=self.S,
+                             full=self.slices.full, lut=self.lut_buf, bins=len(self.lut) - 1,
+                             R=self.R, grid=self.out, dirs=dbuf, n=live.count, out=acc)
                 inv_buf = acc                       # unused with use_acc
-            ps.call("epipolar", "epi_sample_values", live.count, defines, res=out,
-                     inv=inv_buf, idx=idx_buf, live=live.buf, L=live.count, acc=acc,
-                     use_acc=int(st.lookup == "grid"), wr=wr_buf, colour=colour,
-                     values=values_buf)
-            counts = eng.read(work, (S, 2), np.int32)
-        ok = True
-    finally:
-        eng.free(*bufs)
-        if not ok:
-            eng.free(values_buf, wr_buf)
-    info.update(slices=S, light_rays=d, shadow_map=int(st.shadow_map), lookup=st.lookup,
-                shadow_map_faces=[[int(f["c"][3]), int(f["e1"][3])] for f in faces]
-                if axis.spot else [[int(st.shadow_map)] * 2],
-                events=int(n_ev), tree_updates=int(counts[:, 0].sum()),
-                tree_queries=int(counts[:, 1].sum()),
-                gamma_range=list(g_range), beta_range=list(b_range), channels=nch,
-                svd_span=float(sv.span))
-    if st.lookup == "grid":
-        info.update(rays_per_slice=R, depth_map=[dw, dh])
-    else:
-        info.update(rays_per_slice=float(n_ev) / max(S, 1))
-    return LightOutput(eng, n, values_buf, wr_buf, info, live.ring)
+            self.ps.call("epipolar", "epi_sample_values", live.count, defines, res=self.out,
+                         inv=inv_buf, idx=self.idx_buf, live=live.buf, L=live.count, acc=acc,
+                         use_acc=int(st.lookup == "grid"), wr=self.wr_buf, colour=colour,
+                         values=self.values_buf)
+            self.counts = eng.read(self.work, (self.S, 2), np.int32)
+
+    def finish_info(self) -> None:
+        """The light's statistics once the sweep has run."""
+        st, S = self.st, self.S
+        self.info.update(
+            slices=S, light_rays=self.d, shadow_map=int(st.shadow_map), lookup=st.lookup,
+            shadow_map_faces=[[int(f["c"][3]), int(f["e1"][3])] for f in self.faces]
+            if self.axis.spot else [[int(st.shadow_map)] * 2],
+            events=int(self.n_ev), tree_updates=int(self.counts[:, 0].sum()),
+            tree_queries=int(self.counts[:, 1].sum()),
+            gamma_range=list(self.g_range), beta_range=list(self.b_range), channels=self.nch,
+            svd_span=float(self.sv.span))
+        if st.lookup == "grid":
+            self.info.update(rays_per_slice=self.R, depth_map=[self.dw, self.dh])
+        else:
+            self.info.update(rays_per_slice=float(self.n_ev) / max(S, 1))
 
 
 SEGMENT_BYTES = structs.VIEW_SEGMENT.itemsize
