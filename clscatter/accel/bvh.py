@@ -161,12 +161,49 @@ def _empty_bvh(tri32: np.ndarray, order: np.ndarray, t0: float) -> BVH:
     return BVH(nodes, tris, order.astype(np.int64), 0, 0, time.perf_counter() - t0)
 
 
+def _depth_first(lv_lo, lv_hi, lv_start, lv_count, lv_left, lv_right) -> np.ndarray:
+    """The BVH_NODE array in depth-first order from the per-level arrays of the
+    breadth-first build (node ids contiguous per level; a leaf has left = -1)."""
+    bounds = np.cumsum([0] + [len(x) for x in lv_start])
+    n_nodes = int(bounds[-1])
+    lo_all = np.concatenate(lv_lo)
+    hi_all = np.concatenate(lv_hi)
+    start_all = np.concatenate(lv_start)
+    count_all = np.concatenate(lv_count)
+    left_all = np.concatenate(lv_left)
+    right_all = np.concatenate(lv_right)
+    size = np.ones(n_nodes, np.int64)
+    for li in range(len(lv_start) - 1, -1, -1):
+        ids = np.arange(bounds[li], bounds[li + 1])
+        ids = ids[left_all[ids] >= 0]
+        size[ids] += size[left_all[ids]] + size[right_all[ids]]
+    dfs = np.zeros(n_nodes, np.int64)
+    for li in range(len(lv_start)):
+        ids = np.arange(bounds[li], bounds[li + 1])
+        ids = ids[left_all[ids] >= 0]
+        dfs[left_all[ids]] = dfs[ids] + 1
+        dfs[right_all[ids]] = dfs[ids] + 1 + size[left_all[ids]]
+
+    nodes = np.zeros(n_nodes, BVH_NODE)
+    nodes["bmin"][dfs] = lo_all.astype(np.float32)
+    nodes["bmax"][dfs] = hi_all.astype(np.float32)
+    leaf = left_all < 0
+    nodes["left_first"][dfs] = np.where(leaf, start_all, dfs[np.maximum(right_all, 0)])
+    nodes["count"][dfs] = count_all
+
+    return nodes
+
+
 def build_bvh(triangles: np.ndarray, leaf_size: int = 4, bins: int = 16,
               max_leaf: int = MAX_LEAF) -> BVH:
     """Build a binned-SAH BVH over ``triangles`` ((T, 3, 3) vertex positions).
 
     Coordinates are used as float32 (what the device sees), so node boxes contain the
     device triangles exactly. See the module docstring for the algorithm and layout.
+
+    One long function on purpose: each pass of its loop handles every open node of one
+    level at once (NumPy over all their primitives), and the binning, the prefix and
+    suffix unions, the SAH choice and the partition share a dozen per-level arrays.
     """
     t0 = time.perf_counter()
     tri = np.asarray(triangles)
@@ -298,34 +335,7 @@ def build_bvh(triangles: np.ndarray, leaf_size: int = 4, bins: int = 16,
     if depth > MAX_DEPTH:  # cannot happen with the depth guard above
         raise AssertionError(f"BVH depth {depth} exceeds the kernel stack ({MAX_DEPTH})")
 
-    # ---- flatten the BFS tree to depth-first order ----
-    bounds = np.cumsum([0] + [len(x) for x in lv_start])
-    n_nodes = int(bounds[-1])
-    lo_all = np.concatenate(lv_lo)
-    hi_all = np.concatenate(lv_hi)
-    start_all = np.concatenate(lv_start)
-    count_all = np.concatenate(lv_count)
-    left_all = np.concatenate(lv_left)
-    right_all = np.concatenate(lv_right)
-    size = np.ones(n_nodes, np.int64)
-    for li in range(len(lv_start) - 1, -1, -1):
-        ids = np.arange(bounds[li], bounds[li + 1])
-        ids = ids[left_all[ids] >= 0]
-        size[ids] += size[left_all[ids]] + size[right_all[ids]]
-    dfs = np.zeros(n_nodes, np.int64)
-    for li in range(len(lv_start)):
-        ids = np.arange(bounds[li], bounds[li + 1])
-        ids = ids[left_all[ids] >= 0]
-        dfs[left_all[ids]] = dfs[ids] + 1
-        dfs[right_all[ids]] = dfs[ids] + 1 + size[left_all[ids]]
-
-    nodes = np.zeros(n_nodes, BVH_NODE)
-    nodes["bmin"][dfs] = lo_all.astype(np.float32)
-    nodes["bmax"][dfs] = hi_all.astype(np.float32)
-    leaf = left_all < 0
-    nodes["left_first"][dfs] = np.where(leaf, start_all, dfs[np.maximum(right_all, 0)])
-    nodes["count"][dfs] = count_all
-
+    nodes = _depth_first(lv_lo, lv_hi, lv_start, lv_count, lv_left, lv_right)
     order = np.concatenate([valid[perm], degenerate]).astype(np.int64)
     tris = np.zeros((len(order), 3, 4), np.float32)
     tris[:, :, :3] = tri32[order]
