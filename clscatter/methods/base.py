@@ -118,6 +118,16 @@ class Estimate:
     unit: str = ""
 
 
+def costs(stage: str, memory: dict[str, float], work: dict[str, float],
+          unit: str) -> list[Estimate]:
+    """A pass's estimates from its cost terms: ``memory`` and ``work`` map the key that
+    scales each term (a ``[render.<method>]`` key, ``camera.resolution``, ...) to its bytes
+    or operations. Two estimates, one for the bytes and one for the work, each naming the
+    key of its largest term, so a refusal names what to lower."""
+    return [Estimate(stage, max(memory, key=memory.get), float(sum(memory.values()))),
+            Estimate(stage, max(work, key=work.get), 0.0, float(sum(work.values())), unit)]
+
+
 def camera_samples(scene) -> int:
     """Camera samples of a render of ``scene`` (pixels times samples per pixel)."""
     c = scene.camera

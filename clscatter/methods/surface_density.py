@@ -9,7 +9,11 @@ from ..io.stats import Stats
 from ..transport.context import PassContext
 from ..transport.prepared import PreparedScene
 from . import check_method_param
-from .base import Method, Param, PassResult
+from .base import Method, Param, PassResult, camera_samples, costs
+
+#: bytes one lighting ray costs the estimators: its traced pieces (about two of 80 bytes),
+#: their references in the tree and the device copies
+BYTES_PER_RAY = 512
 from .raymap.density import DensitySettings, surface_caustics
 
 #: the parameters every surface density estimator declares
@@ -42,6 +46,18 @@ class SurfaceDensityMethod(Method):
     @classmethod
     def check_params(cls, params: dict) -> None:
         check_method_param(cls.NAME, "medium", params["medium"], "direct")
+
+    @classmethod
+    def estimate(cls, scene, params):
+        """Working set: the lighting rays' pieces and tree (:data:`BYTES_PER_RAY` each) and
+        one query per camera sample; work: tree building over the rays and the k-nearest
+        queries."""
+        rays = float(params["photons"])
+        queries = float(camera_samples(scene))
+        key = f"render.{cls.NAME}.photons"
+        return costs(cls.NAME, {key: rays * BYTES_PER_RAY, "camera.resolution": queries * 96},
+                     {key: rays * 40, "camera.resolution": queries * params["k"] * 40},
+                     "tree and query steps (order of magnitude)")
 
     @classmethod
     def companions(cls, params: dict) -> list[str]:

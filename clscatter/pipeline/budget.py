@@ -22,6 +22,7 @@ from ..methods import configure, get_method
 from ..methods.base import Estimate, camera_samples
 
 __all__ = ["Estimate", "camera_samples", "memory_budget", "estimate", "view_path_estimate",
+           "scene_estimate",
            "check_budget", "peak_bytes", "human_bytes", "parse_bytes", "long_work_notes"]
 
 # bytes per camera sample kept by the view-path stage on the device: surface + escaped
@@ -32,6 +33,14 @@ BYTES_PER_SAMPLE = 32 + 80
 BYTES_PER_SAMPLE_MEDIUM = BYTES_PER_SAMPLE + 3 * 64 * 2
 # elementary operations above which a render is announced as long (~a minute on a CPU)
 LONG_WORK = 2e10
+# elementary operations above which a render is refused before it starts: days on a CPU,
+# hours on a GPU, and 10x the largest legitimate render the built-in methods plan (a 4K
+# image at 64 spp, 32 steps per segment and light, two lights: ~7e10)
+REFUSE_WORK = 1e12
+# device bytes per scene triangle while a render runs: the transformed triangle (48), its
+# vertex normals (48), material index (4), its share of the BVH nodes and tile-grid lists
+# (the host's own copies are bounded by the loader, clscatter.scene.loader)
+DEVICE_BYTES_PER_TRIANGLE = 128
 
 
 def view_path_estimate(scene) -> Estimate:
@@ -43,10 +52,19 @@ def view_path_estimate(scene) -> Estimate:
                     "ray casts")
 
 
+def scene_estimate(scene) -> Estimate:
+    """The prepared scene on the device: its triangles, normals and BVH."""
+    tris = float(scene.triangle_count())
+    return Estimate("scene", "objects", tris * DEVICE_BYTES_PER_TRIANGLE, tris * 20,
+                    "BVH build steps")
+
+
 def estimate(scene, passes, settings: dict) -> list[Estimate]:
-    """Estimates of the view paths and of every pass of the plan (``settings``: checked
-    parameters per method, :func:`clscatter.methods.configure_scene`)."""
-    out = [view_path_estimate(scene)]
+    """Estimates of the view paths, the prepared scene and every pass of the plan
+    (``settings``: checked parameters per method,
+    :func:`clscatter.methods.configure_scene`). The first two stay alive for the whole
+    render; the passes run one after another."""
+    out = [view_path_estimate(scene), scene_estimate(scene)]
     for p in passes:
         cls = get_method(p.method)
         params = configure(p.method, p.table(scene))
@@ -75,15 +93,15 @@ def parse_bytes(text: str) -> float:
 
 
 def peak_bytes(estimates: list[Estimate]) -> float:
-    """The view paths stay alive while the passes run one after another: peak = view paths
-    + the largest pass."""
-    view, passes = estimates[0], estimates[1:]
-    return view.bytes + max((e.bytes for e in passes), default=0.0)
+    """The view paths and the prepared scene stay alive while the passes run one after
+    another: peak = both + the largest pass (:func:`estimate`'s order)."""
+    kept, passes = estimates[:2], estimates[2:]
+    return sum(e.bytes for e in kept) + max((e.bytes for e in passes), default=0.0)
 
 
 def check_budget(estimates: list[Estimate], budget: float, source: str) -> None:
-    """Refuse (ClscatterError, one line) when the peak exceeds ``budget``; the message names
-    the key of the largest stage and the estimate."""
+    """Refuse (ClscatterError, one line) when the peak exceeds ``budget``, or a stage's work
+    exceeds :data:`REFUSE_WORK`; the message names the key to lower and the estimate."""
     peak = peak_bytes(estimates)
     if peak > budget:
         worst = max(estimates, key=lambda e: e.bytes)
@@ -91,6 +109,12 @@ def check_budget(estimates: list[Estimate], budget: float, source: str) -> None:
             f"{worst.key}: this render needs about {human_bytes(peak)} ({worst.stage}: "
             f"{human_bytes(worst.bytes)}), more than the {human_bytes(budget)} allowed "
             f"({source}); lower {worst.key}")
+    for e in estimates:
+        if e.work > REFUSE_WORK:
+            raise ClscatterError(
+                f"{e.key}: the {e.stage} stage would take about {e.work:.2g} {e.unit}, far "
+                f"beyond what a render can do in reasonable time (at most {REFUSE_WORK:.0e}); "
+                f"lower {e.key}")
 
 
 def long_work_notes(estimates: list[Estimate]) -> list[str]:

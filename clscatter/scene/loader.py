@@ -34,6 +34,7 @@ from __future__ import annotations
 import copy
 import difflib
 import math
+import os
 import re
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -433,6 +434,53 @@ def _object(t: _Table, materials: dict[str, Material], base_dir: Path) -> Object
                   dropped_triangles=dropped)
 
 
+#: host bytes a scene triangle costs while a render runs (loader arrays, BVH build, the
+#: device's copies): a scene whose triangles would need more than the machine's memory
+#: is refused before it is built
+BYTES_PER_TRIANGLE = 512
+SHAPE_TRIANGLES = {"box": 12, "quad": 2}
+
+
+def _max_triangles() -> int:
+    try:
+        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        memory = 1 << 40
+    return int(memory // BYTES_PER_TRIANGLE)
+
+
+def _objects(root: _Table, materials: dict[str, Material], base_dir: Path) -> list[Object]:
+    """Every ``[[objects]]`` entry, built in order. The triangles of spheres, boxes and
+    quads are counted from the keys first, so a scene with more than the machine's memory
+    holds (:data:`BYTES_PER_TRIANGLE`) is refused before any of them is built, naming the
+    object that crosses the limit; meshes are counted as they load."""
+    tables = [t for _, t in _array_of_tables(root, "objects")]
+    limit, total = _max_triangles(), 0
+    for t in tables:
+        shape = t.data.get("shape") if isinstance(t.data, dict) else None
+        sub = t.data.get("subdivisions", 4) if shape == "sphere" else None
+        if shape == "sphere" and isinstance(sub, int) and 0 <= sub <= 7:
+            total += 20 * 4 ** sub
+        else:
+            total += SHAPE_TRIANGLES.get(shape, 0)
+        if total > limit:
+            key = t.k("subdivisions") if shape == "sphere" else t.key
+            raise _err(key, f"the scene's objects up to here have {total:,} triangles, more "
+                       f"than this machine's memory holds for a render (about {limit:,}); "
+                       "use fewer or coarser objects")
+    objects = []
+    for t in tables:
+        obj = _object(t, materials, base_dir)
+        if obj.shape == "mesh":
+            total += len(obj.faces)
+            if total > limit:
+                raise _err(t.k("file"), f"the scene's objects up to here have {total:,} "
+                           f"triangles, more than this machine's memory holds for a render "
+                           f"(about {limit:,})")
+        objects.append(obj)
+    return objects
+
+
 def _volume(t: _Table, base_dir: Path) -> Volume:
     sigma_s = t.colour("sigma_s", 0.0)
     sigma_a = t.colour("sigma_a", 0.0)
@@ -523,7 +571,7 @@ def scene_from_dict(data: dict, base_dir: Path | str = ".", source: str = "<memo
             raise _err(f"lights[{i}].type", "a directional light needs a bounded medium: "
                        "give medium.bounds (an unbounded medium would scatter infinitely much)")
     materials = _materials(root)
-    objects = [_object(t, materials, base_dir) for _, t in _array_of_tables(root, "objects")]
+    objects = _objects(root, materials, base_dir)
     volumes = [_volume(t, base_dir) for _, t in _array_of_tables(root, "volumes")]
     render = _render(root)
     return Scene(camera=camera, medium=medium, lights=lights, materials=materials,

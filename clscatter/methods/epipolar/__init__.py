@@ -8,7 +8,7 @@ from ...errors import SceneError
 from ...estimators.segment_march import march_lights
 from ...transport.context import PassContext
 from .. import register
-from ..base import AutoRole, Estimate, Fallback, Method, PassResult, camera_samples
+from ..base import AutoRole, Fallback, Method, PassResult, camera_samples, costs
 from .pipeline import render_light, split_segments, start_defines
 from .settings import MIN_LIGHT_RAYS, PARAMS, Settings
 
@@ -156,11 +156,20 @@ class Epipolar(Method):
         d = params["light_rays"] or max(w, h, MIN_LIGHT_RAYS)
         slices = params["slices"] or 4 * (w + h)
         n = camera_samples(scene)
+        image = "camera.spp" if scene.camera.spp > 64 else "camera.resolution"
+        k_map = "render.epipolar.shadow_map" if params["shadow_map"] else image
+        k_sweep = ("render.epipolar.light_rays" if params["light_rays"] >= params["slices"] else
+                   "render.epipolar.slices") if params["light_rays"] or params["slices"] else image
         # per camera sample: ~64 bytes of per-light tables, 24 kept with the view segments
         # (their directions and the primary list, pipeline.view_dirs/_primary_samples)
-        return [Estimate("epipolar", "render.epipolar.shadow_map",
-                         4.0 * smap * smap * 2 + slices * d * 64 + n * 88,
-                         slices * d * 20 + n * 40, "tree operations")]
+        memory: dict[str, float] = {}
+        for key, b in ((k_map, 4.0 * smap * smap * 2), (k_sweep, slices * d * 64.0),
+                       (image, n * 88.0)):
+            memory[key] = memory.get(key, 0.0) + b
+        work: dict[str, float] = {}
+        for key, w_ in ((k_sweep, slices * d * 20.0), (image, n * 40.0)):
+            work[key] = work.get(key, 0.0) + w_
+        return costs("epipolar", memory, work, "tree operations")
 
     def __init__(self, params: dict | None = None):
         super().__init__(params)

@@ -24,7 +24,7 @@ PARAMS = (
     Param("shadow_map", 0, "shadow map resolution (0: 2 max(W, H), clamped to 1024 .. 4096)",
           lo=0),
     Param("svd_terms", 4, "SVD terms N", lo=1, hi=16),
-    Param("svd_samples", 64, "the SVD samples an n x n grid (n >= svd_terms)", lo=1),
+    Param("svd_samples", 64, "the SVD samples an n x n grid (n >= svd_terms)", lo=1, hi=1024),
     Param("prefilter", True, "four depth sub-samples per light ray, clustered into "
           "weighted modes"),
     Param("prefilter_tolerance", 1.0, "sub-samples within this many pixel angles of beta "

@@ -17,6 +17,13 @@ from .. import register
 from ..base import AutoRole, Estimate, Method, Param, PassResult, camera_samples
 
 
+#: pair tests one lighting segment costs the gather, as an order of magnitude (the plane
+#: queries of a few hundred to a few thousand view segments): the work estimate's unit
+PAIRS_PER_SEGMENT = 1000
+#: most rays the automatic radius's pilot traces (in one piece: its segments stay in memory)
+PILOT_MAX = 1 << 18
+
+
 def _chunk_rays(counts: np.ndarray, k: int, n: int) -> int:
     """Rays that chunk (k, n) of trace_light_paths traces (every light's share)."""
     return int(sum(int(c) * (k + 1) // n - int(c) * k // n for c in counts))
@@ -79,8 +86,9 @@ class LineSpaceGathering(Method):
     expected image, the noise of ``light_rays`` untargeted rays, the cost of the part of
     them that reaches the mirrors and glass.
 
-    *Automatic radius* (``radius = 0``). A pilot of ``light_rays / 8`` rays (at least 2000)
-    is gathered at a trial radius r0; the median number c of pairs per lit view segment,
+    *Automatic radius* (``radius = 0``). A pilot of ``light_rays / 8`` rays (at least 2000,
+    at most :data:`PILOT_MAX`) is gathered at a trial radius r0; the median number c of
+    pairs per lit view segment,
     scaled to ``light_rays``, gives ``r = max(r0 * auto_count / c, f / 16)`` with f the
     median pixel footprint there: a typical lit view segment gathers ``auto_count``
     lighting segments, and no blur is smaller than a sixteenth of a pixel. Both terms are
@@ -145,13 +153,13 @@ class LineSpaceGathering(Method):
     def estimate(cls, scene, params):
         """Working set: one chunk of lighting segments (bounded by ``max_bytes``; ~3
         segments per ray at BYTES_PER_SEGMENT each) plus 80 bytes per view segment; work:
-        the segments traced over all passes (the gather's pair tests scale with them)."""
+        the segments traced over all passes times :data:`PAIRS_PER_SEGMENT`."""
         views = 2.0 * camera_samples(scene)
         rays = float(params["light_rays"])
         chunk = min(float(params["max_bytes"]), rays * 3 * BYTES_PER_SEGMENT)
         return [Estimate("lsg", "render.lsg.light_rays", chunk + views * 80,
-                         rays * 3 * params["passes"] + views * 200,
-                         "lighting segments (order of magnitude)")]
+                         rays * 3 * params["passes"] * PAIRS_PER_SEGMENT + views * 200,
+                         "pair tests (order of magnitude)")]
 
     #: optional ``f(passes_done, radius, mean values per view segment)`` called after every
     #: pass (tests and benchmarks: the error after each pass from one progressive run)
@@ -217,7 +225,7 @@ class LineSpaceGathering(Method):
     def auto_radius(self, ps: PreparedScene, gat: Gatherer, views: np.ndarray) -> AutoRadius:
         """The automatic radius (class docstring): a pilot gather at a trial radius."""
         n_rays = self._rays
-        pilot = int(min(n_rays, max(2000, n_rays // 8)))
+        pilot = int(min(n_rays, max(2000, n_rays // 8), PILOT_MAX))
         cam = ps.camera
         mid = 0.5 * (views["a"][:, :3] + views["b"][:, :3]).astype(np.float64)
         dist = np.linalg.norm(mid - cam["origin"][:3].astype(np.float64), axis=1)

@@ -19,7 +19,7 @@ from ...transport.prepared import (
     same_frame,
 )
 from .. import register
-from ..base import AutoRole, Estimate, Method, Param, PassResult, camera_samples
+from ..base import AutoRole, Method, Param, PassResult, camera_samples, costs
 from .pipeline import Pipeline
 
 
@@ -127,9 +127,12 @@ class Voxel(Method):
         grid = float(params["resolution"]) ** 3
         outer = float(params["outer_resolution"]) ** 3 if params["beyond"] == "grid" else 0.0
         photons = float(params["photons"]) * max(1, len(scene.lights))
-        return [Estimate("voxel", "render.voxel.resolution",
-                         grid * cls.BYTES_PER_VOXEL + outer * 48 + float(params["photons"]) * 48
-                         + camera_samples(scene) * 128, photons * 30, "photon steps (order of magnitude)")]
+        return costs("voxel", {"render.voxel.resolution": grid * cls.BYTES_PER_VOXEL,
+                               "render.voxel.outer_resolution": outer * 48,
+                               "render.voxel.photons": float(params["photons"]) * 48,
+                               "camera.resolution": camera_samples(scene) * 128.0},
+                     {"render.voxel.photons": photons * 30},
+                     "photon steps (order of magnitude)")
 
     @classmethod
     def check_params(cls, params: dict) -> None:

@@ -1,0 +1,95 @@
+"""Requests beyond the machine are refused in one line before anything is allocated: every
+parameter that scales memory or work, set to 1e9 (or the largest its type allows), in a
+process whose address space is capped (so an allocation that slipped through would fail
+loudly instead of swapping), names the key to lower and exits 2 with nothing written.
+And work that legitimately exceeds one allocation is chunked instead of refused."""
+from __future__ import annotations
+
+import resource
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+CAP = 6 << 30          # bytes of address space: Python, NumPy, PyOpenCL and PoCL fit easily
+
+CASES = [
+    ("builtin:occluder", "raymarch", ["render.raymarch.steps=1000000000"], "render.raymarch.steps"),
+    ("builtin:caustic_sphere", "lsg", ["render.lsg.light_rays=1000000000"], "render.lsg.light_rays"),
+    ("builtin:caustic_sphere", "vpm", ["render.vpm.photons=1000000000"], "render.vpm.photons"),
+    ("builtin:caustic_sphere", "raymap", ["render.raymap.photons=1000000000"],
+     "render.raymap.photons"),
+    ("builtin:caustic_sphere", "photonmap", ["render.photonmap.photons=1000000000"],
+     "render.photonmap.photons"),
+    ("builtin:volume_sphere", "voxel", ["render.voxel.resolution=1024"], "render.voxel.resolution"),
+    ("builtin:volume_sphere", "voxel", ["render.voxel.photons=1000000000"], "render.voxel.photons"),
+    ("builtin:shafts", "epipolar", ["render.epipolar.light_rays=1000000000"],
+     "render.epipolar.light_rays"),
+    ("builtin:shafts", "epipolar", ["render.epipolar.shadow_map=1000000000"],
+     "render.epipolar.shadow_map"),
+    ("builtin:shafts", "auto", ["camera.spp=1000000000"], "camera.spp"),
+    ("builtin:shafts", "auto", ["camera.resolution=[100000,100000]"], "camera.resolution"),
+]
+
+
+def _capped():
+    resource.setrlimit(resource.RLIMIT_AS, (CAP, CAP))
+
+
+def _render(args: list[str], tmp_path):
+    out = tmp_path / "out.npy"
+    r = subprocess.run([sys.executable, "-m", "clscatter", "render", *args, "-o", str(out),
+                        "--no-progress"], capture_output=True, text=True, timeout=120,
+                       preexec_fn=_capped)
+    return r, out
+
+
+@pytest.mark.parametrize("scene, method, sets, key", CASES,
+                         ids=[f"{c[1]}-{c[3]}" for c in CASES])
+def test_a_request_beyond_the_machine_is_refused_before_allocation(scene, method, sets, key,
+                                                                    tmp_path):
+    args = [scene, "--method", method]
+    for kv in sets:
+        args += ["--set", kv]
+    r, out = _render(args, tmp_path)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert len(lines) == 1 and lines[0].startswith(f"clscatter: error: {key}: "), lines
+    assert f"lower {key}" in lines[0]
+    assert not out.exists()
+
+
+def test_a_scene_with_too_many_triangles_is_refused_before_it_is_built(tmp_path):
+    """2000 spheres of 327,680 triangles each: the loader counts them from the keys and
+    names the object that crosses the machine's limit, before building any of them."""
+    spheres = "\n".join(
+        f'[[objects]]\nshape = "sphere"\ncenter = [{i % 50}, {i // 50}, 0]\nradius = 0.4\n'
+        f'subdivisions = 7\nmaterial = "grey"\n' for i in range(2000))
+    scene = tmp_path / "many.toml"
+    scene.write_text('[camera]\norigin = [25, 20, 80]\ntarget = [25, 20, 0]\n\n'
+                     '[[lights]]\ntype = "point"\nposition = [25, 60, 20]\nintensity = 100\n\n'
+                     '[materials.grey]\ntype = "diffuse"\nalbedo = 0.5\n\n' + spheres)
+    r, out = _render([str(scene)], tmp_path)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert len(lines) == 1 and "objects[" in lines[0] and ".subdivisions: " in lines[0], lines
+    assert "triangles" in lines[0] and not out.exists()
+
+
+def test_work_beyond_one_allocation_is_chunked_not_refused(engine):
+    """LSG's lighting rays are processed in chunks bounded by ``max_bytes``: a budget far
+    below one pass's working set is met by more chunks, and (with a fixed radius) the
+    image is the unchunked one."""
+    from clscatter.pipeline.session import RenderSession
+    sets = ["camera.resolution=[24,18]", "camera.spp=1", "render.lsg.light_rays=20000",
+            "render.lsg.radius=0.01"]
+    images, chunks = [], []
+    for extra in ([], ["render.lsg.max_bytes=1000000"]):
+        with RenderSession.from_source("builtin:caustic_sphere", sets + extra, method="lsg",
+                                       engine=engine) as s:
+            res = s.render(show_progress=False)
+        images.append(res.image)
+        chunks.append(res.stats["chunks"])
+    assert chunks[0] == 1 and chunks[1] > 4
+    np.testing.assert_allclose(images[1], images[0], rtol=1e-4, atol=1e-6 * images[0].max())
