@@ -20,6 +20,10 @@ from .settings import MIN_LIGHT_RAYS, PARAMS, Settings
 # travelling along the view), with the camera outside the medium and inside it:
 THICK = {False: (8.0, 4.0), True: (24.0, 12.0)}
 ALONG_COS = 0.5      # "along the view": cosine of the light's travel and the camera's forward
+# Spot lights wider than this (half-angle, degrees) are left to ray marching by auto: from
+# 60 degrees on, epipolar's error at equal samples was 2.6-6.9x ray marching's
+# (tools/bench_epipolar_wide_spot.py, docs/bench/epipolar_wide_spot.json)
+WIDE_SPOT = 55.0
 
 
 def _travel(light, scene) -> np.ndarray:
@@ -117,14 +121,19 @@ class Epipolar(Method):
 
     @classmethod
     def unreliable(cls, scene) -> str:
-        """Why ``auto`` should not pick epipolar for ``scene`` ('' when it may): a medium
-        thicker than ``THICK`` allows across (optical depth 8 seen from outside, 24 from
+        """Why ``auto`` should not pick epipolar for ``scene`` ('' when it may): a spot light
+        wider than ``WIDE_SPOT``, a medium thicker than ``THICK`` allows across (optical depth 8 seen from outside, 24 from
         inside), or a directional or spot light travelling along the view (cosine with
         the camera's forward above ``ALONG_COS``) through more than 4 from outside or 12
         from inside, or, with the camera outside, a spot light behind the camera shining
         along the view (the anti-epipole at the image's centre, beta + gamma -> pi: its
         estimate fails even in thin media). Measured where the estimate exceeds the
         tolerance or comes near it; conservative (some of these scenes would be swept)."""
+        for i, light in enumerate(scene.lights):
+            if light.type == "spot" and light.cutoff_angle > WIDE_SPOT:
+                return (f"light {i}: a spot light of half-angle {light.cutoff_angle:g} degrees "
+                        f"(> {WIDE_SPOT:g}): its shafts cross the epipolar lines, and ray "
+                        "marching is more accurate at the same samples")
         tau = scene.optical_depth_across()
         if tau == 0.0:
             return ""

@@ -192,7 +192,7 @@ class LineSpaceGathering(Method):
         r_fixed = p["radius"] * ps.scene.scene_extent() / ps.frame.scale
         dev = ctx.segments()                                  # the same segments, in order
         gat = Gatherer(eng, views, ps.medium, r_fixed or 1.0, p["min_sin"], p["leaf_size"],
-                       p["segments_per_launch"], show_progress=False, views_buf=dev.buf)
+                       p["segments_per_launch"], show_progress=show_progress, views_buf=dev.buf)
         try:
             if r_fixed > 0:
                 r1 = r_fixed
@@ -231,7 +231,7 @@ class LineSpaceGathering(Method):
         dist = np.linalg.norm(mid - cam["origin"][:3].astype(np.float64), axis=1)
         pix = 2.0 * float(np.linalg.norm(cam["right"][:3])) / max(int(cam["width"]), 1)
         foot = dist * pix                       # pixel footprint at each view segment
-        lp = trace_light_paths(ps, pilot, None, False, targeted=self.targeted(),
+        lp = trace_light_paths(ps, pilot, None, gat.show_progress, targeted=self.targeted(),
                                seed_offset=-1 - self.params["light_seed"])
         segs = self._select(lp.segments)
         r0 = 0.25 * float(np.median(foot)) if len(foot) else 1e-3
@@ -275,7 +275,7 @@ class LineSpaceGathering(Method):
                     break
                 with Timer() as t:
                     gat.radius = r
-                    res = self._gather_chunks(ps, gat, stats, show_progress and most == 1,
+                    res = self._gather_chunks(ps, gat, stats, show_progress,
                                               seed_offset=i + (self.params["light_seed"] << 16))
                 seconds.append(t.seconds)
                 if self.pass_callback is not None:
