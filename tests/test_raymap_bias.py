@@ -31,9 +31,9 @@ import math
 import numpy as np
 import pytest
 
-from clscatter.methods.raymap.density import DensitySettings, estimate
-from clscatter.methods.raymap.kdtree import TreeParams
-from clscatter.methods.raymap.queries import RayMap
+from clscatter.estimators.knn_queries import RayMap
+from clscatter.estimators.ray_density import DensitySettings, estimate
+from clscatter.estimators.segment_tree import TreeParams
 
 N_RAYS, K, REF_FACTOR, Z = 100_000, 200, 50, 0.5
 Z_EVAL = 0.35        # estimates (and the wave's reference) over |z| <= Z_EVAL: the source is finite in z

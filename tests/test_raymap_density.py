@@ -10,11 +10,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from clscatter.methods.raymap.density import DensitySettings, build_map, caustic_pieces, estimate
-from clscatter.methods.raymap.kdtree import TreeParams
-from clscatter.methods.raymap.queries import RayMap, knn_np, plane_dist
-from clscatter.transport.prepared import prepare_scene
+from clscatter.estimators.knn_queries import RayMap, knn_np, plane_dist
+from clscatter.estimators.ray_density import (
+    DensitySettings,
+    build_map,
+    caustic_pieces,
+    estimate,
+)
+from clscatter.estimators.segment_tree import TreeParams
 from clscatter.scene import scene_from_dict
+from clscatter.transport.prepared import prepare_scene
 
 HERE = Path(__file__).resolve().parent
 

@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 
 from clscatter.device import structs
+from clscatter.scene import scene_from_dict
 from clscatter.transport.light_paths import trace_light_paths
 from clscatter.transport.prepared import prepare_scene
-from clscatter.scene import scene_from_dict
 from clscatter.transport.view_paths import trace_diffuse_hits, trace_view_paths
 
 HERE = Path(__file__).resolve().parent

@@ -6,8 +6,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clscatter.methods.raymap.kdtree import LEAF, DIRECTIONAL, SegmentTree, TreeParams
-from clscatter.methods.raymap.queries import RayMap, intersect, knn, knn_lists, knn_np, meets_np
+from clscatter.estimators.knn_queries import (
+    RayMap,
+    intersect,
+    knn,
+    knn_lists,
+    knn_np,
+    meets_np,
+)
+from clscatter.estimators.segment_tree import DIRECTIONAL, LEAF, SegmentTree, TreeParams
 
 
 def _segments(n, seed=1):

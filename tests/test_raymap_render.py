@@ -60,10 +60,15 @@ def test_surface_caustics_sums_on_the_device_as_the_host_would(engine):
     device (batches of 100 queries: several launches into one buffer); against the host
     route (hits read back, estimate(), weight x E, bincount by pixel) with the same seeds:
     equal within float32 summation, and the work counters equal exactly."""
-    from clscatter.methods.raymap.density import (DensitySettings, build_map, caustic_pieces,
-                                                  estimate, surface_caustics)
-    from clscatter.transport.prepared import prepare_scene
+    from clscatter.estimators.ray_density import (
+        DensitySettings,
+        build_map,
+        caustic_pieces,
+        estimate,
+        surface_caustics,
+    )
     from clscatter.io.stats import Stats
+    from clscatter.transport.prepared import prepare_scene
     from clscatter.transport.view_paths import trace_diffuse_hits
     ps = prepare_scene(_scene(), engine)
     s = DensitySettings(k=16, max_radius=0.2, batch=100)

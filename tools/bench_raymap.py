@@ -47,14 +47,19 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from clscatter.device import get_engine                                  # noqa: E402
+from clscatter.device import get_engine  # noqa: E402
+from clscatter.estimators.knn_queries import candidate_lists, knn, knn_lists, knn_np
+from clscatter.estimators.ray_density import (
+    DensitySettings,
+    build_map,
+    caustic_pieces,
+    estimate,
+    lazy_radius,
+)
 from clscatter.io.image import relmse
-from clscatter.methods.raymap.density import (DensitySettings, build_map,  # noqa: E402
-                                              caustic_pieces, estimate, lazy_radius)
-from clscatter.methods.raymap.queries import candidate_lists, knn, knn_lists, knn_np  # noqa: E402
+from clscatter.scene import scene_from_dict  # noqa: E402
+from clscatter.scene.builtin.caustics import CAUSTIC_SCENES  # noqa: E402
 from clscatter.transport.prepared import prepare_scene
-from clscatter.scene import scene_from_dict                              # noqa: E402
-from clscatter.scene.builtin.caustics import CAUSTIC_SCENES              # noqa: E402
 from clscatter.transport.view_paths import trace_diffuse_hits
 
 OUT = REPO / "bench_out" / "raymap"

@@ -1,1 +1,2 @@
-"""Estimators several methods share: ray marching of segments, line gathering, density estimation, nearest-neighbour heaps and point trees."""
+"""Estimators several methods share: ray marching of view segments, line-space gathering,
+surface density estimation over lighting rays, its kd-tree and k-nearest queries."""

@@ -14,7 +14,7 @@ from .base import Method, Param, PassResult, camera_samples, costs
 #: bytes one lighting ray costs the estimators: its traced pieces (about two of 80 bytes),
 #: their references in the tree and the device copies
 BYTES_PER_RAY = 512
-from .raymap.density import DensitySettings, surface_caustics
+from ..estimators.ray_density import DensitySettings, surface_caustics
 
 #: the parameters every surface density estimator declares
 DENSITY_PARAMS = (

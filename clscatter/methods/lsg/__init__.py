@@ -16,7 +16,6 @@ from ...transport.prepared import PreparedScene
 from .. import register
 from ..base import AutoRole, Estimate, Method, Param, PassResult, camera_samples
 
-
 #: pair tests one lighting segment costs the gather, as an order of magnitude (the plane
 #: queries of a few hundred to a few thousand view segments): the work estimate's unit
 PAIRS_PER_SEGMENT = 1000

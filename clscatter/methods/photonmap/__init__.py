@@ -6,10 +6,10 @@ the same estimation kernel.
 """
 from __future__ import annotations
 
+from ...estimators.ray_density import DensitySettings
+from ...estimators.segment_tree import TreeParams
 from .. import register
 from ..base import AutoRole, Param
-from ..raymap.density import DensitySettings
-from ..raymap.kdtree import TreeParams
 from ..surface_density import DENSITY_PARAMS, SurfaceDensityMethod
 
 

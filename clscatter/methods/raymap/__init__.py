@@ -1,16 +1,18 @@
 """``raymap``: surface caustics from ray maps (Havran, Bittner, Herzog, Seidel 2005).
 
-The package: :mod:`.kdtree` (the lazy kd-tree over ray segments, LRU-bounded, with
-directional nodes), :mod:`.queries` (batched device queries and their NumPy references),
-:mod:`.density` (surface density estimation shared with ``photonmap``).
+The estimators it shares with ``photonmap`` live in :mod:`clscatter.estimators`:
+:mod:`~clscatter.estimators.segment_tree` (the lazy kd-tree over ray segments,
+LRU-bounded, with directional nodes), :mod:`~clscatter.estimators.knn_queries` (batched
+device queries and their NumPy references), :mod:`~clscatter.estimators.ray_density`
+(surface density estimation).
 """
 from __future__ import annotations
 
+from ...estimators.ray_density import DensitySettings
+from ...estimators.segment_tree import TreeParams
 from .. import register
 from ..base import AutoRole, Param
 from ..surface_density import DENSITY_PARAMS, SurfaceDensityMethod
-from .density import DensitySettings
-from .kdtree import TreeParams
 
 
 @register

@@ -23,13 +23,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...device import structs
-from ...io.stats import Stats, progress
-from ...transport import primitives as prim
-from ...transport.light_paths import trace_light_paths
-from ...transport.view_paths import trace_diffuse_hits_on_device
-from .kdtree import TreeParams
-from .queries import RayMap, _f4, heap_define, heap_scratch
+from ..device import structs
+from ..io.stats import Stats, progress
+from ..transport import primitives as prim
+from ..transport.light_paths import trace_light_paths
+from ..transport.view_paths import trace_diffuse_hits_on_device
+from .knn_queries import RayMap, _f4, heap_define, heap_scratch
+from .segment_tree import TreeParams
 
 ESTIMATORS = ("raymap", "photonmap")
 KERNELS = ("box", "epanechnikov")

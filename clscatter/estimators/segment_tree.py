@@ -29,8 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...device.structs import register_struct
-from ...geometry import slab_interval
+from ..device.structs import register_struct
+from ..geometry import slab_interval
 
 # node kinds (RM_LEAF ... in raymap.h)
 LEAF, SPATIAL, DIRECTIONAL = 0, 1, 2

@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...device import AppendBuffer
-from .kdtree import DIRECTIONAL, LEAF, SegmentTree, TreeParams, clip_segments
+from ..device import AppendBuffer
+from .segment_tree import DIRECTIONAL, LEAF, SegmentTree, TreeParams, clip_segments
 
 METRICS = {"plane": 0, "segment": 1, "line": 2, "hemidisc": 3}
 DOMAINS = {"none": 0, "sphere": 1, "hemisphere": 2}
