@@ -8,8 +8,13 @@ import math
 import numpy as np
 import pytest
 
-from clscatter.animation import (MIN_TILT_DEG, WIDE_RADIUS_FRACTION, WIDE_TILT_DEG, orbit,
-                                 orbit_path)
+from clscatter.animation import (
+    MIN_TILT_DEG,
+    WIDE_RADIUS_FRACTION,
+    WIDE_TILT_DEG,
+    orbit,
+    orbit_path,
+)
 from clscatter.scene import load_scene
 
 SMALL = ["camera.resolution=[48,36]", "camera.spp=1"]

@@ -10,13 +10,13 @@ import sys
 import numpy as np
 import pyopencl as cl
 import pytest
+from method_scenes import SMALL, overrides_for, scene_for
 
 from clscatter import device as dev
 from clscatter.methods import all_methods
 from clscatter.pipeline.render import render
 from clscatter.pipeline.session import RenderSession
 from clscatter.scene import load_scene
-from method_scenes import SMALL, overrides_for, scene_for
 
 MB = 1 << 20
 

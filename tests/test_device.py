@@ -138,6 +138,7 @@ def test_signatures_follow_edits_and_the_first_definition(tmp_path):
     """Signatures are parsed once per file, again when the file changes; a kernel found
     in an included .cl file; of two definitions of one name the first counts."""
     import os
+
     from clscatter.device import program_signature
     k = tmp_path / "k.cl"
     k.write_text('#include "inc.cl"\n__kernel void f(__global float *a, int n) {}\n'

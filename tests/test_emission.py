@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from clscatter.transport.emission import mixture_flux, specular_spheres, targets
-from clscatter.transport.light_paths import trace_light_paths
-from clscatter.transport.prepared import prepare_scene
 from clscatter.pipeline.render import render
 from clscatter.scene import scene_from_dict
 from clscatter.scene.builtin.caustics import CAUSTIC_SCENES
+from clscatter.transport.emission import mixture_flux, specular_spheres, targets
+from clscatter.transport.light_paths import trace_light_paths
+from clscatter.transport.prepared import prepare_scene
 
 HERE = Path(__file__).resolve().parent
 CAM = {"origin": [0.0, 0.0, 6.0], "target": [0.0, 0.0, 0.0], "resolution": [8, 8], "spp": 1}

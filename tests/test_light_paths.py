@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
+from clscatter.scene import scene_from_dict
 from clscatter.transport.light_paths import emission, trace_light_paths
 from clscatter.transport.prepared import prepare_scene
-from clscatter.scene import scene_from_dict
 
 HERE = Path(__file__).resolve().parent
 CAM = {"origin": [0.0, 0.0, 5.0], "target": [0.0, 0.0, 0.0], "resolution": [8, 8], "spp": 1}

@@ -5,8 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clscatter.estimators.line_tree import (PluckerFrame, box_plane_range, build_linetree,
-                                      canonical_signs, plane_of, plucker, tree_levels)
+from clscatter.estimators.line_tree import (
+    PluckerFrame,
+    box_plane_range,
+    build_linetree,
+    canonical_signs,
+    plane_of,
+    plucker,
+    tree_levels,
+)
 
 
 def _unit(v):

@@ -10,8 +10,15 @@ import numpy as np
 import pytest
 
 from clscatter.errors import KernelArgError, SceneError
-from clscatter.methods import (Method, Param, all_methods, configure, get_method,
-                               methods_markdown, param_table)
+from clscatter.methods import (
+    Method,
+    Param,
+    all_methods,
+    configure,
+    get_method,
+    methods_markdown,
+    param_table,
+)
 from clscatter.methods.base import TERMS
 from clscatter.scene import load_scene
 

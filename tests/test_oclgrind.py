@@ -12,7 +12,6 @@ import sys
 
 import numpy as np
 import pytest
-
 from method_scenes import scene_for
 
 TINY = ["camera.resolution=[12,9]", "camera.spp=1", "render.lsg.light_rays=2000",

@@ -7,17 +7,17 @@ import copy
 import math
 from pathlib import Path
 
+import analytic
 import numpy as np
 import pytest
 from scipy.special import gammaln
 
-import analytic
+from clscatter.io.stats import Stats
 from clscatter.methods.lsg import LineSpaceGathering, ppb_radii
-from clscatter.transport.prepared import prepare_scene
 from clscatter.pipeline.render import render
 from clscatter.scene import scene_from_dict
 from clscatter.scene.builtin.caustics import CAUSTIC_SCENES
-from clscatter.io.stats import Stats
+from clscatter.transport.prepared import prepare_scene
 from clscatter.transport.view_paths import accumulate_segments, trace_view_paths
 
 HERE = Path(__file__).resolve().parent

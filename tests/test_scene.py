@@ -12,9 +12,16 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
 from clscatter.errors import SceneError
-from clscatter.scene import (BUILTIN, DEFAULT_BUILTIN, Scene, apply_overrides, builtin_toml,
-                             load_scene, scene_from_dict)
-from clscatter.scene import shapes
+from clscatter.scene import (
+    BUILTIN,
+    DEFAULT_BUILTIN,
+    Scene,
+    apply_overrides,
+    builtin_toml,
+    load_scene,
+    scene_from_dict,
+    shapes,
+)
 
 DATA = Path(__file__).parent / "data"
 FULL = DATA / "full_scene.toml"
