@@ -20,7 +20,7 @@ from ...transport.prepared import (
 )
 from .. import register
 from ..base import AutoRole, Method, Param, PassResult, camera_samples, costs
-from .pipeline import Pipeline
+from .pipeline import Pipeline, beyond_mode
 
 
 def as_volume_scene(scene: Scene, voxelise_dielectrics: bool) -> Scene:
@@ -96,9 +96,11 @@ class Voxel(Method):
               "at most 4: branch ids grow 64x a round and must stay exact as float32 sort keys",
               lo=1, hi=4),
         Param("direct_steps", 32, "raymarch samples per view segment outside the grid", lo=1),
-        Param("beyond", "grid", "how light that left the grid scatters outside it: 'grid' (deposited "
-              "in a coarse outer grid), 'lsg' (line-space gathering of the photons' rays: sharper, "
-              "slower), 'none'", choices=("grid", "lsg", "none")),
+        Param("beyond", "auto", "how light that left the grid scatters outside it: 'grid' (deposited "
+              "in a coarse outer grid over the medium's bounds), 'lsg' (line-space gathering of "
+              "the photons' rays: sharper, slower, and right in an unbounded medium), 'none'; "
+              "'auto': 'grid' in a bounded medium, 'lsg' in an unbounded one",
+              choices=("auto", "grid", "lsg", "none")),
         Param("outer_resolution", 64, "outer grid: voxels along the medium's longest side", lo=4, hi=1024),
         Param("exit_radius", 0.005, "gather radius for beyond = 'lsg', relative to the scene extent",
               lo=0.0, lo_open=True),
@@ -125,7 +127,8 @@ class Voxel(Method):
         if not scene.volumes and not any(o.material.type == "dielectric" for o in scene.objects):
             return []
         grid = float(params["resolution"]) ** 3
-        outer = float(params["outer_resolution"]) ** 3 if params["beyond"] == "grid" else 0.0
+        outer = (float(params["outer_resolution"]) ** 3
+                 if beyond_mode(params["beyond"], scene.medium) == "grid" else 0.0)
         photons = float(params["photons"]) * max(1, len(scene.lights))
         return costs("voxel", {"render.voxel.resolution": grid * cls.BYTES_PER_VOXEL,
                                "render.voxel.outer_resolution": outer * 48,

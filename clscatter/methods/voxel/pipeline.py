@@ -37,6 +37,16 @@ from .voxelise import (
 STAGES = ("geometry", "material", "lighting", "view")
 
 
+def beyond_mode(beyond: str, medium) -> str:
+    """What ``beyond`` means for a scene's medium (a :class:`~clscatter.scene.model.Medium`
+    or None): 'auto' is the outer grid where the medium has bounds for it to cover, and
+    line-space gathering where it has none (an outer grid over the geometry alone would
+    lose the light that leaves it)."""
+    if beyond != "auto":
+        return beyond
+    return "grid" if medium is not None and medium.bounds is not None else "lsg"
+
+
 @dataclass
 class Pipeline:
     """Stage results of one scene on one device, kept between frames."""
@@ -50,6 +60,9 @@ class Pipeline:
     ran: list = field(default_factory=list)          # stages run by the last update()
     timings: dict = field(default_factory=dict)      # seconds of the last update()'s stages
     counters: dict = field(default_factory=dict)
+
+    def _beyond(self, ps) -> str:
+        return beyond_mode(self.params["beyond"], ps.scene.medium)
 
     def invalidate(self, stage: str, eng=None) -> None:
         """Drop ``stage`` and every stage after it."""
@@ -100,7 +113,8 @@ class Pipeline:
         p = self.params
         ms = MarchSettings(adaptive=p["adaptive"], ds_min=p["step_min"], min_rel=p["min_flux"],
                            steps_per_launch=p["steps_per_launch"], done_fraction=p["done_fraction"])
-        outer = outer_box(ps, self.box, p["outer_resolution"]) if p["beyond"] == "grid" else None
+        outer = (outer_box(ps, self.box, p["outer_resolution"])
+                 if self._beyond(ps) == "grid" else None)
         self.radiance = light_pass(ps.engine, self.fields, ps, p["photons"], ms,
                                    test_surfaces=len(ps.bvh.order) > 0, smoothing=p["smoothing"],
                                    outer=outer)
@@ -131,9 +145,10 @@ class Pipeline:
                 direct = direct_outside(ps, self.fields.box, vr.segments,
                                         self.params["direct_steps"])
                 ex = self.radiance.exits
-                if self.params["beyond"] == "grid":
+                beyond_how = self._beyond(ps)
+                if beyond_how == "grid":
                     beyond = outer_view(ps, self.radiance, vr.segments)
-                elif self.params["beyond"] == "lsg" and ex is not None and len(ex):
+                elif beyond_how == "lsg" and ex is not None and len(ex):
                     r = self.params["exit_radius"] * ps.scene.scene_extent() / ps.frame.scale
                     beyond = gather_exits(ps, vr.segments, ex, r, show_progress)
         finally:
