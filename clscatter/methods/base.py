@@ -190,6 +190,9 @@ class Method:
     # True for a method that, once auto picks it, renders the whole image alone (it computes
     # the other terms its own way, so another pass would count light twice)
     ALONE: ClassVar[bool] = False
+    # True for a method that scatters light inside dielectric objects (a material's
+    # interior_sigma_s): the planner notes any other plan leaving that light out
+    INTERIOR_SCATTERING: ClassVar[bool] = False
 
     def __init__(self, params: dict | None = None):
         self.params: dict[str, Any] = configure(type(self), params)

@@ -73,7 +73,13 @@ def needed_terms(scene: Scene) -> tuple[list[str], list[str]]:
 
 def plan(scene: Scene, requested: str) -> tuple[list[Pass], list[str]]:
     """The passes to run for ``scene`` with ``requested`` ('auto' or a method name), and
-    notes on what was chosen or skipped."""
+    notes on what was chosen or skipped (a note ending in :data:`DROPS_LIGHT` for light
+    the scene has and the plan leaves out)."""
+    passes, notes = _plan(scene, requested)
+    return passes, notes + interior_scattering_note(scene, passes)
+
+
+def _plan(scene: Scene, requested: str) -> tuple[list[Pass], list[str]]:
     terms, notes = needed_terms(scene)
     methods = all_methods()
     if requested != "auto":
@@ -131,6 +137,21 @@ def _explicit(scene: Scene, requested: str, terms: list[str],
         notes.append(f"{requested} runs {c} beside it for the medium "
                      f"(render.{requested}.medium)")
     return [Pass(requested, "all")] + [Pass(c, "medium") for c in companions], notes
+
+
+def interior_scattering_note(scene: Scene, passes: list[Pass]) -> list[str]:
+    """A note when a dielectric material scatters light inside (``interior_sigma_s`` above
+    0) and no pass of the plan renders that: the light is not in the image, and the user
+    is told so rather than left to find it missing."""
+    mats = sorted({o.material.key or o.material.name for o in scene.objects
+                   if o.material.type == "dielectric"
+                   and float(max(o.material.interior_sigma_s)) > 0.0})
+    methods = all_methods()
+    if not mats or any(methods[p.method].INTERIOR_SCATTERING for p in passes):
+        return []
+    who = "+".join(p.method for p in passes) or "this plan"
+    return [f"{mats[0]}.interior_sigma_s: {who} does not scatter light inside glass "
+            f"(only voxel does): {DROPS_LIGHT}"]
 
 
 def dropped_light(notes: list[str]) -> list[str]:

@@ -114,6 +114,7 @@ class Voxel(Method):
     # so a separate direct, caustic or surface-caustic pass would count light twice (the
     # planner honours ALONE; see docs/voxel.md).
     ALONE = True
+    INTERIOR_SCATTERING = True    # voxelised glass carries its interior coefficients
 
     # bytes per voxel of the grid while a frame renders: n, grad, sigma_s, kappa, octree
     # level and limit, deposits (2 float4), a blur temporary, the volumes' weights
