@@ -52,14 +52,14 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from clscatter import methods                                   # noqa: E402
-from clscatter.device import get_engine                         # noqa: E402
+from clscatter import methods  # noqa: E402
+from clscatter.device import get_engine  # noqa: E402
 from clscatter.io.image import relmse, write_image
+from clscatter.io.stats import Stats, write_json
+from clscatter.scene import scene_from_dict  # noqa: E402
+from clscatter.scene.builtin.caustics import CAUSTIC_SCENES  # noqa: E402
 from clscatter.transport.prepared import prepare_scene
 from clscatter.transport.view_paths import trace_view_paths
-from clscatter.scene import scene_from_dict                     # noqa: E402
-from clscatter.scene.builtin.caustics import CAUSTIC_SCENES     # noqa: E402
-from clscatter.io.stats import Stats, write_json
 
 OUT = REPO / "bench_out" / "caustics"
 DOCS = REPO / "docs" / "bench"

@@ -45,9 +45,8 @@ from clscatter.io.image import read_image, relmse
 from clscatter.methods import all_methods  # noqa: E402
 from clscatter.pipeline.planner import needed_terms
 from clscatter.pipeline.render import render
-from clscatter.scene import BUILTIN, load_scene  # noqa: E402
 from clscatter.pipeline.session import RenderSession
-
+from clscatter.scene import BUILTIN, load_scene  # noqa: E402
 
 WARM_MOVES = 3            # light moves per warm measurement (the median is reported)
 FLOOR_RUNS = 5            # fresh processes timed for the process floor (the least is kept)

@@ -55,14 +55,14 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from clscatter.device import get_engine
-from clscatter.methods.epipolar import geometry as geo
 from clscatter.io.image import relmse
+from clscatter.io.stats import Stats, write_json
 from clscatter.methods.epipolar import Epipolar
+from clscatter.methods.epipolar import geometry as geo
 from clscatter.methods.raymarch import RayMarch
+from clscatter.scene.loader import load_scene  # noqa: E402
 from clscatter.transport.prepared import prepare_scene
 from clscatter.transport.view_paths import trace_view_paths
-from clscatter.scene.loader import load_scene  # noqa: E402
-from clscatter.io.stats import Stats, write_json
 
 SCENES = ("epi_window", "epi_grille", "epi_forest", "epi_fog")
 DEFAULT_LEVEL = 4          # index of the method's default settings in epi_levels()

@@ -33,6 +33,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tools"))
 
 from bench_output import publish  # noqa: E402
+
 from clscatter.device import get_engine, kernel_dir  # noqa: E402
 from clscatter.io.image import relmse
 from clscatter.pipeline.render import render

@@ -38,12 +38,12 @@ if str(REPO) not in sys.path:
 
 from clscatter.device import get_engine  # noqa: E402
 from clscatter.io.image import relmse
+from clscatter.io.stats import Stats, progress, write_json
 from clscatter.methods.epipolar import Epipolar  # noqa: E402
 from clscatter.methods.raymarch import RayMarch  # noqa: E402
-from clscatter.transport.prepared import prepare_scene
 from clscatter.scene.builtin.epipolar import epi_sweep  # noqa: E402
 from clscatter.scene.loader import scene_from_dict  # noqa: E402
-from clscatter.io.stats import Stats, progress, write_json
+from clscatter.transport.prepared import prepare_scene
 from clscatter.transport.view_paths import trace_view_paths
 
 OUT = REPO / "bench_out"

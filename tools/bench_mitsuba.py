@@ -36,8 +36,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tools"))
 
 from clscatter.io.image import relmse
-from clscatter.scene import load_scene  # noqa: E402
 from clscatter.pipeline.session import RenderSession
+from clscatter.scene import load_scene  # noqa: E402
 
 DATA = ROOT / "tests" / "data" / "mitsuba"
 

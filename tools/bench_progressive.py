@@ -51,12 +51,12 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from clscatter.device import get_engine                         # noqa: E402
-from clscatter.methods import get_method                        # noqa: E402
-from clscatter.transport.prepared import prepare_scene
-from clscatter.scene import scene_from_dict                     # noqa: E402
-from clscatter.scene.builtin.caustics import CAUSTIC_SCENES     # noqa: E402
+from clscatter.device import get_engine  # noqa: E402
 from clscatter.io.stats import Stats
+from clscatter.methods import get_method  # noqa: E402
+from clscatter.scene import scene_from_dict  # noqa: E402
+from clscatter.scene.builtin.caustics import CAUSTIC_SCENES  # noqa: E402
+from clscatter.transport.prepared import prepare_scene
 from clscatter.transport.view_paths import accumulate_segments, trace_view_paths
 
 OUT = REPO / "bench_out" / "progressive"

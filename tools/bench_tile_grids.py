@@ -31,14 +31,16 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tools"))
 
 from bench_output import publish  # noqa: E402
-from clscatter.transport import view_paths
+
 from clscatter.accel import tile_grid  # noqa: E402
 from clscatter.device import get_engine  # noqa: E402
 from clscatter.io.image import relmse
-from clscatter.methods.epipolar import geometry as geo, maps  # noqa: E402
-from clscatter.transport.prepared import prepare_scene
+from clscatter.methods.epipolar import geometry as geo  # noqa: E402
+from clscatter.methods.epipolar import maps
 from clscatter.pipeline.render import render
 from clscatter.scene import load_scene  # noqa: E402
+from clscatter.transport import view_paths
+from clscatter.transport.prepared import prepare_scene
 
 SCENES = ("shafts", "epi_grille", "epi_window", "epi_forest", "epi_sun", "epi_spot",
           "occluder", "caustic_sphere")

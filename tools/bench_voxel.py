@@ -74,8 +74,9 @@ def stage_table(quick: bool) -> list[dict]:
 
 
 def adaptive_vs_fixed() -> list[dict]:
-    from clscatter.device import get_engine
     import test_voxel_photons as tv
+
+    from clscatter.device import get_engine
     from clscatter.methods.voxel.grid import make_box
     from clscatter.methods.voxel.photons import MarchSettings, march, start_state
     eng = get_engine()
@@ -128,9 +129,9 @@ def adaptive_vs_fixed_glass(resolution: int = 64, photons: int = 1 << 16) -> lis
     from clscatter.methods.voxel import as_volume_scene
     from clscatter.methods.voxel.photons import MarchSettings, light_pass
     from clscatter.methods.voxel.pipeline import Pipeline
-    from clscatter.transport.prepared import prepare_scene
     from clscatter.scene.builtin.volumes import VOLUME_SCENES
     from clscatter.scene.loader import scene_from_dict
+    from clscatter.transport.prepared import prepare_scene
     eng = get_engine()
     s = as_volume_scene(scene_from_dict(VOLUME_SCENES["volume_glass"]()), True)
     ps = prepare_scene(s, eng)

@@ -42,6 +42,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tools"))
 
 from bench_output import publish  # noqa: E402
+
 from clscatter import device as dev  # noqa: E402
 from clscatter.methods.epipolar import pipeline  # noqa: E402
 from clscatter.pipeline.session import RenderSession
@@ -55,8 +56,9 @@ def variant(name: str, session: RenderSession):
              eng.quiet_host_threads)
     try:
         if name == "blas_threads":
-            from threadpoolctl import threadpool_limits
             import os
+
+            from threadpoolctl import threadpool_limits
             eng.quiet_host_threads = lambda: None
             threadpool_limits(os.cpu_count(), user_api="blas")
         elif name == "no_pool":

@@ -266,8 +266,9 @@ def _pixel_average(cam, fn, sub=8) -> np.ndarray:
 
 
 def _verify_scene(d: dict) -> Scene:
-    from clscatter.scene.loader import scene_from_dict
     import copy
+
+    from clscatter.scene.loader import scene_from_dict
     return scene_from_dict(copy.deepcopy(d), REPO, "<verify>")
 
 
