@@ -34,7 +34,8 @@ def check(scene: Scene, method: str | None = None) -> Prepared:
 
 def scene_notes(scene: Scene) -> list[str]:
     """One-line notes about the scene itself: zero-area triangles dropped when loading,
-    and surfaces that reflect more light than reaches them (albedo or reflectance above
+    glass and volume surfaces that are not closed, and surfaces that reflect more light
+    than reaches them (albedo or reflectance above
     1: allowed, as other renderers allow it, but not physical)."""
     notes = [f"{o.key}: {o.dropped_triangles} zero-area triangles dropped"
              for o in scene.objects if o.dropped_triangles]
@@ -47,7 +48,33 @@ def scene_notes(scene: Scene) -> list[str]:
         seen.add(id(m))
         notes.append(f"{m.key or m.name}.{value}: {float(np.max(m.color)):g} > 1 reflects more light "
                      "than reaches it (not physical)")
-    return notes + _range_notes(scene)
+    return notes + _open_surface_notes(scene) + _range_notes(scene)
+
+
+def open_edges(faces: np.ndarray) -> int:
+    """Edges of a triangle mesh (vertex indices, shared vertices merged) that only one
+    triangle uses: 0 for a closed surface."""
+    f = np.asarray(faces, np.int64)
+    if len(f) == 0:
+        return 0
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(e, axis=0, return_counts=True)
+    return int(np.count_nonzero(counts == 1))
+
+
+def _open_surface_notes(scene: Scene) -> list[str]:
+    """A note for every glass object and every mesh volume whose surface is not closed: an
+    inside is not defined there, so rays crossing the gaps enter or leave the glass
+    unpredictably (sparkling pixels along the gaps)."""
+    notes = []
+    shapes = [(o.key, o.faces) for o in scene.objects if o.material.type == "dielectric"]
+    shapes += [(v.key, v.mesh.faces) for v in scene.volumes if v.mesh is not None]
+    for key, faces in shapes:
+        n = open_edges(faces)
+        if n:
+            notes.append(f"{key}: its surface is not closed ({n} open edges): glass and "
+                         "volumes need a closed surface; light crossing the gaps is wrong")
+    return notes
 
 
 SPAN_NOTE = 1e5     # a scene this many times wider than the camera's view distance is noted
