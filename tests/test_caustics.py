@@ -4,16 +4,16 @@ from __future__ import annotations
 
 import copy
 import math
-import tomllib
 
 import numpy as np
 import pytest
+import tomllib
 import trimesh
+from reference_checks import assert_matches_reference
 
 from clscatter.io.image import relmse
 from clscatter.pipeline.render import render
-from clscatter.scene import scene_from_dict
-from clscatter.scene import procedural
+from clscatter.scene import procedural, scene_from_dict
 from clscatter.scene.builtin import to_toml
 from clscatter.scene.builtin.caustics import CAUSTIC_SCENES, MESH_DIR
 
@@ -87,11 +87,13 @@ def test_scene_renders_with_raymarch(name, engine):
 
 # ---- LSG against a converged VPM --------------------------------------------------------------
 def test_lsg_matches_converged_vpm_on_caustic_sphere(engine):
-    """At 64 x 48: VPM with 2M photons, knn 32, dx 0.003 (differs from a 8M-photon VPM by
-    relMSE 6e-5) against LSG with 400k rays, r = 0.002 (from a 3.2M-ray LSG: 4e-5).
-    Measured (seeds 0-2): LSG vs VPM 1.6e-4 .. 2.0e-4; VPM vs raymarch (no caustics: the
-    glass blocks the light) 2.1e-3 .. 2.3e-3; image totals within 1%; the light raymarch
-    lacks, summed over the 12 brightest caustic pixels: LSG / VPM = 0.97, 0.83, 0.96."""
+    """At 64 x 48: VPM with 2M photons, knn 32, dx 0.003 against LSG with 400k rays,
+    r = 0.002. Measured (seed 0): LSG vs VPM relMSE 1.2e-3 (bound 2.4e-3), the typical
+    lit pixel 1.43 % off (bound 2.5 %), means within 0.04 % (bound 1 %); VPM vs raymarch
+    (no caustics: the glass blocks the light) 5.0e-3, 4.1 x LSG's (asserted: > 3 x). With
+    the earlier absolute-floor relMSE (seeds 0-2): LSG vs VPM 1.6e-4 .. 2.0e-4, VPM vs
+    raymarch 2.1e-3 .. 2.3e-3; the light raymarch lacks, summed over the 12 brightest
+    caustic pixels: LSG / VPM = 0.97, 0.83, 0.96."""
     pytest.importorskip("clscatter.methods.lsg")
     d = _small(CAUSTIC_SCENES["caustic_sphere"](), 64, 48)
     d["render"]["vpm"] = {"photons": 2_000_000, "knn": 32, "dx": 0.003}
@@ -99,9 +101,9 @@ def test_lsg_matches_converged_vpm_on_caustic_sphere(engine):
     scene = scene_from_dict(d, ".", "caustic_sphere")
     img = {m: render(scene, m, engine=engine, show_progress=False).image
            for m in ("vpm", "lsg", "raymarch")}
-    err = relmse(img["lsg"], img["vpm"])
-    assert err < 5e-4, err
-    assert relmse(img["raymarch"], img["vpm"]) > 5 * err      # the caustic matters here
+    err = assert_matches_reference(img["lsg"], img["vpm"], 2.4e-3, "LSG vs VPM", per_pixel=0.025,
+                                   mean_tol=0.01)["relmse"]
+    assert relmse(img["raymarch"], img["vpm"]) > 3 * err      # the caustic matters here
     assert img["lsg"].sum() / img["vpm"].sum() == pytest.approx(1.0, abs=0.02)
     # the caustic: light that raymarch does not have, brightest 12 pixels of both methods
     extra = {m: (img[m] - img["raymarch"]).sum(-1) for m in ("vpm", "lsg")}

@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 from layout import layout_mismatches
 
-from clscatter.device import structs
 from clscatter.accel.bvh import build_bvh, trace
+from clscatter.device import structs
 from clscatter.methods.epipolar import geometry as geo
 from clscatter.methods.epipolar import svd
 
 EPI_STRUCTS = {"EpiFrame": geo.EPI_FRAME, "EpiSlice": geo.EPI_SLICE, "EpiFace": geo.EPI_FACE}
-from clscatter.scene.normalised import Frame, camera_struct
 from clscatter.scene.model import Camera
+from clscatter.scene.normalised import Frame, camera_struct
 
 DEF1 = {"EPI_NT": 4, "EPI_NCH": 1}
 F32_EPS = 2.0 ** -24
@@ -376,7 +376,11 @@ def test_float32_bound_exceeds_the_emulation():
     diagonal); and useful: small enough to skip the emulation in 95% of the cases.
     Measured: the least per-sample ratio bound / emulation 1.15; the RMS ratio 4.3 .. 12 (median)
     .. 203, the bound at most 1.1e-3."""
-    from clscatter.methods.epipolar.pipeline import F32_BOUND_DEPTH, F32_BOUND_ENOUGH, _truncate
+    from clscatter.methods.epipolar.pipeline import (
+        F32_BOUND_DEPTH,
+        F32_BOUND_ENOUGH,
+        _truncate,
+    )
     from clscatter.methods.epipolar.settings import settings
     rng = np.random.default_rng(5)
     n, ratios = 0, []

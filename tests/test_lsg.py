@@ -4,29 +4,34 @@ the same maths, the kernel normalisation on an analytic beam, and whole renders 
 the airlight quadrature and against ``raymarch``."""
 from __future__ import annotations
 
-from layout import layout_mismatches
-
 import copy
 import itertools
 import math
 from pathlib import Path
 
+import analytic
 import numpy as np
 import pytest
+from layout import layout_mismatches
+from reference_checks import assert_matches_reference
 
-import analytic
 from clscatter.device import structs
+from clscatter.estimators.line_gather import (
+    LINE_NODE,
+    LSG_LINE,
+    Gatherer,
+    clip_segments,
+)
 from clscatter.estimators.line_tree import PluckerFrame
-from clscatter.io.image import relmse
 from clscatter.transport.light_paths import trace_light_paths
-from clscatter.estimators.line_gather import LINE_NODE, LSG_LINE, Gatherer, clip_segments
 
 STRUCTS = {"LineNode": LINE_NODE, "LsgLine": LSG_LINE}
-from clscatter.transport.prepared import prepare_scene
-from clscatter.transport.view_paths import trace_view_paths
+from test_render import _airlight_reference
+
 from clscatter.pipeline.render import render
 from clscatter.scene import scene_from_dict
-from test_render import _airlight_reference
+from clscatter.transport.prepared import prepare_scene
+from clscatter.transport.view_paths import trace_view_paths
 
 HERE = Path(__file__).resolve().parent
 
@@ -322,7 +327,9 @@ def test_real_scene_tree_equals_exhaustive(engine, bounded):
     from clscatter.transport.view_paths import accumulate_segments
     img_t = accumulate_segments(v_tree, views["pixel"], w, h)
     img_a = accumulate_segments(v_all, views["pixel"], w, h)
-    assert relmse(img_t, img_a) < 1e-10 and img_a.max() > 0
+    assert img_a.max() > 0
+    # the same pairs summed in another order: float rounding only (measured 7e-15)
+    assert_matches_reference(img_t, img_a, 1e-10, "tree vs exhaustive")
 
 
 # --------------------------------------------------------------------------------------
@@ -340,8 +347,9 @@ def test_uniform_beam_through_slab_matches_closed_form(engine):
     (normalised) and 60k rays over the ~1.2 x 1.2 footprint, each view segment's cylinder
     collects ~ 60k / 1.44 * 2r * len ~ 300 rays (relative noise ~ 1/sqrt(300) per segment
     if they were independent, less since they are stratified, and 16 segments average
-    into a pixel). Measured: relMSE 4e-6, mean ratio 0.999 (0.998 before lighting segments
-    were continued across the box's faces); bounds 1e-4 and 1%. A wrong
+    into a pixel). Measured: relMSE 5.8e-4 (the dim pixels at the box's edges count now),
+    mean ratio 0.9998 (0.998 before lighting segments were continued across the box's
+    faces); bounds 1e-3 and 1 % (per channel, and the whole image's mean). A wrong
     constant (x2, or the paper's 1/|x - x0|) fails by orders of magnitude."""
     d = {
         "camera": _cam(24, 16, 16, (0.2, 0.3, 4.0), (0.0, 0.1, 0.0), fov=40.0),
@@ -363,10 +371,9 @@ def test_uniform_beam_through_slab_matches_closed_form(engine):
     inside = ref.mean(-1) > 0.2 * ref.max()
     assert inside.sum() > 100
     ratio = res.image[inside].sum(0) / ref[inside].sum(0)
-    print("beam: ratio", ratio, "relMSE", relmse(res.image, ref))
+    print("beam: ratio", ratio)
     assert np.all(np.abs(ratio - 1) < 0.01), ratio
-    err = relmse(res.image, ref)
-    assert err < 1e-4, f"relMSE {err:.2e}"
+    assert_matches_reference(res.image, ref, 1e-3, "beam", mean_tol=0.01)
     st = res.stats
     assert st["method"] == "lsg" and st["valid_pairs"] > 0
     for key in ("light_segments", "view_segments", "pair_tests", "pair_tests_bruteforce",
@@ -394,13 +401,14 @@ def test_point_light_unbounded_matches_airlight_quadrature(engine):
     (relative noise ~ 6% if independent; the rays are stratified, and 16 segments
     average into a pixel). The pixel holding the light is dominated by the 1/h spread
     of its 16 camera samples (the sub=4 reference has the same error there). Measured
-    relMSE ~ 3e-4 and mean ratio ~ 1.015; bounds 2e-3 and 3%. It must stay finite."""
+    relMSE 4.4e-4, mean ratio 1.015 (the kernel's bias near the light), the typical lit
+    pixel's error 0.87 %; bounds 8e-4, 3 % per channel and 1.4 % per pixel: a 3 % mean
+    tolerance cannot see a 2 % bias, the per-pixel bound does. It must stay finite."""
     d = copy.deepcopy(AIRLIGHT)
     res = render(_scene(d), engine=engine, show_progress=False)
     ref = _airlight_reference(d)
     assert np.isfinite(res.image).all()
-    err = relmse(res.image, ref)
-    assert err < 2e-3, f"relMSE {err:.2e}"
+    assert_matches_reference(res.image, ref, 8e-4, "airlight", per_pixel=0.014, mean_tol=0.03)
     assert np.all(np.abs(res.image.mean((0, 1)) / ref.mean((0, 1)) - 1) < 0.03)
     assert res.image.max() > 5 * np.median(res.image)
 
@@ -428,15 +436,15 @@ def test_volumetric_shadows_agree_with_raymarch(engine):
     tests each step; both must give the same light shafts and shadows. Differences: LSG
     noise (~ 300 rays per cylinder in the cone, ~6% per segment before averaging) and
     its r-blur of the shadow edges (r = 0.005 of the scene, under a pixel here); raymarch
-    is converged at 64 steps. Measured relMSE 1.4e-5, means within 0.1%; bounds 2e-4 and
-    1%. Without the two occluders raymarch's own image differs by relMSE 1.4e-3, so the
-    bound does see the shadows."""
+    is converged at 64 steps. Measured relMSE 0.099: light blurred by r into black shadow
+    pixels at the shadows' edges dominates it, so the teeth are the typical lit pixel's
+    error, 0.58 % (bound 1.2 %), and the means, within 0.1 % (bound 1 %); relMSE is held
+    to 0.2."""
     sc = _scene(SHADOWS)
     a = render(sc, method="lsg", engine=engine, show_progress=False)
     b = render(sc, method="raymarch", engine=engine, show_progress=False)
     assert b.medium.max() > 0 and np.isfinite(a.image).all()
-    err = relmse(a.medium, b.medium)
-    assert err < 2e-4, f"relMSE {err:.2e}"
+    assert_matches_reference(a.medium, b.medium, 0.2, "shadows", per_pixel=0.012, mean_tol=0.01)
     assert np.all(np.abs(a.medium.mean((0, 1)) / b.medium.mean((0, 1)) - 1) < 0.01)
 
 

@@ -7,16 +7,21 @@ positions along the extruded (z) direction, which averages noise out and leaves 
 
 Measured (this file's seeds; mean |E / E_ref - 1| over the path points within 0.02 of the
 edge for the corners (inside the typical estimation radius R ~ 0.025), over one period
-for the wave; the reference itself has ~1.5 % noise):
+for the wave, there for the estimate averaged over 8 ray sets (one set's ~2 % noise
+hides the bias); the reference itself has ~1.5 % noise, none for parallel rays on the
+wave, where it is exact):
 
 =========================  ==========  ===================
 scene                      photon map  ray map (hemi-disc)
 =========================  ==========  ===================
 convex corner (edge)       36.4 %      1.5 %
 concave corner             33.8 %      7.9 %
-wave, cosine rays          2.6 %       2.1 %
-wave, parallel rays        2.8 %       2.1 %
+wave, cosine rays          1.2 %       2.3 %
+wave, parallel rays        1.6 %       0.64 %
 =========================  ==========  ===================
+
+On the wave the ray map is better with parallel rays and worse with cosine-distributed
+ones (low around the trough); see test_wave_topological_bias.
 
 At the convex edge the photon map falls to 0.51 of the true irradiance (half its disc
 is off the surface); the ray map stays within 1.2 %. In the concave corner the photon
@@ -186,15 +191,35 @@ def test_corner_boundary_bias(engine, kind):
     assert err["photonmap"] > 3 * err["raymap"]
 
 
+WAVE_SEEDS = 8       # ray sets per wave: the claims are about the estimators, not one set
+
+
 @pytest.mark.parametrize("cosine", [True, False])
 def test_wave_topological_bias(engine, cosine):
-    rng = np.random.default_rng(31 + cosine)
-    o, b, d, f, on = wave(N_RAYS, rng, cosine)
+    """The wave, estimates from WAVE_SEEDS independent ray sets of N_RAYS each. What one
+    ray set shows is mostly its noise (~2 % per point): with one set the ray map beat the
+    photon map for some seeds and lost for others. Averaged over the sets the noise falls
+    (~0.7 % per point for 8 sets) and the bias shows. Seed study, 12 ray sets per wave
+    (seeds 31/32 and 1001 .. 1011), error = mean |E / E_ref - 1| over the period:
+
+    * parallel rays (exact reference: E = cos of the slope): the seed-averaged estimate's
+      error is 0.34 % for the ray map, 1.5 % for the photon map, whose disc straddles
+      crests and troughs; per set the ray map's error is lower in 11 of 12 sets (1.77 %
+      against 2.20 % on average). Here (8 sets): 0.64 % against 1.60 %, per set 1.74 %
+      against 2.16 %. Asserted: the ray map's seed-averaged error under 0.7 x the photon
+      map's and under 1.2 %, and lower on average per set.
+    * cosine-distributed rays (reference: 50 x more rays): the ray map is *not* better:
+      seed-averaged error 1.7 % against 1.0 % for the photon map (per set 2.6 % against
+      2.0 %); it reads 4-6 % low around the trough, where grazing rays are stopped by the
+      crests before they meet the hemisphere (the concave corner's effect, smaller). Here
+      (8 sets): 2.29 % against 1.16 %, per set 2.88 % against 2.04 %. Asserted: both
+      seed-averaged errors within 2x of that (photon map < 2 %, ray map < 3.5 %), nothing
+      about which is lower.
+    """
     xs = np.linspace(-0.25, 0.0, 11)                   # one period: crest, trough
     ys = wave_y(xs)
     nrm = np.c_[-wave_dy(xs), np.ones_like(xs), np.zeros_like(xs)]
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    e = _estimates(engine, o, b, d, f, on, xs, ys, nrm)
     h = 0.002
     fine = np.linspace(-h, h, 201)
     arc = np.array([np.trapezoid(np.sqrt(1 + wave_dy(x + fine) ** 2), x + fine) for x in xs])
@@ -208,8 +233,22 @@ def test_wave_topological_bias(engine, cosine):
         acc += np.bincount(idx[ok], minlength=len(xs)) * f2 / (REF_FACTOR // 10)
     ref = acc / (arc * 2 * Z_EVAL)
     if not cosine:                                     # parallel: E = cos of the slope, exactly
-        assert np.allclose(ref, nrm[:, 1], rtol=0.02)
-    err = _errors("wave_" + ("cosine" if cosine else "parallel"), e, ref, np.ones(len(xs), bool))
-    # over a period the hemisphere-disc is closer to the reference than the photon map
-    # (less topological bias at crests and troughs; both carry ~1.5% noise here)
-    assert err["raymap"] < min(err["photonmap"], 0.03)
+        assert np.allclose(ref, nrm[:, 1], rtol=0.02)  # (the reference's method, checked)
+        ref = nrm[:, 1]
+    runs = []
+    for seed in range(WAVE_SEEDS):
+        o, b, d, f, on = wave(N_RAYS, np.random.default_rng(1000 + seed), cosine)
+        runs.append(_estimates(engine, o, b, d, f, on, xs, ys, nrm))
+    name = "wave_" + ("cosine" if cosine else "parallel")
+    per_set = {k: float(np.mean([np.mean(np.abs(r[k] / ref - 1)) for r in runs]))
+               for k in ("photonmap", "raymap")}
+    averaged = {k: np.mean([r[k] for r in runs], axis=0) for k in ("photonmap", "raymap")}
+    err = _errors(name, averaged, ref, np.ones(len(xs), bool))
+    print(name, "per set", per_set)
+    if cosine:
+        assert err["photonmap"] < 0.02 and err["raymap"] < 0.035, err
+    else:
+        # over a period the hemisphere-disc has less topological bias at crests and
+        # troughs than the photon map's disc
+        assert err["raymap"] < min(0.7 * err["photonmap"], 0.012), err
+        assert per_set["raymap"] < per_set["photonmap"], per_set

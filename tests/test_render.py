@@ -6,12 +6,12 @@ from __future__ import annotations
 import copy
 from pathlib import Path
 
+import analytic
 import numpy as np
 import pytest
+from reference_checks import assert_matches_reference
 
-import analytic
 from clscatter.device import structs
-from clscatter.io.image import relmse
 from clscatter.pipeline.render import render
 from clscatter.scene import scene_from_dict
 
@@ -47,15 +47,18 @@ def _airlight_reference(d: dict) -> np.ndarray:
     return np.stack(chans, axis=-1)
 
 
-@pytest.mark.parametrize("g", [0.0, 0.6])
+# relMSE bounds per g (measured 2.7e-5 and 1.95e-4; means 0.9978 and 0.9965)
+AIRLIGHT_RELMSE = {0.0: 5e-5, 0.6: 4e-4}
+
+
+@pytest.mark.parametrize("g", sorted(AIRLIGHT_RELMSE))
 def test_point_light_airlight_matches_quadrature(engine, g):
     d = copy.deepcopy(AIRLIGHT)
     d["medium"]["g"] = g
     res = render(_scene(d), engine=engine, show_progress=False)
     ref = _airlight_reference(d)
-    err = relmse(res.image, ref)
     assert np.isfinite(res.image).all()
-    assert err < 1e-3, f"relMSE {err:.2e} (g={g})"
+    assert_matches_reference(res.image, ref, AIRLIGHT_RELMSE[g], f"airlight g={g}", mean_tol=0.01)
     # and not trivially: the image has structure (glow peaks near the light)
     assert res.image.max() > 5 * np.median(res.image)
 
@@ -79,8 +82,7 @@ def test_directional_light_bounded_medium_closed_form(engine):
     ref = np.stack(chans, -1)
     inside = ref.mean(-1) > 0.05 * ref.max()
     # without occluders the integrand along each ray is smooth: per-pixel agreement
-    err = relmse(res.image[inside], ref[inside])
-    assert err < 1e-3, f"relMSE {err:.2e}"
+    assert_matches_reference(res.image[inside], ref[inside], 2e-4, "directional slab")  # 1.1e-4
     assert np.abs(res.image[~inside]).max() <= 0.06 * ref.max() + 1e-6
 
 
@@ -108,8 +110,7 @@ def test_diffuse_quad_under_point_light(engine):
         return np.where((np.abs(p[:, 0]) < 2) & (np.abs(p[:, 2]) < 2), L, 0.0)
 
     ref = analytic.pixel_average(fn, **analytic.camera_kwargs(d["camera"]), sub=4)
-    err = relmse(res.image.mean(-1), ref)
-    assert err < 1e-3, f"relMSE {err:.2e}"
+    assert_matches_reference(res.image.mean(-1), ref, 3e-6, "diffuse quad")  # measured 1.5e-6
     assert np.allclose(res.image[..., 0], res.image[..., 2])
 
 
@@ -293,24 +294,39 @@ def _thick_slab(direction, scale=1.0):
     }
 
 
-@pytest.mark.parametrize("direction,scale", [
-    ([0.3, -0.5, -1.0], 1.0), ([-0.3, -0.35, 1.0], 1.0), ([1.0, -0.6, 0.1], 1.0),
-    ([0.3, -0.5, -1.0], 300.0), ([1.0, -0.6, 0.1], 300.0)],
-    ids=["behind", "front", "beside", "behind-x300", "beside-x300"])
-def test_raymarch_thick_medium_against_closed_form(engine, direction, scale):
+# (relMSE bound, bound on the typical lit sample's error, planted errors no bound can catch)
+_NOISIER = "8 steps through optical depth 15: the typical sample is off by 2-5 %"
+THICK_BOUNDS = {
+    "behind": (2e-2, None, {"noise": _NOISIER}),          # measured 9.3e-3, 4.8 %
+    "front": (1.8e-4, None, None),                        # 9.1e-5, 0.28 %
+    "beside": (1e-3, 0.025, None),                        # 5.8e-4, 1.2 %
+    "behind-x300": (7e-3, None, {"noise": _NOISIER}),     # 3.7e-3, 2.1 %
+    # the light falls off by e^-4500 across the box: 1 % of the lit samples hold the
+    # mean's light, the others count for nothing in relMSE and in the per-sample median
+    "beside-x300": (4e-5, None, {"noise": "1 % of the samples hold the light"}),  # 2.2e-5
+}
+
+
+@pytest.mark.parametrize("direction,scale,key", [
+    ([0.3, -0.5, -1.0], 1.0, "behind"), ([-0.3, -0.35, 1.0], 1.0, "front"),
+    ([1.0, -0.6, 0.1], 1.0, "beside"), ([0.3, -0.5, -1.0], 300.0, "behind-x300"),
+    ([1.0, -0.6, 0.1], 300.0, "beside-x300")],
+    ids=list(THICK_BOUNDS))
+def test_raymarch_thick_medium_against_closed_form(engine, direction, scale, key):
     """Thick fog (optical depth ~15 across) with 8 steps per segment: every camera sample
     against analytic.directional_slab (exact). All the light of a thick segment comes from
     its first optical depths, which uniform steps sample once or twice; the marcher's
-    transmittance strategy (MIS with the uniform one) keeps the image within relMSE 1e-3
-    and the mean within 2 %. Measured: behind 4.0e-4, front 1.0e-6, beside 8.9e-6 (with
-    uniform steps alone: 1.3e-2, 1.1e-6, 1.2e-5: the light behind the camera, whose
-    path in the fog grows with the view's, is where the strategy matters). At 300 x the
-    extinction (optical depth ~4500 across: every segment's light is in its first
-    thousandth) behind 1.7e-4, beside 4.7e-10 (with the strategy's rate capped at 60 over
-    a segment, as first written, the image was mostly zeros with rare spikes)."""
+    transmittance strategy (MIS with the uniform one) keeps the mean within 1 % (measured
+    0.9982 .. 1.0031) and relMSE within THICK_BOUNDS (about 2x the measured values there);
+    with uniform steps alone the light behind the camera, whose path in the fog grows with
+    the view's, had 30 x the error (relMSE with the earlier absolute floor). With the light behind the camera the 8 steps leave each
+    sample 2-5 % off, so no bound catches 5 % noise there (the mean still catches a 2 %
+    bias). At 300 x the extinction (optical depth ~4500 across: every segment's light is
+    in its first thousandth; with the strategy's rate capped at 60 over a segment, as
+    first written, the image was mostly zeros with rare spikes)."""
+    from clscatter.io.stats import Stats
     from clscatter.methods.raymarch import RayMarch
     from clscatter.transport.prepared import prepare_scene
-    from clscatter.io.stats import Stats
     from clscatter.transport.view_paths import trace_view_paths
     ps = prepare_scene(_scene(_thick_slab(direction, scale)), engine)
     try:
@@ -328,7 +344,8 @@ def test_raymarch_thick_medium_against_closed_form(engine, direction, scale):
     finally:
         ps.release()
     lit = ref[:, 0] > 0
-    err, ratio = relmse(img[lit], ref[lit]), float(img[lit].mean() / ref[lit].mean())
-    print(f"{direction} x{scale:g}: relMSE {err:.3g}, mean {ratio:.4f}, lit {lit.sum()}")
+    print(f"{direction} x{scale:g}: lit {lit.sum()}")
     assert lit.sum() > 200          # x300: only the box's lit face is above float64's range
-    assert err <= 1e-3 and abs(ratio - 1.0) <= 0.02
+    bound, per_pixel, exempt = THICK_BOUNDS[key]
+    assert_matches_reference(img[lit], ref[lit], bound, key, per_pixel=per_pixel,
+                             mean_tol=0.01, exempt=exempt)

@@ -7,9 +7,13 @@ from __future__ import annotations
 import numpy as np
 
 from clscatter.device import structs
-from clscatter.transport.prepared import prepare_scene
 from clscatter.scene.loader import scene_from_dict
-from clscatter.transport.view_paths import (shade_hits, trace_diffuse_hits_on_device, trace_view_paths)
+from clscatter.transport.prepared import prepare_scene
+from clscatter.transport.view_paths import (
+    shade_hits,
+    trace_diffuse_hits_on_device,
+    trace_view_paths,
+)
 
 SCENE = {
     "camera": {"origin": [0.0, 2.0, 0.01], "target": [0.0, 0.0, 0.0], "fov": 60.0,

@@ -5,11 +5,10 @@ from __future__ import annotations
 import json
 
 import pytest
+from method_scenes import overrides_for, scene_for
 
 from clscatter.cli import main
 from clscatter.methods import all_methods
-from method_scenes import overrides_for, scene_for
-
 
 
 @pytest.mark.parametrize("method", sorted(all_methods()))
@@ -57,17 +56,28 @@ def test_start_up_loads_the_programs_the_render_uses(engine, monkeypatch):
     assert used <= pre, used - pre
 
 
-def test_a_stage_inside_another_counts_once():
-    import time
+def test_a_stage_inside_another_counts_once(monkeypatch):
+    """On a fake clock (the stats module's ``time``), advanced by hand: exact seconds."""
+    import types
+
+    from clscatter.io import stats as stats_module
     from clscatter.io.stats import Stats
+    now = [100.0]
+    monkeypatch.setattr(stats_module, "time", types.SimpleNamespace(perf_counter=lambda: now[0]))
+
+    def sleep(seconds):
+        now[0] += seconds
+
     st = Stats()
     with st.stage("outer") as outer:
-        time.sleep(0.02)
+        sleep(0.02)
         with st.stage("inner"):
-            time.sleep(0.05)
+            sleep(0.05)
         with st.stage("outer"):                 # the same name nested: still counted once
-            time.sleep(0.01)
-    assert st.stages["inner"] >= 0.05
-    assert st.stages["outer"] == pytest.approx(outer.seconds - st.stages["inner"], abs=1e-9)
-    assert 0.03 <= st.stages["outer"] < outer.seconds - 0.045
+            sleep(0.01)
+    assert outer.seconds == pytest.approx(0.08, abs=1e-9)
+    assert st.stages["inner"] == pytest.approx(0.05, abs=1e-9)
+    assert st.stages["outer"] == pytest.approx(0.03, abs=1e-9)     # 0.02 + 0.01, not 0.08
     assert sum(st.stages.values()) == pytest.approx(outer.seconds, abs=1e-9)
+    sleep(1.0)
+    assert st.to_dict()["seconds_total"] == pytest.approx(1.08, abs=1e-9)

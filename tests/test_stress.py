@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from reference_checks import assert_matches_reference
 
-from clscatter.io.image import relmse
 from clscatter.pipeline.render import render
 from clscatter.scene import scene_from_dict
 
@@ -76,11 +76,10 @@ def test_translated_and_scaled_scene_renders_the_same(engine, reference_image, s
     d = _transform(BASE, scale, offset)
     img = render(scene_from_dict(d, HERE, "moved"), engine=engine, show_progress=False).image
     assert np.isfinite(img).all()
-    err = relmse(img, reference_image)
     # same samples in the same normalised frame: only float rounding and a few shadow-edge
-    # samples may differ
-    assert err < 1e-4, f"relMSE {err:.2e} at scale {scale}, offset {offset}"
-    assert abs(img.mean() / reference_image.mean() - 1) < 1e-3
+    # samples may differ (measured: identical images, relMSE 0, on PoCL)
+    assert_matches_reference(img, reference_image, 1e-6, f"scale {scale}, offset {offset}",
+                             mean_tol=1e-3)
 
 
 def test_reference_image_is_not_trivial(reference_image):

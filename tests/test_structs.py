@@ -9,8 +9,7 @@ from collections import defaultdict
 from layout import layout_mismatches
 
 import clscatter.methods  # noqa: F401  (importing the methods registers their structs)
-from clscatter.device import structs
-from clscatter.device import kernel_dir
+from clscatter.device import kernel_dir, structs
 
 
 def _registry():

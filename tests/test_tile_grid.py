@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clscatter.device import structs
 from clscatter.accel import tile_grid
 from clscatter.accel.bvh import build_bvh, trace
+from clscatter.device import structs
 from clscatter.geometry import perpendicular_axes
 
 trimesh = pytest.importorskip("trimesh")
@@ -378,8 +378,8 @@ def test_shadow_map_through_the_grid_equals_the_bvh(engine, name, kind):
     cone through the BVH."""
     from clscatter.methods.epipolar import geometry as geo
     from clscatter.methods.epipolar import maps
-    from clscatter.transport.prepared import prepare_scene
     from clscatter.scene.loader import load_scene
+    from clscatter.transport.prepared import prepare_scene
 
     ps = prepare_scene(load_scene(f"builtin:{name}", ["camera.resolution=[64,48]"]), engine)
     try:

@@ -10,17 +10,30 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clscatter.device import structs
-from clscatter.device import AppendBuffer, launch_appending
+from clscatter.device import AppendBuffer, launch_appending, structs
 from clscatter.methods import configure
 from clscatter.methods.voxel.grid import VOX_RAY
 from clscatter.methods.voxel.photons import exits_by_photon
-from clscatter.methods.voxel.pipeline import Pipeline, direct_outside, gather_exits, outer_view
-from clscatter.methods.voxel.view import MIN_THROUGHPUT, keep_rays, march_args, view_pass
-from clscatter.transport.prepared import prepare_scene
+from clscatter.methods.voxel.pipeline import (
+    Pipeline,
+    direct_outside,
+    gather_exits,
+    outer_view,
+)
+from clscatter.methods.voxel.view import (
+    MIN_THROUGHPUT,
+    keep_rays,
+    march_args,
+    view_pass,
+)
 from clscatter.scene.builtin.volumes import VOLUME_SCENES
 from clscatter.scene.loader import scene_from_dict
-from clscatter.transport.view_paths import DeviceSegments, ViewPaths, accumulate_segments
+from clscatter.transport.prepared import prepare_scene
+from clscatter.transport.view_paths import (
+    DeviceSegments,
+    ViewPaths,
+    accumulate_segments,
+)
 
 ROUNDS = 4
 

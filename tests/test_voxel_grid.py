@@ -7,13 +7,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from layout import layout_mismatches
 from scipy.ndimage import convolve1d
 
 from clscatter.methods.voxel.grid import VOX_RAY, make_box
 from clscatter.methods.voxel.octree import build_octree, octree_reference
-from clscatter.methods.voxel.voxelise import (SMOOTH_TAPS, blur, box_coverage, gaussian_taps,
-                                              gradient, inside_grid, mesh_coverage)
-from layout import layout_mismatches
+from clscatter.methods.voxel.voxelise import (
+    SMOOTH_TAPS,
+    blur,
+    box_coverage,
+    gaussian_taps,
+    gradient,
+    inside_grid,
+    mesh_coverage,
+)
 
 
 def test_voxray_layout(engine):
@@ -143,8 +150,8 @@ def test_grid_volume_fields():
     voxel centres: trilinear between its data's centres (exact for a linear field), the
     nearest centre's value beyond the outermost ones; sigma converted to the frame's units."""
     from clscatter.methods.voxel.voxelise import volume_fields
-    from clscatter.scene.normalised import Frame
     from clscatter.scene.model import Volume
+    from clscatter.scene.normalised import Frame
     bmin, bmax = np.array([-1.0, -0.5, -0.5]), np.array([1.0, 0.5, 0.5])
     shape = (8, 4, 4)
     c = [bmin[a] + (np.arange(shape[a]) + 0.5) * (bmax[a] - bmin[a]) / shape[a] for a in range(3)]

@@ -9,7 +9,12 @@ import numpy as np
 import pytest
 
 from clscatter.methods.voxel.grid import make_box
-from clscatter.methods.voxel.photons import MarchSettings, march, start_state, upload_fields
+from clscatter.methods.voxel.photons import (
+    MarchSettings,
+    march,
+    start_state,
+    upload_fields,
+)
 
 
 def _deposit(engine, box, kappa, a, b, flux):
@@ -202,8 +207,8 @@ def _light_scene(tmp_path, light):
     a bounded absorbing medium; the voxel pipeline's fields and lighting pass only."""
     from clscatter.methods import configure
     from clscatter.methods.voxel.pipeline import Pipeline
-    from clscatter.transport.prepared import prepare_scene
     from clscatter.scene.loader import scene_from_dict
+    from clscatter.transport.prepared import prepare_scene
     np.save(tmp_path / "ones.npy", np.ones((4, 4, 4)))
     d = {"camera": {"origin": [0, 0, 5], "target": [0, 0, 0], "resolution": [8, 8], "spp": 1},
          "medium": {"sigma_s": 0.0, "sigma_a": 0.3, "bounds": {"min": [-2, -2, -2], "max": [2, 2, 2]}},

@@ -10,17 +10,22 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from reference_checks import assert_matches_reference
 from scipy.spatial import cKDTree
 
 from clscatter.device import structs
+from clscatter.io.stats import Stats
+from clscatter.methods.vpm import (
+    DevicePhotonMap,
+    VolumetricPhotonMapping,
+    deposit_photons,
+    gather,
+    knn_points,
+)
 from clscatter.methods.vpm import photontree as pt
-from clscatter.io.image import relmse
-from clscatter.methods.vpm import (DevicePhotonMap, VolumetricPhotonMapping, deposit_photons,
-                                   gather, knn_points)
+from clscatter.scene import scene_from_dict
 from clscatter.transport.prepared import prepare_scene
 from clscatter.transport.view_paths import accumulate_segments, trace_view_paths
-from clscatter.scene import scene_from_dict
-from clscatter.io.stats import Stats
 
 try:
     import analytic as A
@@ -347,8 +352,14 @@ def test_point_light_unbounded_medium_vs_airlight(engine):
     near = np.zeros(ref.shape[:2], bool)
     near[max(iy - 1, 0):iy + 2, max(ix - 1, 0):ix + 2] = True
     assert np.abs(img[near] / ref[near] - 1).max() < 0.3       # measured 3-4% (seeds 0-3)
-    err = relmse(img[~near], ref[~near])
-    assert err < 3e-5, err                                     # measured 6e-6 .. 9e-6
+    # measured relMSE 2.1e-3, the typical lit pixel 2.7 % off, the total 1.4 % high (seed
+    # 0; -0.5 % .. +1.4 % over seeds 0-3): 600k photons leave the dim pixels far from the
+    # light about as noisy as the planted 5 % noise, and the kernel's excess near the light
+    # is as large as the planted 2 % bias, so neither can be caught here (both are, on the
+    # bounded box below)
+    assert_matches_reference(img[~near], ref[~near], 4e-3, "airlight", exempt={
+        "noise": "600k photons: the typical pixel is 2.7 % off",
+        "bias": "the kernel's excess near the light is up to 1.4 %, seed to seed"})
     # the kernel averages the 1/d^2 field over its ball, a slight excess near the light
     assert abs(img[~near].sum() / ref[~near].sum() - 1) < 0.03    # measured -0.5% .. +1.4%
     assert st["photons"] > 0.99 * 600_000 and st["gather_steps"] > 0
@@ -366,8 +377,8 @@ def test_directional_light_bounded_box_vs_closed_form(engine):
     ref_fn = lambda o, w, L: A.directional_slab(o, w, ldir, E, ss, ss + sa, g, lo, hi, t_max=L)
     img, ref, _ = _vpm_vs_segment_reference(engine, d, ref_fn, photons=400_000, photons_per_ray=4,
                                             knn=32, dx=0.01, max_radius=0.2, deposit="stratified")
-    err = relmse(img, ref)
-    assert err < 5e-5, err                                     # measured 1.3e-5
+    # measured relMSE 6.5e-4, the typical lit pixel 1.34 % off, the mean 0.7 % low
+    assert_matches_reference(img, ref, 1.3e-3, "directional box", per_pixel=0.025, mean_tol=0.015)
     # the kernel's volume is the part of its ball inside the medium box: no deficit along
     # the walls (dividing by the whole ball loses 5-9% here, proportional to r)
     assert abs(img.sum() / ref.sum() - 1) < 0.015              # measured 0.5% low

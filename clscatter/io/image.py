@@ -44,12 +44,23 @@ and average over all pixels **and** channels. With ``d = a - b`` and ``N`` the n
 of values:
 
 * ``rmse(a, b)      = sqrt(sum(d**2) / N)``
-* ``relmse(a, b)    = sum(d**2 / (b**2 + eps)) / N`` with ``eps = 1e-2`` by default:
-  the relative MSE of the Monte Carlo rendering / denoising literature (Rousselle et
-  al. 2011, Bitterli et al. 2016, Gharbi et al. 2019 use this form, up to a constant
-  factor). It weights errors relative to the reference's brightness so that dark and
-  bright regions count alike; ``eps`` keeps black reference pixels from dominating.
-  Because ``eps`` is absolute, relMSE assumes radiance values of order one.
+* ``relmse(a, b)    = sum(d**2 / (b**2 + f)) / N`` with the floor
+  ``f = 0.01 * mean(|b|)**2`` by default (the mean over all pixels and channels of the
+  reference; ``mean(|b|) = mean(b)`` for radiance, which is never negative): the relative
+  MSE of the Monte Carlo rendering / denoising literature (Rousselle et al. 2011,
+  Bitterli et al. 2016, Gharbi et al. 2019 use this form, up to a constant factor). It
+  weights errors relative to the reference's brightness so that dark and bright regions
+  count alike; the floor keeps near-black reference pixels (below a tenth of the mean)
+  from dominating. Because the floor scales with the reference, relMSE does not depend
+  on the units: ``relmse(k a, k b) == relmse(a, b)`` for any ``k > 0``, so a bound means
+  the same on a dim image as on a bright one (a uniform error of ``x`` gives about
+  ``x**2`` where the reference is well above a tenth of its mean, e.g. 4e-4 for 2 %).
+  An explicit ``eps`` replaces the floor by that absolute value. The old default,
+  ``eps = 1e-2`` (kept as ``RELMSE_EPS``), assumed radiance of order one: on an image of
+  uniform radiance 0.003 a bound of 1e-4 admitted a 33 % error. Against a black
+  reference (all zeros) relMSE is ``inf``, or 0 if the test image is black too.
+* ``mean_ratio(a, b) = mean(a) / mean(b)``: the bias of the whole image (1 = none); not
+  part of :func:`compare`.
 * ``psnr(a, b)      = 10 * log10(peak**2 / mse)`` dB with ``peak = max(b)``;
   ``inf`` when the images are identical.
 * ``ssim(a, b)``: mean SSIM from scikit-image's ``structural_similarity`` on the
@@ -86,7 +97,11 @@ LINEAR_SUFFIXES = (".exr", ".npy", ".pfm")
 #: Formats that store a tone-mapped picture (exposure, clamping to [0, 1], 8-bit sRGB).
 TONE_MAPPED_SUFFIXES = (".png",)
 
-#: Default ``eps`` of :func:`relmse`.
+#: :func:`relmse`'s default floor relative to the reference: ``f = RELMSE_FLOOR * mean(|b|)**2``.
+RELMSE_FLOOR = 1e-2
+
+#: The absolute ``eps`` relMSE used before its floor was scaled to the reference (kept for
+#: callers that reproduce old records: ``relmse(a, b, eps=RELMSE_EPS)``).
 RELMSE_EPS = 1e-2
 
 #: Matplotlib colormap used by :func:`heatmap`.
@@ -464,21 +479,46 @@ def rmse(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(np.mean((a - b) ** 2)))
 
 
-def relmse(a: np.ndarray, b: np.ndarray, *, eps: float = RELMSE_EPS) -> float:
+def relmse(a: np.ndarray, b: np.ndarray, *, eps: float | None = None) -> float:
     """Relative MSE of test image ``a`` against reference ``b``.
 
-    ``relmse = mean((a - b)**2 / (b**2 + eps))``, the mean running over all pixels and
-    channels, ``eps = 1e-2`` by default. This is the relative MSE used in the Monte
-    Carlo rendering literature (Rousselle et al. 2011; Bitterli et al. 2016): each
-    squared error is divided by the squared reference value, so a 10 % error counts
-    the same in dark and bright regions, and ``eps`` stops near-black reference
-    pixels from dominating. ``eps`` is absolute (not scaled to the image), so it
-    assumes radiance of order one; pass another value for other scales.
+    ``relmse = mean((a - b)**2 / (b**2 + f))``, the mean running over all pixels and
+    channels, with the floor ``f = 0.01 * mean(|b|)**2`` (:data:`RELMSE_FLOOR` times the
+    reference's mean squared, the mean over all its pixels and channels). This is the
+    relative MSE used in the Monte Carlo rendering literature (Rousselle et al. 2011;
+    Bitterli et al. 2016): each squared error is divided by the squared reference value,
+    so a 10 % error counts the same in dark and bright regions, and the floor stops
+    pixels darker than a tenth of the image's mean from dominating. The value does not
+    depend on the units (scaling both images by ``k > 0`` leaves it unchanged); a uniform
+    relative error ``x`` gives about ``x**2`` (4e-4 for 2 %) where the reference is
+    bright against a tenth of its mean, less where it is dark.
+
+    ``eps``, if given, is an absolute floor used instead (``RELMSE_EPS = 1e-2`` was the
+    old default). A black reference (mean 0) gives ``inf``, or 0 if ``a`` equals it.
     """
     a, b = _pair(a, b)
-    if not eps > 0:
-        raise ValueError(f"relmse eps must be positive, got {eps}")
-    return float(np.mean((a - b) ** 2 / (b * b + eps)))
+    if eps is None:
+        floor = RELMSE_FLOOR * float(np.mean(np.abs(b))) ** 2
+        if floor == 0.0:  # black reference: any error is infinitely large relative to it
+            return 0.0 if np.array_equal(a, b) else math.inf
+        if not math.isfinite(floor):
+            return math.nan
+    else:
+        floor = float(eps)
+        if not floor > 0:
+            raise ValueError(f"relmse eps must be positive, got {eps}")
+    return float(np.mean((a - b) ** 2 / (b * b + floor)))
+
+
+def mean_ratio(a: np.ndarray, b: np.ndarray) -> float:
+    """``mean(a) / mean(b)`` over all pixels and channels: the test image's overall bias
+    against reference ``b`` (1.0 = none). A reference of mean 0 gives 1.0 if ``a``'s mean
+    is 0 too, else ``+-inf``."""
+    a, b = _pair(a, b)
+    ma, mb = float(np.mean(a)), float(np.mean(b))
+    if mb == 0.0:
+        return 1.0 if ma == 0.0 else math.copysign(math.inf, ma)
+    return ma / mb
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -629,6 +669,7 @@ __all__ = [
     "is_tone_mapped",
     "check_comparable",
     "RELMSE_EPS",
+    "RELMSE_FLOOR",
     "METRIC_KEYS",
     "read_image",
     "write_image",
@@ -638,6 +679,7 @@ __all__ = [
     "srgb_eotf",
     "rmse",
     "relmse",
+    "mean_ratio",
     "psnr",
     "ssim",
     "max_error",
