@@ -68,9 +68,9 @@ tests/test_epipolar_regimes.py (optical depth 0.1 .. 10 across the medium, camer
 and outside, light behind / beside / in front / along the view axis, directional and
 spot): all 32 configurations with the camera inside are swept; with the camera outside,
 four of eight at optical depth 10 and the spot light on the view axis behind the camera
-(the paper's claim fails there) fall back (8 of 64 in all); every image within relMSE
-5.2e-5 of raymarch. The thick fog of the issue at 320 x 240: plain, 16 terms, the
-estimate 0.57 s of host time (``epipolar_svd``).
+(the paper's claim fails there) fall back (8 of 64 in all). The images' bounds against
+raymarch are the test's (docs/testing.md); where the light is in front, one-pixel leaks of
+light into shadow pixels along occluder edges dominate them.
 
 The paper decomposes the whole integrand, including ``1/sin b`` (epipole); here the
 exactly separable factors (``pure_beta``) are kept out of ``K``, the same approximation
