@@ -272,7 +272,8 @@ class RenderSession:
             table = {**p.table(scene), **run.pass_params.get(k, {})}
             method = cls(cls.preview(table) if run.preview else table)
             with PassContext(ps, run.paths, stats, run.show_progress,
-                             self._caches.setdefault(p.method, PassCache())) as ctx:
+                             self._caches.setdefault(p.method, PassCache()),
+                             run.on_note) as ctx:
                 out = method.render(ctx)
             run.ran.append(p.method)
             if out.view_surface is not None:

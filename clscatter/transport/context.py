@@ -13,11 +13,13 @@ A method's ``render(ctx)`` reads everything through its :class:`PassContext`:
 * ``ctx.scratch(nbytes)``: a device buffer released when the pass ends (whatever happens);
 * ``ctx.cache``: this method's slot in the session, kept between renders and released
   when the session closes (values with a ``release()`` have it called): where a method
-  keeps structures that survive a change that does not touch them.
+  keeps structures that survive a change that does not touch them;
+* ``ctx.note(line)``: a one-line note for the user (``render`` prints it as
+  ``clscatter: note: ...``), e.g. why a budget could not be kept.
 """
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -43,8 +45,10 @@ class PassContext:
     inside ``with``: leaving it frees the scratch buffers the pass took."""
 
     def __init__(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
-                 show_progress: bool = True, cache: PassCache | None = None):
+                 show_progress: bool = True, cache: PassCache | None = None,
+                 on_note: Callable[[str], None] | None = None):
         self.ps = ps
+        self._on_note = on_note
         self.paths = paths
         self.stats = stats
         self.show_progress = show_progress
@@ -73,6 +77,12 @@ class PassContext:
         """The view segments on the device, sorted, with each pixel's run."""
         cam = self.ps.scene.camera
         return self.paths.on_device(self.ps.engine, cam.width, cam.height)
+
+    def note(self, line: str) -> None:
+        """Tell the user ``line`` (one line); also kept in the stats under ``notes``."""
+        self.stats.set(notes=[*self.stats.values.get("notes", []), line])
+        if self._on_note is not None:
+            self._on_note(line)
 
     def call(self, program: str, kernel: str, global_size: int | Sequence[int],
              defines: dict[str, object] | None = None, **args: Any) -> None:

@@ -19,6 +19,8 @@ from ..base import AutoRole, Estimate, Method, Param, PassResult, camera_samples
 #: pair tests one lighting segment costs the gather, as an order of magnitude (the plane
 #: queries of a few hundred to a few thousand view segments): the work estimate's unit
 PAIRS_PER_SEGMENT = 1000
+#: a budget counts as kept while the time stays within this factor of it
+BUDGET_SLACK = 1.2
 #: most rays the automatic radius's pilot traces (in one piece: its segments stay in memory)
 PILOT_MAX = 1 << 18
 
@@ -201,6 +203,11 @@ class LineSpaceGathering(Method):
                 r1 = auto.radius
                 stats.set(lsg_auto_radius=auto.__dict__)
             totals, passes, pass_seconds = self._progressive(ps, gat, r1, stats, show_progress)
+            budget = float(p["time_budget"])
+            if budget > 0 and pass_seconds and pass_seconds[0] > BUDGET_SLACK * budget:
+                ctx.note(f"render.lsg.time_budget: the first pass alone took "
+                         f"{pass_seconds[0]:.3g} s, more than the {budget:g} s budget (a pass "
+                         f"is the smallest unit of work); lower render.lsg.light_rays to keep it")
             with stats.stage("lsg_gather"):
                 image = gat.image(dev, 1.0 / max(passes, 1))
         finally:
