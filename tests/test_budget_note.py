@@ -8,6 +8,7 @@ from clscatter.pipeline.session import RenderSession
 SETS = ["camera.resolution=[16,12]", "camera.spp=1", "render.lsg.light_rays=1500",
         "render.lsg.radius=0.02"]
 
+
 def test_a_first_pass_over_the_budget_is_said_in_one_note(engine, monkeypatch):
     """When the first pass alone exceeds the budget (with some slack), the render says so
     in one note naming the budget's key and what to lower; within the slack it says
