@@ -82,22 +82,11 @@ def test_build_is_vectorised_and_quick_for_large_sets():
     build makes (counted with ``sys.setprofile``, not timed) grow with the levels, not the
     points or the nodes (measured 762 calls for 25k points, 943 for 200k points and 37k
     nodes)."""
-    import sys
+    from call_count import count_calls
 
     def calls(n):
         pts = np.random.default_rng(1).normal(size=(n, 6)).astype(np.float32)
-        count = [0]
-
-        def profile(frame, event, arg):
-            if event in ("call", "c_call"):
-                count[0] += 1
-
-        sys.setprofile(profile)
-        try:
-            t = build_linetree(pts, 4)
-        finally:
-            sys.setprofile(None)
-        return count[0], t
+        return count_calls(build_linetree, pts, 4)
 
     small, _ = calls(25_000)
     large, t = calls(200_000)
