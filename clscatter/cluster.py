@@ -167,6 +167,9 @@ class Cluster:
         if address:
             try:
                 self.client = Client(address, timeout="10s")
+            except ValueError as e:      # malformed: an unknown scheme, no port
+                raise ClscatterError(f"--cluster {address}: not a scheduler address "
+                                     f"({e})") from None
             except OSError as e:
                 raise ClscatterError(f"--cluster {address}: cannot reach the scheduler ({e})") from None
         else:
@@ -218,12 +221,14 @@ class Cluster:
                 # the scene goes to every worker once; if the workers holding it all died
                 # (its tasks then fail with "lost dependencies"), send it again and re-run
                 # the units still missing
-                fut = self.client.scatter(payload, broadcast=True, hash=False)
+                # one future (a list of one): a dict would be scattered value by value
+                # under its own key names ("data", "source"...), which every render shares
+                fut = self.client.scatter([payload], broadcast=True, hash=False)[0]
                 scatters += 1
                 futures = {self.client.submit(_render_unit, fut, method, work[k], pure=False,
                                               retries=2): k
                            for k in range(n) if k not in parts}
-                for f in as_completed(futures):
+                for f in as_completed(futures, loop=self.client.loop):   # not the default client's
                     try:
                         parts[futures[f]] = f.result()
                         bar.update(1)
@@ -270,14 +275,14 @@ class Cluster:
         from distributed import as_completed
 
         payload = scene_payload(spec, overrides)
-        fut = self.client.scatter(payload, broadcast=True, hash=False)
+        fut = self.client.scatter([payload], broadcast=True, hash=False)[0]   # see render
         futures = {self.client.submit(_render_frame, fut, method, list(fo), pure=False,
                                       retries=2): i for i, fo in enumerate(frame_overrides)}
         done: dict[int, dict] = {}
         next_out = 0
         per_frame = []
         with progress(len(futures), "frames", show_progress) as bar:
-            for f in as_completed(futures):
+            for f in as_completed(futures, loop=self.client.loop):   # not the default client's
                 done[futures[f]] = f.result()
                 bar.update(1)
                 while next_out in done:

@@ -292,3 +292,47 @@ def test_scenes_lists_whole_first_paragraphs(capsys):
     assert listed["epi_fog"].endswith("the sun behind the camera.")
     assert scene_summary("One.\n    Two, still the first\n    paragraph.\n\n    Later.") == \
         "One. Two, still the first paragraph."
+
+
+# ---- CLSCATTER_DEVICE ------------------------------------------------------------------------
+def _run_with_device_env(tmp_path, value, *extra):
+    """``clscatter render`` in a fresh process with ``CLSCATTER_DEVICE=value``."""
+    import os
+    env = {**os.environ, "PYTHONPATH": str(REPO), "CLSCATTER_DEVICE": value}
+    out = tmp_path / "img.npy"
+    stats = tmp_path / "stats.json"
+    r = subprocess.run([sys.executable, "-m", "clscatter", "render", "builtin:occluder",
+                        "-o", str(out), "--stats", str(stats), *SMALL, *extra],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=300, env=env)
+    return r, out, stats
+
+
+def test_clscatter_device_substring_chooses_the_device(tmp_path):
+    """A substring of the device's name (in another case: the match ignores case) picks it;
+    ``--stats`` names the device the render ran on."""
+    from clscatter.device import choose_device
+    info = choose_device("0:0")
+    sub = info.name[: max(4, len(info.name) // 2)].swapcase()
+    r, out, stats = _run_with_device_env(tmp_path, sub)
+    assert r.returncode == 0, r.stderr
+    st = json.loads(stats.read_text())
+    assert st["device"] == f"{info.platform} / {info.name}"
+    assert sub.lower() in st["device"].lower()
+    assert read_image(out).max() > 0
+
+
+def test_clscatter_device_matching_nothing_is_one_line_exit_2(tmp_path):
+    r, out, stats = _run_with_device_env(tmp_path, "no-such-device-xyz")
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("clscatter: error: "), r.stderr
+    assert "'no-such-device-xyz'" in lines[0] and "not found" in lines[0]
+    assert not out.exists() and not stats.exists() and not list(tmp_path.iterdir())
+
+
+def test_device_option_takes_precedence_over_clscatter_device(tmp_path):
+    """``--device`` names the device; the variable is only the default."""
+    r, out, stats = _run_with_device_env(tmp_path, "no-such-device-xyz", "--device", "0:0")
+    assert r.returncode == 0, r.stderr
+    assert read_image(out).max() > 0
+    assert json.loads(stats.read_text())["device"]

@@ -1,7 +1,11 @@
 """The relighting page in a real browser: Playwright (Python) driving Debian's headless
 ``chromium`` (``scripts/setup.sh`` installs it; Playwright's own browser downloads are not
-used). Skipped, saying why, only when Playwright or a Chromium executable is missing, and
-never under CI (``CI`` set: ``scripts/setup.sh`` installs both, so a missing one fails).
+used).
+
+Where ``scripts/setup.sh`` installs the browser -- under CI (``CI`` set), or on a Debian
+machine where we are root and ``apt-get`` exists -- a missing Playwright or Chromium makes
+this file FAIL: the page's only browser test must not pass by not running. Anywhere else it
+is skipped, saying why.
 
 Loads the page, drags the light's handle on the image, checks that the image's pixels
 change, types a new ``sigma_s`` and a bad one, checks the stats and the one-line error, and
@@ -15,7 +19,21 @@ import shutil
 import numpy as np
 import pytest
 
-if os.environ.get("CI"):           # installed by scripts/setup.sh: an ImportError fails here
+
+def browser_required(env=None, which=shutil.which, euid=None) -> str | None:
+    """Why this machine must run the browser test (``scripts/setup.sh`` installs Chromium
+    and Playwright here), or None where a missing browser may be skipped."""
+    env = os.environ if env is None else env
+    uid = (os.geteuid() if hasattr(os, "geteuid") else -1) if euid is None else euid
+    if env.get("CI"):
+        return "CI is set"
+    if which("apt-get") and uid == 0:
+        return "we are root on a machine with apt-get"
+    return None
+
+
+REQUIRED = browser_required()
+if REQUIRED:             # installed by scripts/setup.sh: an ImportError fails here
     import playwright.sync_api  # noqa: F401
     import starlette  # noqa: F401
     import uvicorn  # noqa: F401
@@ -34,13 +52,35 @@ def _chromium() -> str | None:
 
 
 CHROMIUM = _chromium()
-# under CI (scripts/setup.sh installs Debian's chromium) a missing browser is a failure,
-# not a skip: the page's only browser test must not pass by not running
-if os.environ.get("CI") and CHROMIUM is None:
-    raise RuntimeError("CI: no Chromium executable (scripts/setup.sh installs Debian's chromium)")
-pytestmark = pytest.mark.skipif(
-    CHROMIUM is None, reason="no Chromium executable (apt-get install chromium; scripts/setup.sh "
-                             "does this) and Playwright's browser download is not used")
+NO_CHROMIUM = ("no Chromium executable (apt-get install chromium; scripts/setup.sh does "
+               "this) and Playwright's browser download is not used")
+
+
+def need_chromium(chromium: str | None, required: str | None) -> str:
+    """The browser to drive; without one, a failure where it is required, else a skip."""
+    if chromium is not None:
+        return chromium
+    if required:
+        pytest.fail(f"{NO_CHROMIUM}; it is required here ({required}: scripts/setup.sh "
+                    "installs it)", pytrace=False)
+    pytest.skip(NO_CHROMIUM)
+
+
+def test_a_missing_browser_fails_where_setup_installs_it():
+    """The rule above, on made-up machines (this one's browser is not touched)."""
+    apt = {"apt-get": "/usr/bin/apt-get"}.get
+    none = {}.get
+    assert browser_required({"CI": "1"}, none, 1000) == "CI is set"
+    assert browser_required({}, apt, 0) == "we are root on a machine with apt-get"
+    assert browser_required({}, apt, 1000) is None            # not root: setup.sh needs sudo
+    assert browser_required({}, none, 0) is None              # not Debian
+    assert browser_required({"CI": ""}, none, 0) is None
+    with pytest.raises(pytest.fail.Exception, match="required here"):
+        need_chromium(None, "CI is set")
+    with pytest.raises(pytest.skip.Exception, match="no Chromium executable"):
+        need_chromium(None, None)
+    assert need_chromium("/usr/bin/chromium", "CI is set") == "/usr/bin/chromium"
+
 
 SPEC = "builtin:occluder"
 TINY = ["camera.resolution=[64,48]", "camera.spp=1", 'render.method="raymarch"',
@@ -66,10 +106,11 @@ def finals(page) -> int:
 
 
 def test_drag_light_type_sigma_and_screenshot(tmp_path):
+    chromium = need_chromium(CHROMIUM, REQUIRED)
     from clscatter.serve import BackgroundServer
 
     with BackgroundServer(SPEC, TINY) as srv, sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True)
+        browser = pw.chromium.launch(executable_path=chromium, headless=True)
         try:
             page = browser.new_page(viewport={"width": 1280, "height": 800})
             errors: list[str] = []
@@ -153,13 +194,14 @@ def test_drag_light_type_sigma_and_screenshot(tmp_path):
 def test_notes_that_leave_light_out_are_shown():
     """raymarch on the glass scene leaves its caustics out: the page shows the command
     line's note above the image, and hides it again once ``auto`` (which adds them) ran."""
+    chromium = need_chromium(CHROMIUM, REQUIRED)
     from clscatter.pipeline.planner import DROPS_LIGHT
     from clscatter.serve import BackgroundServer
 
     tiny = ["camera.resolution=[32,24]", "camera.spp=1", 'render.method="raymarch"',
             "render.raymarch.steps=16"]
     with BackgroundServer("builtin:glass", tiny) as srv, sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True)
+        browser = pw.chromium.launch(executable_path=chromium, headless=True)
         try:
             page = browser.new_page(viewport={"width": 1280, "height": 800})
             errors: list[str] = []

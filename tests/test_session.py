@@ -7,8 +7,8 @@ import pytest
 
 from clscatter.errors import SceneError
 from clscatter.pipeline.render import render
-from clscatter.scene import load_scene
 from clscatter.pipeline.session import Cancelled, RenderSession
+from clscatter.scene import load_scene
 
 SMALL = ["camera.resolution=[40,30]", "camera.spp=1"]
 
@@ -145,3 +145,89 @@ def test_light_moves_split_the_view_segments_once(engine, monkeypatch):
         s.render(show_progress=False)
         assert launched.count("epi_split") == 1
         assert launched.count("epi_integrate") >= 2
+
+
+# ---- warm re-renders of the other methods ----------------------------------------------------
+# The session's table (clscatter/pipeline/session.py): camera -> the camera buffer, view
+# paths, passes; medium -> the medium buffer, view paths, passes; materials -> the material
+# buffer, view paths, passes; a method parameter -> passes only. After each change, in one
+# session, the warm image equals a fresh one-off render of the changed scene (a one-off
+# render is a session used once): rtol 1e-5, atol 1e-6 of the fresh image's maximum (the
+# same code on the same inputs; only float summation order on the device may differ).
+WARM_SMALL = ["camera.resolution=[32,24]", "camera.spp=1", "render.seed=3"]
+WARM_CASES = {
+    # method: (scene, quick overrides, [(kind, change), ...])
+    "epipolar": ("builtin:shafts", [],
+                 [("camera", "camera.origin=[0.4,1.4,7.2]"),
+                  ("medium", "medium.sigma_s=0.4"),
+                  ("material", "materials.floor.albedo=0.85"),
+                  ("param", "render.epipolar.light_rays=64")]),
+    "lsg": ("builtin:caustic_sphere", ["render.lsg.light_rays=4000"],
+            [("camera", "camera.origin=[0.3,1.7,5.8]"),
+             ("medium", "medium.sigma_s=0.2"),
+             ("material", "materials.glass.ior=1.35"),
+             ("param", "render.lsg.light_rays=3000")]),
+    "vpm": ("builtin:caustic_sphere", ["render.vpm.photons=20000"],
+            [("camera", "camera.origin=[0.3,1.7,5.8]"),
+             ("medium", "medium.sigma_s=0.2"),
+             ("material", "materials.glass.ior=1.35"),
+             ("param", "render.vpm.knn=16")]),
+    "raymap": ("builtin:caustic_sphere", ["render.raymap.photons=4000",
+                                          "render.lsg.light_rays=4000"],
+               [("camera", "camera.origin=[0.3,1.7,5.8]"),
+                ("medium", "medium.sigma_s=0.2"),
+                ("material", "materials.floor.albedo=0.8"),
+                ("material", "materials.glass.ior=1.35"),
+                ("param", "render.raymap.k=16")]),
+    "voxel": ("builtin:volume_sphere", ["render.voxel.resolution=16", "render.voxel.photons=1024",
+                                        "render.voxel.outer_resolution=16"],
+              [("camera", "camera.origin=[0.4,1.7,5.3]"),
+               ("medium", "medium.sigma_s=0.25"),
+               ("material", "materials.floor.albedo=0.8"),
+               ("volume", "volumes[0].sigma_s=0.3"),
+               ("param", "render.voxel.photons=2048")]),
+}
+# the buffer each kind of change re-uploads (None: none) and whether the view paths re-run
+WARM_EXPECT = {"camera": ("upload_camera", True), "medium": ("upload_medium", True),
+               "material": ("upload_materials", True), "volume": (None, False),
+               "param": (None, False)}
+
+
+@pytest.mark.parametrize("method", sorted(WARM_CASES))
+def test_warm_rerenders_of_each_method_equal_fresh_renders(engine, method):
+    spec, quick, changes = WARM_CASES[method]
+    sets = WARM_SMALL + quick
+    with RenderSession.from_source(spec, sets, engine=engine, method=method) as s:
+        first = s.render(show_progress=False)
+        passes = [p["method"] for p in first.stats["passes"]]
+        assert method in passes and "prepare_scene" in first.stats["stages_run"]
+        previous = first.image
+        for kind, change in changes:
+            s.set([change])
+            warm = s.render(show_progress=False)
+            upload, view = WARM_EXPECT[kind]
+            expected = ([upload] if upload else []) + (["view_paths"] if view else []) + passes
+            ran = warm.stats["stages_run"]
+            assert sorted(ran) == sorted(expected), (change, ran, expected)
+            reused = set(warm.stats["reused"])
+            assert "bvh" in reused, (change, reused)
+            assert view or "view_paths" in reused, (change, reused)
+            if method == "voxel":
+                # the voxel pipeline's own stages (docs/voxel.md, "Stage reuse in sessions"):
+                # volume materials and the medium re-run it from its material stage on, the
+                # photon parameters from lighting on, a camera (or a surface's material,
+                # which no photon reads) the view only
+                vox = warm.stats["voxel_stages_run"]
+                want = {"volume": ["material", "lighting", "view"],
+                        "medium": ["material", "lighting", "view"],
+                        "param": ["lighting", "view"]}.get(kind, ["view"])
+                assert vox == want, (change, vox)
+            fresh = render(load_scene(spec, s.current_overrides()), method=method,
+                           engine=engine, show_progress=False)
+            assert fresh.image.max() > 0
+            np.testing.assert_allclose(warm.image, fresh.image, rtol=1e-5,
+                                       atol=1e-6 * float(fresh.image.max()),
+                                       err_msg=f"{method} after {change}")
+            assert not np.allclose(warm.image, previous, rtol=1e-3, atol=0), \
+                f"{method}: {change} changed nothing in the image"
+            previous = warm.image
