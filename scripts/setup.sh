@@ -28,7 +28,7 @@ if ! command -v chromium >/dev/null 2>&1; then
   echo "setup: installing chromium from Debian (browser test of clscatter serve)" >&2
   $SUDO apt-get update -qq
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq chromium >/dev/null \
-    || echo "setup: chromium could not be installed; the browser test will be skipped" >&2
+    || echo "setup: chromium could not be installed; the browser test will fail" >&2
 fi
 PY=${PYTHON:-python3}
 if [ ! -x .venv/bin/python ]; then
