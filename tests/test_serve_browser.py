@@ -219,3 +219,44 @@ def test_notes_that_leave_light_out_are_shown():
             assert not errors, errors
         finally:
             browser.close()
+
+
+def test_hint_stage_dots_and_a_refused_value():
+    """Under a directional sun (no handle) the hint points at the direction disc; the stage
+    table marks a method's own stages ("raymarch" ran, so its row is marked); a refused
+    value, after another control re-renders, shows the value in use again."""
+    chromium = need_chromium(CHROMIUM, REQUIRED)
+    from clscatter.serve import BackgroundServer
+
+    tiny = ["camera.resolution=[32,24]", "camera.spp=1", 'render.method="raymarch"',
+            "render.raymarch.steps=8"]
+    with BackgroundServer("builtin:shafts", tiny) as srv, sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=chromium, headless=True)
+        try:
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(srv.url)
+            wait_final(page, 0)
+            assert "direction disc" in page.inner_text("#hint-light")
+            assert page.locator(".handle").count() == 0
+            marked = page.eval_on_selector_all(
+                "#stages tbody tr.ran td:first-child", "els => els.map(e => e.textContent)")
+            assert "raymarch" in marked
+
+            g = page.input_value("#g")
+            page.fill("#g", "0.3.3")
+            page.press("#g", "Enter")
+            page.wait_for_function("document.getElementById('error').textContent.length > 0",
+                                   timeout=30_000)
+            page.wait_for_function("document.body.dataset.busy === '0'", timeout=30_000)
+            n = finals(page)
+            # another control re-renders while the refused field still has the focus
+            page.evaluate("""() => { const s = document.getElementById('sigma_s');
+                s.value = '0.2'; s.dispatchEvent(new Event('change')); }""")
+            wait_final(page, n)
+            assert page.input_value("#g") == g
+            assert "bad" not in (page.get_attribute("#g", "class") or "")
+            assert not errors, errors
+        finally:
+            browser.close()

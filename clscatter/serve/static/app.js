@@ -197,12 +197,15 @@ function showStats(m) {
   $("stats-head").textContent =
     `${m.level} frame ${frames}: ${s.method || "none"} (asked: ${s.requested_method}) · ` +
     `${s.width}x${s.height}, ${s.spp} spp · ${fmt(s.seconds_total)} s`;
+  // the plan's passes are named by method ("lsg") and their stages by method and step
+  // ("lsg_gather"): a stage ran when its name or its method's prefix is in stages_run
   const ran = new Set(s.stages_run || []);
+  const stageRan = (name) => ran.has(name) || [...ran].some((r) => name.startsWith(r + "_"));
   const body = $("stages").querySelector("tbody");
   body.innerHTML = "";
   for (const [name, sec] of Object.entries(s.stages || {})) {
     const tr = document.createElement("tr");
-    if (ran.has(name)) tr.className = "ran";
+    if (stageRan(name)) tr.className = "ran";
     const a = document.createElement("td"), b = document.createElement("td");
     a.textContent = name; b.textContent = sec === null ? "-" : Number(sec).toFixed(3);
     tr.append(a, b); body.append(tr);
@@ -263,7 +266,10 @@ function applyState(s) {
 function setInput(id, value, key) {
   const inp = $(id);
   if (key !== undefined) inp.dataset.key = key;
-  if (document.activeElement !== inp) inp.value = value === undefined || value === null ? "" : fmtValue(value);
+  // a field being typed in keeps its text, unless the server refused it: then the value
+  // in use comes back, so a refused value is never shown as if it applied
+  if (document.activeElement !== inp || inp.classList.contains("bad"))
+    inp.value = value === undefined || value === null ? "" : fmtValue(value);
 }
 
 function showLight() {
@@ -307,6 +313,14 @@ function placeHandles() {
     if (l.position) addHandle(i, "position", l.position);
     if (l.type === "spot" && l.target) addHandle(i, "target", l.target);
   });
+  // the hint names the controls this scene has: handles for point and spot lights, the
+  // direction disc in the side panel for directional ones
+  const positioned = state.lights.some((l) => l.position);
+  $("hint-light").innerHTML = positioned
+    ? "Drag a <b>handle</b> to move a light (shift: along the floor plane)."
+    : (state.lights.length
+      ? "Turn the light with the <b>direction disc</b> in the side panel."
+      : "This scene has no light.");
 }
 
 function addHandle(i, what, p) {
