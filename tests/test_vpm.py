@@ -399,18 +399,19 @@ def test_direct_light_over_optical_depth_against_closed_form(engine, depth):
     light through a box of fog of optical depth ``depth`` across, camera outside and
     inside, light along and across the view) against analytic.directional_slab: image
     means within 1 % seen from outside at every depth (measured 0.994 .. 1.001), within
-    2 % from inside up to optical depth 3 (0.990 .. 1.016). From inside at depth 10 it is
-    not asserted: the camera sees the lit layer, 1/kappa deep, end on through few
-    lighting rays, each depositing correlated photons, and the mean moved between 0.82
-    and 1.08 with the photon count, knn, step and radius, its sign flipping with
-    photons_per_ray (noise, not a bias: the kNN estimate uses k - 1 photons over the
-    k-th photon's ball clipped to the box)."""
+    2 % from inside up to optical depth 3 (0.990 .. 1.016). From inside at depth 10 the
+    camera sees the lit layer, 1/kappa deep, end on through few lighting rays, each
+    depositing correlated photons, and the mean moved between 0.82 and 1.08 with the
+    photon count, knn, step and radius, its sign flipping with photons_per_ray (noise, not
+    a bias: the kNN estimate uses k - 1 photons over the k-th photon's ball clipped to
+    the box): there only that band, widened by its own spread, is asserted."""
     from test_lsg import _slab_mean_ratio, _slab_regime
     for camera, light in [(c, lt) for c in ("outside", "inside") for lt in ("behind", "side")]:
-        if camera == "inside" and depth > 3.0:
-            continue
         d = _slab_regime(depth, camera, light)
         d["render"] = {"method": "vpm", "vpm": {"photons": 200_000}}
         ratio = _slab_mean_ratio(engine, d)
         print(f"depth {depth:g} {camera} {light}: mean {ratio:.4f}")
-        assert abs(ratio - 1.0) <= (0.01 if camera == "outside" else 0.02), (camera, light)
+        if camera == "inside" and depth > 3.0:
+            assert 0.72 <= ratio <= 1.18, (camera, light)     # the noise band 0.82 .. 1.08
+        else:
+            assert abs(ratio - 1.0) <= (0.01 if camera == "outside" else 0.02), (camera, light)
