@@ -597,14 +597,16 @@ def _slab_mean_ratio(engine, d) -> float:
 def test_direct_light_over_optical_depth_against_closed_form(engine, depth):
     """LSG's direct light where it is weakest: optical depth 0.01 .. 10 across the box,
     camera outside and inside, light along and across the view, against
-    analytic.directional_slab: image means within 1.5 % (measured 0.996 .. 1.001 up to
+    analytic.directional_slab: image means within 0.8 % up to optical depth 3 and 2.5 % at
+    10 (2x the measured: 0.996 .. 1.001 up to
     optical depth 3; at 10, 0.999 .. 1.000 outside and 0.9875 .. 0.989 inside, where the camera
     sees the lit layer, 1/kappa deep, end on through few lighting rays per cylinder:
     noise of this seed, 0.996 .. 0.997 with 4 x the rays at the same radius)."""
     for camera, light in itertools.product(("outside", "inside"), ("behind", "side")):
         ratio = _slab_mean_ratio(engine, _slab_regime(depth, camera, light))
         print(f"depth {depth:g} {camera} {light}: mean {ratio:.4f}")
-        assert abs(ratio - 1.0) <= 0.015, (camera, light, ratio)
+        # 2x the measured: 0.4 % up to depth 3, 1.25 % at depth 10 seen from inside
+        assert abs(ratio - 1.0) <= (0.008 if depth <= 3.0 else 0.025), (camera, light, ratio)
 
 
 def test_light_entering_the_medium_is_continued_beyond_its_face(engine, monkeypatch):

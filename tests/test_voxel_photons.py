@@ -154,7 +154,8 @@ def luneburg(engine, res, adaptive):
 def test_luneburg_focus(engine, adaptive):
     """A parallel beam (70% of the aperture) through a Luneburg lens n = sqrt(2 - (r/R)^2)
     leaves it at the antipodal point: RMS distance of the exit points from the antipode
-    below 1 voxel at 48^3 and 96^3, and smaller in scene units at 96^3 (convergence)."""
+    below 1 voxel at 48^3 and 96^3 (measured 0.41-0.52 voxel), and smaller in scene units
+    at 96^3 (convergence)."""
     e48, h48, c48 = luneburg(engine, 48, adaptive)
     e96, h96, c96 = luneburg(engine, 96, adaptive)
     print(f"adaptive={adaptive}: rms focal error {e48 / h48:.3f} voxel (48^3, {c48['steps']} steps), "
@@ -260,4 +261,6 @@ def test_photon_fluence_is_analytic(engine, tmp_path, kind):
     rel = fluence[inner] / ref[inner] - 1
     print(f"{kind}: fluence / analytic - 1: mean {rel.mean():.4f}, rms {np.sqrt((rel ** 2).mean()):.4f}, "
           f"max {np.abs(rel).max():.4f}")
-    assert abs(rel.mean()) < 0.01 and np.sqrt((rel ** 2).mean()) < 0.03 and np.abs(rel).max() < 0.1
+    # measured: mean -0.0002 / 0.0010, rms 0.0039 / 0.0056, max 0.011 / 0.054
+    # (directional / point); bounds about 2x
+    assert abs(rel.mean()) < 0.003 and np.sqrt((rel ** 2).mean()) < 0.012 and np.abs(rel).max() < 0.1
