@@ -375,7 +375,8 @@ def _cmd_check(args: argparse.Namespace) -> int:
     for n in req.notes:
         print(f"  {n}")
     for e in req.estimates:
-        print(f"estimate {e.stage}: {human_bytes(e.bytes)}, about {e.work:.2g} {e.unit} ({e.key})")
+        keys = e.key if e.work_by == e.key else f"{e.key}; work: {e.work_by}"
+        print(f"estimate {e.stage}: {human_bytes(e.bytes)}, about {e.work:.2g} {e.unit} ({keys})")
     max_memory = parse_bytes(args.max_memory) if args.max_memory is not None else None
     limit, source = memory_budget(device, max_memory)
     print(f"peak: about {human_bytes(peak_bytes(req.estimates))} of {human_bytes(limit)} ({source})")

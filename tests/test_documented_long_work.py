@@ -49,7 +49,7 @@ def test_work_over_long_work_is_announced_before_rendering(engine, monkeypatch, 
     notes = [e for e in events if LONG in e]
     assert len(notes) == len(over), events
     for e, line in zip(over, notes):
-        assert line.startswith(f"{e.stage}: about ") and f"({e.key})" in line
+        assert line.startswith(f"{e.stage}: about ") and f"({e.work_by})" in line
     assert events.index("trace_view_paths") > max(events.index(n) for n in notes), events
     assert res.image.max() > 0                    # announced, not refused
 

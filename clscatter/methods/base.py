@@ -108,24 +108,31 @@ class Param:
 
 @dataclass(frozen=True)
 class Estimate:
-    """One stage's cost: ``bytes`` of working set, ``work`` operations of ``unit``, and
-    the scene ``key`` that scales them."""
+    """One stage's cost: ``bytes`` of working set and ``work`` operations of ``unit``;
+    ``key`` is the scene key that scales the bytes most, ``work_key`` the one that scales
+    the work most (the same key unless given)."""
 
     stage: str
     key: str
     bytes: float
     work: float = 0.0
     unit: str = ""
+    work_key: str = ""
+
+    @property
+    def work_by(self) -> str:
+        """The key that scales the work."""
+        return self.work_key or self.key
 
 
 def costs(stage: str, memory: dict[str, float], work: dict[str, float],
           unit: str) -> list[Estimate]:
-    """A pass's estimates from its cost terms: ``memory`` and ``work`` map the key that
+    """A pass's estimate from its cost terms: ``memory`` and ``work`` map the key that
     scales each term (a ``[render.<method>]`` key, ``camera.resolution``, ...) to its bytes
-    or operations. Two estimates, one for the bytes and one for the work, each naming the
-    key of its largest term, so a refusal names what to lower."""
-    return [Estimate(stage, max(memory, key=memory.get), float(sum(memory.values()))),
-            Estimate(stage, max(work, key=work.get), 0.0, float(sum(work.values())), unit)]
+    or operations; the estimate names the key of the largest term of each, so a refusal
+    names what to lower."""
+    return [Estimate(stage, max(memory, key=memory.get), float(sum(memory.values())),
+                     float(sum(work.values())), unit, max(work, key=work.get))]
 
 
 def camera_samples(scene) -> int:

@@ -112,12 +112,12 @@ def check_budget(estimates: list[Estimate], budget: float, source: str) -> None:
     for e in estimates:
         if e.work > REFUSE_WORK:
             raise ClscatterError(
-                f"{e.key}: the {e.stage} stage would take about {e.work:.2g} {e.unit}, far "
-                f"beyond what a render can do in reasonable time (at most {REFUSE_WORK:.0e}); "
-                f"lower {e.key}")
+                f"{e.work_by}: the {e.stage} stage would take about {e.work:.2g} {e.unit}, "
+                f"far beyond what a render can do in reasonable time (at most "
+                f"{REFUSE_WORK:.0e}); lower {e.work_by}")
 
 
 def long_work_notes(estimates: list[Estimate]) -> list[str]:
     """One line per stage whose work exceeds :data:`LONG_WORK`."""
-    return [f"{e.stage}: about {e.work:.2g} {e.unit} ({e.key}); this will take a while "
+    return [f"{e.stage}: about {e.work:.2g} {e.unit} ({e.work_by}); this will take a while "
             "(Ctrl-C stops cleanly)" for e in estimates if e.work > LONG_WORK]
