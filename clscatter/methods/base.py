@@ -20,7 +20,8 @@ Terms (the pieces an image is made of):
 ``direct``            single scattering of light that came straight from a light (shadowed)
 ``caustics``          single scattering of light that came through mirrors or glass
 ``surface_caustics``  diffuse surfaces lit through mirrors or glass
-``volumes``           light bent by graded-index ``[[volumes]]``
+``volumes``           light bent by graded-index ``[[volumes]]``, and light scattered inside
+                      glass (a dielectric's ``interior_sigma_s``)
 """
 from __future__ import annotations
 

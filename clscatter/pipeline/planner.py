@@ -9,7 +9,8 @@ term                      needed when the scene has
 ``direct``                a (non-void) medium and lights
 ``caustics``              a medium, lights and mirror or glass objects
 ``surface_caustics``      lights, mirror or glass objects and diffuse objects
-``volumes``               ``[[volumes]]`` (graded index: nothing else bends rays)
+``volumes``               ``[[volumes]]`` (graded index: nothing else bends rays), or glass
+                          that scatters inside (``interior_sigma_s``)
 ========================  ==================================================================
 
 For every needed term the planner takes, among the implemented methods that declare an
@@ -30,6 +31,9 @@ from ..scene.model import Scene
 #: the ending of every plan note that says light the scene needs is left out of the image
 #: (``render`` prints those notes; :func:`dropped_light` picks them out)
 DROPS_LIGHT = "that light is not in this image"
+#: the ending of a plan note that says light is rendered with a simpler model than the
+#: scene asks for (``render`` prints those too)
+APPROXIMATES = "that light is approximated"
 
 
 @dataclass
@@ -66,8 +70,8 @@ def needed_terms(scene: Scene) -> tuple[list[str], list[str]]:
         notes.append("no participating medium: medium passes skipped")
     if specular and "diffuse" in kinds:
         terms.append("surface_caustics")
-    if scene.volumes:
-        terms.append("volumes")
+    if scene.volumes or scene.scatters_inside_glass():
+        terms.append("volumes")        # light bent by volumes, or scattered inside glass
     return terms, notes
 
 
@@ -143,17 +147,26 @@ def interior_scattering_note(scene: Scene, passes: list[Pass]) -> list[str]:
     """A note when a dielectric material scatters light inside (``interior_sigma_s`` above
     0) and no pass of the plan renders that: the light is not in the image, and the user
     is told so rather than left to find it missing."""
-    mats = sorted({o.material.key or o.material.name for o in scene.objects
-                   if o.material.type == "dielectric"
-                   and float(max(o.material.interior_sigma_s)) > 0.0})
+    mats = sorted(scene.scatters_inside_glass(), key=lambda m: m.key or m.name)
     methods = all_methods()
-    if not mats or any(methods[p.method].INTERIOR_SCATTERING for p in passes):
+    if not mats:
         return []
+    if any(methods[p.method].INTERIOR_SCATTERING for p in passes):
+        g = scene.medium.g if scene.medium is not None else 0.0
+        return [f"{m.key or m.name}.interior_g: light inside the glass scatters with the scene "
+                f"medium's phase (g = {g:g}), not {m.interior_g:g}: {APPROXIMATES}" for m in mats
+                if m.interior_g is not None and m.interior_g != g]
     who = "+".join(p.method for p in passes) or "this plan"
-    return [f"{mats[0]}.interior_sigma_s: {who} does not scatter light inside glass "
+    name = mats[0].key or mats[0].name
+    return [f"{name}.interior_sigma_s: {who} does not scatter light inside glass "
             f"(only voxel does): {DROPS_LIGHT}"]
 
 
 def dropped_light(notes: list[str]) -> list[str]:
     """The plan notes that say light the scene needs is left out of the image."""
     return [n for n in notes if n.endswith(DROPS_LIGHT)]
+
+
+def user_notes(notes: list[str]) -> list[str]:
+    """The plan notes a render prints: light left out, or rendered approximately."""
+    return [n for n in notes if n.endswith((DROPS_LIGHT, APPROXIMATES))]

@@ -54,7 +54,7 @@ from ..transport.prepared import (
 from ..transport.view_paths import ViewPaths, shade_hits, trace_view_paths
 from . import budget
 from .check import check, scene_notes
-from .planner import dropped_light
+from .planner import user_notes
 
 
 class Cancelled(Exception):
@@ -192,7 +192,7 @@ class RenderSession:
             limit, source = budget.memory_budget(engine, self.max_memory)
             budget.check_budget(req.estimates, limit, source)
             engine.fit_pool(limit, budget.peak_bytes(req.estimates))
-            for line in (dropped_light(req.notes) + budget.long_work_notes(req.estimates)
+            for line in (user_notes(req.notes) + budget.long_work_notes(req.estimates)
                          + scene_notes(scene)):
                 if on_note is not None:
                     on_note(line)

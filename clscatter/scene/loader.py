@@ -73,7 +73,7 @@ LIGHT_KEYS = {
 MATERIAL_KEYS = {
     "diffuse": ("type", "albedo"),
     "mirror": ("type", "reflectance"),
-    "dielectric": ("type", "ior", "interior_sigma_a", "interior_sigma_s"),
+    "dielectric": ("type", "ior", "interior_sigma_a", "interior_sigma_s", "interior_g"),
     "black": ("type",),
 }
 SHAPE_KEYS = {
@@ -353,6 +353,8 @@ def _material(t: _Table, name: str) -> Material:
         m.ior = t.number("ior", 1.5, lo=0.0, lo_open=True)
         m.interior_sigma_a = t.colour("interior_sigma_a", 0.0)
         m.interior_sigma_s = t.colour("interior_sigma_s", 0.0)
+        if t.has("interior_g"):
+            m.interior_g = t.number("interior_g", lo=-1.0, lo_open=True, hi=1.0, hi_open=True)
     return m
 
 

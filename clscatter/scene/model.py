@@ -58,6 +58,7 @@ class Material:
     ior: float = 1.5
     interior_sigma_a: RGB = field(default_factory=lambda: np.zeros(3))
     interior_sigma_s: RGB = field(default_factory=lambda: np.zeros(3))
+    interior_g: float | None = None   # phase inside (None: the scene medium's g)
     key: str = ""               # its table's dotted key, for messages ("materials.glass")
 
     @property
@@ -125,6 +126,16 @@ class Scene:
     def dropped_triangles(self) -> int:
         """Zero-area triangles removed from the objects when the scene was loaded."""
         return sum(o.dropped_triangles for o in self.objects)
+
+    def scatters_inside_glass(self) -> list[Material]:
+        """The dielectric materials of the objects that scatter light inside
+        (``interior_sigma_s`` above 0), once each."""
+        seen: dict[int, Material] = {}
+        for o in self.objects:
+            m = o.material
+            if m.type == "dielectric" and float(np.max(m.interior_sigma_s)) > 0.0:
+                seen.setdefault(id(m), m)
+        return list(seen.values())
 
     def has_medium(self) -> bool:
         """True when a medium exists and extinguishes light somewhere (a void medium, all
