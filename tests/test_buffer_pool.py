@@ -13,6 +13,7 @@ import pytest
 from method_scenes import SMALL, overrides_for, scene_for
 
 from clscatter import device as dev
+from clscatter.device import buffers
 from clscatter.methods import all_methods
 from clscatter.pipeline.render import render
 from clscatter.pipeline.session import RenderSession
@@ -107,10 +108,10 @@ def test_no_kernel_reads_what_a_reused_buffer_held(method, pool, monkeypatch):
     allocations read as zeros, which could hide a kernel that reads scratch it never
     wrote). Closing the session empties the pool."""
     spec, sets = scene_for(method), overrides_for(method)
-    monkeypatch.setattr(dev, "POOL_MIN_BYTES", 1 << 62)         # the reference: no pool
+    monkeypatch.setattr(buffers, "POOL_MIN_BYTES", 1 << 62)         # the reference: no pool
     fresh = render(load_scene(spec, sets + ["render.seed=7"]), engine=pool, method=method,
                    show_progress=False)
-    monkeypatch.setattr(dev, "POOL_MIN_BYTES", 4096)
+    monkeypatch.setattr(buffers, "POOL_MIN_BYTES", 4096)
     free = pool.free
 
     def poisoning_free(*bufs):

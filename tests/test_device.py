@@ -6,6 +6,7 @@ import pyopencl as cl
 import pytest
 
 from clscatter import device as dev
+from clscatter.device import choice, kernel_sources
 from clscatter.errors import DeviceError, KernelBuildError
 
 
@@ -85,7 +86,7 @@ def test_build_error_carries_the_compiler_log(tmp_path, monkeypatch):
     (tmp_path / "broken.cl").write_text('#include "common.h"\n__kernel void k(__global float *a) '
                                         '{ a[0] = undefined_symbol_xyz; }\n')
     e = dev.Engine(dev.choose_device())
-    monkeypatch.setattr(dev, "_EXTRA_DIRS", [tmp_path])
+    monkeypatch.setattr(kernel_sources, "_EXTRA_DIRS", [tmp_path])
     monkeypatch.setenv(dev.ENV_CACHE, str(tmp_path / "cache"))
     with pytest.raises(KernelBuildError, match="undefined_symbol_xyz"):
         e.program("broken")
@@ -105,8 +106,8 @@ def test_probe_results_are_cached_across_runs(tmp_path, monkeypatch):
     driver versions are unchanged; ``clscatter devices`` (list_devices) always probes."""
     monkeypatch.setenv(dev.ENV_CACHE, str(tmp_path))
     calls = []
-    real_probe = dev._probe
-    monkeypatch.setattr(dev, "_probe", lambda d: calls.append(d) or real_probe(d))
+    real_probe = choice._probe
+    monkeypatch.setattr(choice, "_probe", lambda d: calls.append(d) or real_probe(d))
     monkeypatch.delenv(dev.ENV_DEVICE, raising=False)
     first = dev.choose_device()
     assert len(calls) == 1 and (tmp_path / "probe.json").is_file()

@@ -44,6 +44,8 @@ sys.path.insert(0, str(ROOT / "tools"))
 from bench_output import publish  # noqa: E402
 
 from clscatter import device as dev  # noqa: E402
+from clscatter.device import buffers  # noqa: E402
+from clscatter.device import engine as engine_mod  # noqa: E402
 from clscatter.methods.epipolar import pipeline  # noqa: E402
 from clscatter.pipeline.session import RenderSession
 
@@ -52,7 +54,7 @@ from clscatter.pipeline.session import RenderSession
 def variant(name: str, session: RenderSession):
     """The engine with one optimisation switched off (``final``: none)."""
     eng = session.engine
-    saved = (dev.POOL_MIN_BYTES, pipeline.EVENTS_PER_BIN, pipeline._ring_in_view,
+    saved = (buffers.POOL_MIN_BYTES, pipeline.EVENTS_PER_BIN, pipeline._ring_in_view,
              eng.quiet_host_threads)
     try:
         if name == "blas_threads":
@@ -62,7 +64,7 @@ def variant(name: str, session: RenderSession):
             eng.quiet_host_threads = lambda: None
             threadpool_limits(os.cpu_count(), user_api="blas")
         elif name == "no_pool":
-            dev.POOL_MIN_BYTES = 1 << 62
+            buffers.POOL_MIN_BYTES = 1 << 62
             eng.drain_pool()
         elif name == "ring_forced":
             pipeline._ring_in_view = lambda *a: True
@@ -70,10 +72,10 @@ def variant(name: str, session: RenderSession):
             pipeline.EVENTS_PER_BIN = 32
         yield
     finally:
-        dev.POOL_MIN_BYTES, pipeline.EVENTS_PER_BIN, pipeline._ring_in_view = saved[:3]
+        buffers.POOL_MIN_BYTES, pipeline.EVENTS_PER_BIN, pipeline._ring_in_view = saved[:3]
         eng.quiet_host_threads = saved[3]
         if name == "blas_threads":
-            dev._BLAS_MODULES = -1          # set the one-thread limit again
+            engine_mod._BLAS_MODULES = -1          # set the one-thread limit again
             eng.quiet_host_threads()
 
 
