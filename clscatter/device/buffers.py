@@ -1,8 +1,8 @@
 """Device buffers of an engine: allocation, transfers, the live and peak byte counts renders
 report, and a pool that keeps large released buffers for the next request of their size.
 
-Pool parameters (read at each call, so a caller may change them on the package:
-``clscatter.device.POOL_MIN_BYTES = ...``): buffers of at least :data:`POOL_MIN_BYTES`
+Pool parameters (read at each call, so a caller may change them here:
+``clscatter.device.buffers.POOL_MIN_BYTES = ...``): buffers of at least :data:`POOL_MIN_BYTES`
 are kept for reuse; a request takes the smallest idle one from its size up to
 :data:`POOL_SLACK` times it; the idle bytes stay under :data:`POOL_SHARE` of the memory
 budget."""
