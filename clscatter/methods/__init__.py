@@ -60,7 +60,7 @@ def _load_all() -> None:
         return
     _LOADED = True
     for info in pkgutil.iter_modules(__path__):
-        if info.name in ("base", "surface_density"):     # not methods: what methods share
+        if info.name == "base":
             continue
         try:
             importlib.import_module(f"{__name__}.{info.name}")
