@@ -153,8 +153,12 @@ def load(spec: SceneLike, overrides: Sequence[str] = (), *,
          base_dir: str | os.PathLike[str] | None = None) -> SceneSpec:
     """Load and validate a scene.
 
-    ``spec`` is a TOML file path, ``"builtin:NAME"`` (``clscatter scenes`` lists them), a
-    dict in the scene format, or a :class:`SceneSpec` (to derive a new one from).
+    ``spec`` is a TOML file path, a Mitsuba 3 XML file path, ``"builtin:NAME"``
+    (``clscatter scenes`` lists them), a dict in the scene format, a Mitsuba-style scene
+    dict (what ``mi.load_dict`` takes: ``"type": "scene"`` at its top), or a
+    :class:`SceneSpec` (to derive a new one from). A Mitsuba scene's conversion notes
+    (what was approximated or dropped, docs/mitsuba.md) are logged as warnings on the
+    ``clscatter`` logger, as render notes are.
     ``overrides`` are ``--set``-style ``"key=value"`` strings (TOML values) applied in order
     before validation, e.g. ``["camera.resolution=[64,48]", "render.lsg.light_rays=100000"]``.
     ``base_dir`` is the folder relative mesh and grid paths resolve against (default: the
@@ -166,10 +170,16 @@ def load(spec: SceneLike, overrides: Sequence[str] = (), *,
         raise TypeError("overrides must be a sequence of 'key=value' strings, not one string")
     if isinstance(spec, SceneSpec):
         data, folder, source = spec._data, spec.base_dir, spec.source   # copied below
+    elif isinstance(spec, Mapping) and spec.get("type") == "scene":
+        from .scene.mitsuba_in import from_mitsuba
+        data, notes = from_mitsuba(spec)
+        for line in notes:
+            _log_note(line)
+        folder, source = Path.cwd(), "<mitsuba dict>"
     elif isinstance(spec, Mapping):
         data, folder, source = dict(spec), Path.cwd(), "<dict>"
     elif isinstance(spec, (str, os.PathLike)):
-        data, folder = scene_source(os.fspath(spec))
+        data, folder = scene_source(os.fspath(spec), on_note=_log_note)
         source = os.fspath(spec)
     elif isinstance(spec, Scene):
         raise TypeError("load needs a path, 'builtin:NAME', a dict or a SceneSpec; a Scene "

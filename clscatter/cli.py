@@ -9,8 +9,11 @@
     clscatter diff A B [--heatmap FILE.png] [--json]
     clscatter devices
     clscatter scenes [--dump NAME]
+    clscatter volume convert IN -o OUT [--bounds X0 Y0 Z0 X1 Y1 Z1] [--name density]
+    clscatter convert IN -o OUT                 TOML <-> Mitsuba 3 XML (by the suffixes)
 
-SCENE is a TOML file or ``builtin:NAME`` (``clscatter scenes`` lists them). Errors the
+SCENE is a TOML file, a Mitsuba 3 XML file (docs/mitsuba.md) or ``builtin:NAME``
+(``clscatter scenes`` lists them). Errors the
 user can fix print one line naming the key or file and exit with status 2.
 """
 from __future__ import annotations
@@ -56,6 +59,7 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="refuse renders estimated to need more (e.g. 4G; default: the "
                         "device's and the machine's memory)")
     r.add_argument("--no-progress", action="store_true", help="never show progress bars")
+    _budget_options(r)
     _cluster_options(r)
 
     a = sub.add_parser("relight", help="render an animation (light or camera orbit) into a folder, "
@@ -72,6 +76,7 @@ def _build_parser() -> argparse.ArgumentParser:
     a.add_argument("--device", default=None, help="OpenCL device: P:D or a name substring")
     a.add_argument("--exposure", type=_finite_float, default=0.0, help="PNG exposure in stops")
     a.add_argument("--no-progress", action="store_true", help="never show progress bars")
+    _budget_options(a)
     _cluster_options(a)
 
     c = sub.add_parser("check", help="validate a scene and print the plan and cost estimate")
@@ -81,6 +86,7 @@ def _build_parser() -> argparse.ArgumentParser:
     c.add_argument("--max-memory", default=None, metavar="SIZE")
     c.add_argument("--device", default=None,
                    help="OpenCL device whose memory bounds the budget: P:D or a name substring")
+    _budget_options(c)
 
     d = sub.add_parser("diff", help="compare two images")
     d.add_argument("a")
@@ -96,6 +102,16 @@ def _build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("scenes", help="list built-in scenes")
     s.add_argument("--dump", default=None, metavar="NAME", help="print a built-in scene as TOML")
+
+    from .volume_command import add_volume_command  # density grids: .npy <-> .vdb
+    add_volume_command(sub)
+
+    cv = sub.add_parser("convert", help="convert a scene between clscatter TOML and "
+                                        "Mitsuba 3 XML (by the files' suffixes)")
+    cv.add_argument("input", help="scene .toml or .xml file, or builtin:NAME")
+    cv.add_argument("-o", "--output", required=True, metavar="OUT",
+                    help="the scene to write: .toml, or .xml (its meshes and grids go into "
+                         "the folder <OUT's stem>_files beside it)")
     return p
 
 
@@ -127,6 +143,25 @@ def _open_cluster(args: argparse.Namespace):
         raise ClscatterError(f"--workers/--cluster need dask.distributed "
                              f"(pip install 'clscatter[cluster]'): {e}") from None
     return Cluster(workers=args.workers, address=args.cluster, device=args.device)
+
+
+def _budget_options(parser: argparse.ArgumentParser) -> None:
+    """``--time-budget`` and ``--target-error``: the scene's ``render.time_budget`` and
+    ``render.target_error`` (added to the ``--set`` overrides, so they are checked alike)."""
+    parser.add_argument("--time-budget", type=_finite_float, default=None, metavar="SECONDS",
+                        help="seconds for the whole render (render.time_budget; auto's "
+                             "default is 10): progressive caustic passes are sized to fit")
+    parser.add_argument("--target-error", type=_finite_float, default=None, metavar="RELMSE",
+                        help="run progressive passes until the render's own relMSE estimate "
+                             "is at most this (render.target_error)")
+
+
+def _budget_overrides(args: argparse.Namespace) -> None:
+    """Turn ``--time-budget``/``--target-error`` into overrides after the ``--set`` ones."""
+    for flag, key in (("time_budget", "render.time_budget"), ("target_error", "render.target_error")):
+        value = getattr(args, flag, None)
+        if value is not None:
+            args.overrides = [*args.overrides, f"{key}={value!r}"]
 
 
 def _finite_float(text: str) -> float:
@@ -163,7 +198,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
         max_memory = parse_bytes(args.max_memory) if args.max_memory is not None else None
     spec = args.scene or f"builtin:{DEFAULT_BUILTIN}"
     with stats.stage("load_scene"):
-        scene = load_scene(spec, args.overrides)
+        scene = load_scene(spec, args.overrides, on_note=_note)
     with stats.stage("cluster_start"):
         cluster = _open_cluster(args)
     if cluster is not None:
@@ -361,11 +396,12 @@ def _cmd_check(args: argparse.Namespace) -> int:
         memory_budget,
         parse_bytes,
         peak_bytes,
+        time_budget,
     )
     from .pipeline.render import check
     from .scene import DEFAULT_BUILTIN, load_scene
 
-    scene = load_scene(args.scene or f"builtin:{DEFAULT_BUILTIN}", args.overrides)
+    scene = load_scene(args.scene or f"builtin:{DEFAULT_BUILTIN}", args.overrides, on_note=_note)
     req = check(scene, args.method)
     device = _device_for_budget(args.device)        # before printing: a bad --device is one line
     c = scene.camera
@@ -380,6 +416,10 @@ def _cmd_check(args: argparse.Namespace) -> int:
     max_memory = parse_bytes(args.max_memory) if args.max_memory is not None else None
     limit, source = memory_budget(device, max_memory)
     print(f"peak: about {human_bytes(peak_bytes(req.estimates))} of {human_bytes(limit)} ({source})")
+    seconds, origin = time_budget(scene, req.requested)
+    print(f"time: {f'{seconds:g} s for the whole render ({origin}); progressive passes share what the others leave' if seconds > 0 else 'no time budget (render.time_budget)'}"
+          + (f"; passes stop at an estimated relMSE of {scene.render.target_error:g}"
+             if scene.render.target_error > 0 else ""))
     check_budget(req.estimates, limit, source)
     return 0
 
@@ -446,6 +486,19 @@ def scene_summary(doc: str | None) -> str:
     return " ".join(" ".join(paragraph).replace("``", "").split())
 
 
+def _cmd_volume(args: argparse.Namespace) -> int:
+    from .volume_command import run_volume
+    return run_volume(args)
+
+
+def _cmd_convert(args: argparse.Namespace) -> int:
+    from .scene.mitsuba_out import write_scene
+    for line in write_scene(args.input, args.output):
+        _note(line)
+    print(f"{args.input} -> {args.output}")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -458,6 +511,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             parser = _build_parser()
             args = parser.parse_args(argv)
         args.stats_obj = stats
+        _budget_overrides(args)
     except SystemExit as e:          # argparse: usage errors (one line, status 2) and --help
         return int(e.code or 0)
     if args.command is None:
@@ -465,7 +519,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     handlers = {"render": _cmd_render, "relight": _cmd_relight, "check": _cmd_check,
                 "diff": _cmd_diff, "serve": _cmd_serve,
-                "devices": _cmd_devices, "scenes": _cmd_scenes}
+                "devices": _cmd_devices, "scenes": _cmd_scenes, "volume": _cmd_volume,
+                "convert": _cmd_convert}
     previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         return handlers[args.command](args)

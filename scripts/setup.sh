@@ -30,6 +30,14 @@ if ! command -v chromium >/dev/null 2>&1; then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq chromium >/dev/null \
     || echo "setup: chromium could not be installed; the browser test will fail" >&2
 fi
+# OpenVDB's Python module (pyopenvdb), for density grids in .vdb files (optional: without
+# it a .vdb is a one-line error; .npy and .vol grids need nothing)
+if ! installed python3-openvdb; then
+  echo "setup: installing python3-openvdb from Debian (.vdb density grids)" >&2
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq python3-openvdb >/dev/null \
+    || echo "setup: python3-openvdb could not be installed; .vdb files will not be read" >&2
+fi
 PY=${PYTHON:-python3}
 if [ ! -x .venv/bin/python ]; then
   if ! $PY -m venv --system-site-packages .venv 2>/dev/null; then
@@ -44,6 +52,19 @@ if ! .venv/bin/python -c "import clscatter, pyopencl, trimesh, skimage, scipy, t
   echo "setup: installing clscatter and its dependencies into .venv" >&2
   .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]"
   touch .venv/.installed
+fi
+# a venv of another Python build (pyenv's) does not see Debian's dist-packages: link the
+# pyopenvdb module alone into it (the rest of dist-packages, NumPy 1.x among it, would
+# shadow the venv's own packages); it must be built for the venv's Python version
+if ! .venv/bin/python -c "import pyopenvdb" >/dev/null 2>&1; then
+  ext=$(.venv/bin/python -c "import sysconfig; print(sysconfig.get_config_var('EXT_SUFFIX'))")
+  site=$(.venv/bin/python -c "import sysconfig; print(sysconfig.get_paths()['platlib'])")
+  so="/usr/lib/python3/dist-packages/pyopenvdb$ext"
+  if [ -f "$so" ]; then
+    ln -sf "$so" "$site/"
+  elif installed python3-openvdb; then
+    echo "setup: python3-openvdb has no pyopenvdb$ext for the venv's Python; .vdb files will not be read" >&2
+  fi
 fi
 # byte-compile the package (pip does it for a regular install; an editable one, or a
 # shell with PYTHONDONTWRITEBYTECODE set, would otherwise compile every module in every

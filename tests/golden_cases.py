@@ -20,7 +20,7 @@ QUICK = {"lsg": ["render.lsg.light_rays=4000"],
          "photonmap": ["render.photonmap.photons=4000", "render.lsg.light_rays=4000"],
          "voxel": ["render.voxel.resolution=16", "render.voxel.photons=1024",
                    "render.voxel.outer_resolution=16"],
-         "auto": ["render.lsg.light_rays=4000", "render.raymap.photons=4000",
+         "auto": ["render.time_budget=0", "render.lsg.light_rays=4000", "render.raymap.photons=4000",
                   "render.voxel.resolution=16", "render.voxel.photons=1024",
                   "render.voxel.outer_resolution=16"]}
 

@@ -1,7 +1,8 @@
-"""The Mitsuba 3 converter of the test references (tools/mitsuba_reference.py): its medium
-and material conversions (needs no Mitsuba), and, where the optional ``mitsuba`` package is
-installed, its own checks (``--verify``: converted scenes rendered by Mitsuba against
-closed forms)."""
+"""The Mitsuba 3 converter of the test references (tools/mitsuba_reference.py, which converts
+with clscatter.scene.mitsuba_out): its medium and material conversions and its refusal of
+scenes that make no reference (needs no Mitsuba), and, where the optional ``mitsuba``
+package is installed, its own checks (``--verify``: converted scenes rendered by Mitsuba
+against closed forms)."""
 from __future__ import annotations
 
 import importlib.util
@@ -10,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from clscatter.scene import mitsuba_out
 from clscatter.scene.loader import scene_from_dict
 
 TOOL = Path(__file__).resolve().parents[1] / "tools" / "mitsuba_reference.py"
@@ -33,31 +35,36 @@ def _scene(medium: dict | None, material: dict) -> object:
     return scene_from_dict(d)
 
 
-def test_medium_conversion_keeps_the_coefficients(conv):
+def test_medium_conversion_keeps_the_coefficients():
     """Mitsuba's homogeneous medium: sigma_t x scale is kappa = sigma_s + sigma_a per
     channel, albedo x sigma_t x scale is sigma_s, and the HG g keeps its sign."""
-    scene = _scene({"sigma_s": [0.3, 0.2, 0.1], "sigma_a": [0.05, 0.0, 0.4], "g": -0.3},
-                   {"type": "diffuse", "albedo": 0.5})
-    md = conv.medium_dict(scene)
+    md = mitsuba_out.homogeneous([0.3, 0.2, 0.1], [0.05, 0.0, 0.4], -0.3)
     sigma_t = np.array(md["sigma_t"]["value"]) * md["scale"]
     np.testing.assert_allclose(sigma_t, [0.35, 0.2, 0.5], rtol=1e-12)
+    assert max(md["sigma_t"]["value"]) == 1.0      # rgb values within [0, 1]
     np.testing.assert_allclose(np.array(md["albedo"]["value"]) * sigma_t, [0.3, 0.2, 0.1],
                                rtol=1e-12)
     assert md["phase"] == {"type": "hg", "g": -0.3}
-    iso = conv.medium_dict(_scene({"sigma_s": 0.1, "sigma_a": 0.0},
-                                  {"type": "diffuse", "albedo": 0.5}))
-    assert iso["phase"] == {"type": "isotropic"}
-    assert conv.medium_dict(_scene(None, {"type": "diffuse", "albedo": 0.5})) is None
+    assert mitsuba_out.homogeneous(0.1, 0.0, 0.0)["phase"] == {"type": "isotropic"}
+    assert mitsuba_out.homogeneous(0.0, 0.0, 0.5) is None
 
 
-def test_material_conversion(conv):
+def test_material_conversion():
     scene = _scene(None, {"type": "diffuse", "albedo": [0.8, 0.5, 0.2]})
-    bd = conv.bsdf_dict(scene.objects[0])
+    bd = mitsuba_out.bsdf(scene.objects[0].material)
     assert bd["type"] == "twosided" and bd["material"]["type"] == "diffuse"
     np.testing.assert_allclose(bd["material"]["reflectance"]["value"], [0.8, 0.5, 0.2])
-    glass = _scene(None, {"type": "dielectric", "ior": 1.5})
-    with pytest.raises(ValueError, match="delta caustics"):
-        conv.bsdf_dict(glass.objects[0])
+    glass = mitsuba_out.bsdf(_scene(None, {"type": "dielectric", "ior": 1.33}).objects[0].material)
+    assert glass == {"type": "dielectric", "int_ior": 1.33, "ext_ior": 1.0}
+
+
+def test_the_tool_refuses_scenes_that_make_no_reference(conv, tmp_path):
+    """Glass (its caustics are missing from max_depth = 2) converts with a note, and the
+    tool refuses any scene that converts with a note."""
+    glass = _scene({"sigma_s": 0.1, "sigma_a": 0.0}, {"type": "dielectric", "ior": 1.5})
+    with pytest.raises(ValueError, match="not a reference: the scene has mirrors or glass"):
+        conv.to_mitsuba(glass, tmp_path)
+    assert not list(tmp_path.iterdir())
 
 
 def test_the_converters_own_checks_with_mitsuba(conv):

@@ -134,7 +134,7 @@ def test_specular_objects_add_an_lsg_caustic_pass():
     passes, _ = _plan(d)
     assert _roles(passes)[:2] == [("raymarch", "direct"), ("lsg", "caustics")]
     assert passes[1].params == {"min_light_depth": 1}
-    assert passes[1].defaults == {"time_budget": 10.0, "passes": 8}
+    assert passes[1].defaults == {"passes": 8}
     scene = scene_from_dict(copy.deepcopy({**d, "render": {"lsg": {"time_budget": 2.0,
                                                                    "min_light_depth": 0}}}), HERE)
     # the scene's values win over the role's defaults, never over what it requires

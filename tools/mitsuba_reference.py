@@ -15,36 +15,16 @@ tests read the committed images and never import it.
     python3 tools/mitsuba_reference.py tests/data/mitsuba/*.toml [--spp 65536]
     python3 tools/mitsuba_reference.py --verify      # conversion checks against closed forms
 
-Conversion (each choice checked by ``--verify`` or by experiment, see the docstrings):
+The conversion is clscatter's own (``clscatter.scene.mitsuba_out``, the one ``clscatter
+convert`` writes XML with; docs/mitsuba.md): every object as the triangle mesh clscatter
+renders, ``near_clip = 1e-4``, a ``box`` pixel filter, spot lights with ``beam_width =
+cutoff_angle``, the medium as ``sigma_t``/``albedo``/``scale``. ``--verify`` checks it
+against closed forms (camera mapping and fov axis, image orientation, radiant intensity,
+irradiance, the HG sign, bounded and unbounded media).
 
-=====================  =================================================================
-clscatter              Mitsuba 3 (variant ``scalar_rgb``; its llvm variants abort here)
-=====================  =================================================================
-camera                 ``perspective``: ``fov``, ``fov_axis``, ``to_world`` =
-                       look_at(origin, target, up); ``near_clip = 1e-4`` (the default
-                       0.01 skips that much medium in front of the lens); ``hdrfilm``
-                       with ``box`` rfilter (the pixel's footprint, our box filter)
-point light            ``point``: ``position``, ``intensity`` (W/sr, same meaning)
-spot light             ``spot``: ``intensity``, ``cutoff_angle``, ``beam_width =
-                       cutoff_angle`` (Mitsuba's default fades from 3/4 of the cutoff),
-                       ``to_world`` = look_at(position, position + direction, up)
-directional light      ``directional``: ``direction`` (travel), ``irradiance``
-medium                 ``homogeneous``: ``sigma_t = kappa`` (rgb, given as
-                       ``kappa / max(kappa)`` with ``scale = max(kappa)`` because rgb
-                       values must lie in [0, 1]), ``albedo = sigma_s / kappa``, phase
-                       ``hg`` with ``g`` (``isotropic`` when g = 0)
-bounded medium         a ``cube`` with a ``null`` bsdf scaled/translated to the bounds,
-                       ``interior`` = the medium; objects inside the bounds get
-                       ``interior = exterior`` = the medium
-unbounded medium       the sensor's ``medium`` and every shape's ``interior``/``exterior``
-diffuse material       ``twosided`` ``diffuse`` (Mitsuba's diffuse is black from behind)
-black material         ``twosided`` ``diffuse`` with reflectance 0
-objects                ``mi.Mesh`` from the scene's triangles; per-vertex shading normals
-                       where the object has them (meshed spheres), else flat
-=====================  =================================================================
-
-Mirrors and dielectrics are refused: with delta lights their caustics are missing from
-``max_depth = 2`` (and from clscatter's ``raymarch``), so such scenes are not references.
+A scene the converter gives a note for is refused: mirrors and glass (with delta lights
+their caustics are missing from ``max_depth = 2``, and from clscatter's ``raymarch``),
+surfaces across the medium's bounds. Such scenes make no reference.
 """
 from __future__ import annotations
 
@@ -52,6 +32,7 @@ import argparse
 import json
 import math
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -61,12 +42,12 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from clscatter.scene import mitsuba_out  # noqa: E402
 from clscatter.scene.loader import load_scene  # noqa: E402
-from clscatter.scene.model import Object, Scene  # noqa: E402
+from clscatter.scene.model import Scene  # noqa: E402
 
 VARIANT = "scalar_rgb"
-NEAR_CLIP = 1e-4
-MAX_DEPTH = 2
+MAX_DEPTH = mitsuba_out.SINGLE_SCATTERING_DEPTH
 
 
 def _mi():
@@ -76,159 +57,29 @@ def _mi():
     return mi
 
 
-def _rgb(value) -> dict:
-    return {"type": "rgb", "value": [float(x) for x in np.broadcast_to(value, (3,))]}
-
-
 def _unit(v) -> np.ndarray:
     v = np.asarray(v, np.float64)
     return v / np.linalg.norm(v)
 
 
-def _any_perpendicular_up(d: np.ndarray) -> list[float]:
-    """An up vector not parallel to ``d`` (for look_at of lights, where roll is irrelevant)."""
-    up = np.array([0.0, 1.0, 0.0])
-    if abs(float(np.dot(_unit(d), up))) > 0.9:
-        up = np.array([1.0, 0.0, 0.0])
-    return up.tolist()
+def to_mitsuba(scene: Scene, folder: Path, spp: int = 1024, seed: int = 0,
+               sampler: str = "independent") -> dict:
+    """The dict ``mi.load_dict`` takes for ``scene``, its meshes written under ``folder``.
+    ValueError for a scene whose conversion has notes: Mitsuba's image would not be
+    clscatter's."""
+    conversion = mitsuba_out.convert(scene, spp=spp, seed=seed, sampler=sampler)
+    if conversion.notes:
+        raise ValueError("not a reference: " + "; ".join(conversion.notes))
+    _mi()
+    return mitsuba_out.mitsuba_dict(conversion, folder)
 
 
-def _inside(points: np.ndarray, bounds) -> np.ndarray:
-    lo, hi = bounds
-    return np.all((points >= lo) & (points <= hi), axis=-1)
-
-
-def medium_dict(scene: Scene) -> dict | None:
-    """The ``homogeneous`` medium dict, or None when the scene has no (or a void) medium."""
-    m = scene.medium
-    if m is None:
-        return None
-    kappa = np.asarray(m.kappa, np.float64)
-    if not np.any(kappa > 0):
-        return None
-    scale = float(kappa.max())
-    albedo = np.where(kappa > 0, np.asarray(m.sigma_s, np.float64) / np.where(kappa > 0, kappa, 1.0), 0.0)
-    phase = {"type": "isotropic"} if m.g == 0 else {"type": "hg", "g": float(m.g)}
-    return {"type": "homogeneous", "sigma_t": _rgb(kappa / scale), "scale": scale,
-            "albedo": _rgb(albedo), "phase": phase}
-
-
-def bsdf_dict(obj: Object) -> dict:
-    mat = obj.material
-    if mat.type == "diffuse":
-        refl = mat.albedo
-    elif mat.type == "black":
-        refl = np.zeros(3)
-    else:
-        raise ValueError(f"{obj.key or obj.shape}: material type {mat.type!r} has delta caustics; "
-                         "only diffuse and black materials make Mitsuba references")
-    return {"type": "twosided", "material": {"type": "diffuse", "reflectance": _rgb(refl)}}
-
-
-def mesh_object(obj: Object, name: str, bsdf, medium=None):
-    """A ``mi.Mesh`` holding ``obj``'s triangles (world space), its bsdf and media."""
-    mi = _mi()
-    props = mi.Properties()
-    props["bsdf"] = bsdf
-    if medium is not None:
-        props["interior"] = medium
-        props["exterior"] = medium
-    v = np.ascontiguousarray(obj.vertices, np.float32)
-    f = np.ascontiguousarray(obj.faces, np.uint32)
-    normals = obj.normals is not None and len(obj.normals) == len(v)
-    mesh = mi.Mesh(name, len(v), len(f), props, has_vertex_normals=normals)
-    params = mi.traverse(mesh)
-    params["vertex_positions"] = v.ravel()
-    params["faces"] = f.ravel()
-    if normals:
-        params["vertex_normals"] = np.ascontiguousarray(obj.normals, np.float32).ravel()
-    params.update()
-    return mesh
-
-
-def to_mitsuba(scene: Scene, spp: int = 1024, seed: int = 0, sampler: str = "independent",
-               max_depth: int = MAX_DEPTH) -> dict:
-    """The Mitsuba 3 scene dict (objects as ``mi.Mesh`` instances) for ``scene``."""
-    mi = _mi()
-    cam = scene.camera
-    med_d = medium_dict(scene)
-    med = mi.load_dict(med_d) if med_d is not None else None
-    bounds = scene.medium.bounds if (med is not None) else None
-
-    sensor = {
-        "type": "perspective",
-        "fov": float(cam.fov),
-        "fov_axis": cam.fov_axis,
-        "near_clip": NEAR_CLIP,
-        "far_clip": 1e7,
-        "to_world": mi.ScalarTransform4f().look_at(
-            origin=[float(x) for x in cam.origin], target=[float(x) for x in cam.target],
-            up=[float(x) for x in cam.up]),
-        "film": {"type": "hdrfilm", "width": int(cam.width), "height": int(cam.height),
-                 "rfilter": {"type": "box"}, "pixel_format": "rgb",
-                 "component_format": "float32"},
-        "sampler": {"type": sampler, "sample_count": int(spp), "seed": int(seed)},
-    }
-    if med is not None and (bounds is None or _inside(np.asarray(cam.origin)[None], bounds)[0]):
-        sensor["medium"] = med
-
-    d: dict = {"type": "scene",
-               "integrator": {"type": "volpath", "max_depth": int(max_depth),
-                              "rr_depth": 1 << 20},
-               "sensor": sensor}
-
-    for i, L in enumerate(scene.lights):
-        if L.type == "point":
-            d[f"light_{i}"] = {"type": "point", "position": [float(x) for x in L.position],
-                               "intensity": _rgb(L.power)}
-        elif L.type == "spot":
-            pos = np.asarray(L.position, np.float64)
-            d[f"light_{i}"] = {
-                "type": "spot", "intensity": _rgb(L.power),
-                "cutoff_angle": float(L.cutoff_angle), "beam_width": float(L.cutoff_angle),
-                "to_world": mi.ScalarTransform4f().look_at(
-                    origin=pos.tolist(), target=(pos + _unit(L.direction)).tolist(),
-                    up=_any_perpendicular_up(L.direction))}
-        elif L.type == "directional":
-            d[f"light_{i}"] = {"type": "directional",
-                               "direction": [float(x) for x in _unit(L.direction)],
-                               "irradiance": _rgb(L.power)}
-        else:
-            raise ValueError(f"lights[{i}]: unknown light type {L.type!r}")
-
-    if scene.volumes:
-        raise ValueError("graded-index volumes have no Mitsuba equivalent here")
-
-    for i, obj in enumerate(scene.objects):
-        if len(obj.faces) == 0:
-            continue
-        obj_med = None
-        if med is not None:
-            if bounds is None:
-                obj_med = med
-            else:
-                inside = _inside(obj.vertices, bounds)
-                if inside.all():
-                    obj_med = med
-                elif inside.any():
-                    raise ValueError(f"{obj.key or f'objects[{i}]'} straddles the medium bounds: "
-                                     "Mitsuba needs each shape wholly inside or outside")
-        d[f"object_{i}"] = mesh_object(obj, f"object_{i}", mi.load_dict(bsdf_dict(obj)), obj_med)
-
-    if med is not None and bounds is not None:
-        lo, hi = (np.asarray(b, np.float64) for b in bounds)
-        centre, half = (lo + hi) / 2, (hi - lo) / 2
-        d["medium_bounds"] = {
-            "type": "cube", "bsdf": {"type": "null"}, "interior": med,
-            "to_world": mi.ScalarTransform4f().translate(centre.tolist()).scale(half.tolist())}
-    return d
-
-
-def render_mitsuba(scene: Scene, spp: int = 1024, seed: int = 0, sampler: str = "independent",
-                   max_depth: int = MAX_DEPTH) -> np.ndarray:
+def render_mitsuba(scene: Scene, spp: int = 1024, seed: int = 0,
+                   sampler: str = "independent") -> np.ndarray:
     """Mitsuba's image of ``scene`` (float32 H x W x 3, linear radiance)."""
     mi = _mi()
-    ms = mi.load_dict(to_mitsuba(scene, spp, seed, sampler, max_depth))
+    with tempfile.TemporaryDirectory() as folder:
+        ms = mi.load_dict(to_mitsuba(scene, Path(folder), spp, seed, sampler))
     img = mi.render(ms, spp=int(spp), seed=int(seed))
     return np.array(img, dtype=np.float32).reshape(scene.camera.height, scene.camera.width, 3)
 

@@ -24,6 +24,11 @@
  * weighted by the balance heuristic of the two densities: with uniform steps alone the
  * first optical depths of a thick segment, where all its light comes from, hold one or
  * two samples. Both are still quadrature along the ray with every sample shadow-tested.
+ *
+ * Built with DENSITY_GRIDS (density_march.cl) the same kernel renders density grids
+ * (density.h): sigma_s(x) at every sample, T_view and T_light as exact optical depths
+ * through the grids and the scene medium, the transmittance strategy's rate fitted from
+ * the same optical depths, and every sample at the middle of its stratum.
  */
 #include "common.h"
 #include "bvh.h"
@@ -36,6 +41,15 @@
 #define MIS_OPTICAL_DEPTH 3.0f
 /* a growing exp(-r t) over a segment: -r len at most this (float range) */
 #define EXP_RATE_MAX 60.0f
+
+/* where in its stratum a sample lies: jittered, or (density grids) the middle */
+#ifdef DENSITY_GRIDS
+#define STRATUM_OFFSET(rng) 0.5f
+#else
+#define STRATUM_OFFSET(rng) rng_next(rng)
+#endif
+
+float mean3(float4 v) { return (v.x + v.y + v.z) * (1.0f / 3.0f); }
 
 
 
@@ -71,6 +85,9 @@ __kernel void raymarch(__global const BVHNode *nodes, __global const float4 *tri
 
     float4 kap = medium->kappa;
     float kmean = (kap.x + kap.y + kap.z) * (1.0f / 3.0f);
+#ifdef DENSITY_GRIDS
+    float tau_len = mean3(density_optical_depth(medium, sg.a, w, 0.0f, len));
+#endif
 
     for (int li = 0; li < num_lights; ++li) {
         __global const Light *L = &lights[li];
@@ -93,9 +110,19 @@ __kernel void raymarch(__global const BVHNode *nodes, __global const float4 *tri
         float d0, d1;
         light_arrival(L, sg.a, &w0, &d0);
         light_arrival(L, sg.b, &w1, &d1);
+#ifdef DENSITY_GRIDS
+        /* the same fit from optical depths: along the segment, and of the light paths
+         * from its two ends */
+        float dtau = mean3(density_optical_depth(medium, sg.b, w1, 0.0f, d1))
+                   - mean3(density_optical_depth(medium, sg.a, w0, 0.0f, d0));
+        float r = (tau_len + (isfinite(dtau) ? dtau : 0.0f)) / len;
+        float t_prev = 0.0f;                    /* the view's optical depth up to t_prev */
+        float4 tau_prev = (float4)(0.0f);
+#else
         float ds = medium_path_length(medium, sg.b, w1, 0.0f, d1)
                  - medium_path_length(medium, sg.a, w0, 0.0f, d0);
         float r = kmean * (1.0f + (isfinite(ds) ? ds / len : 0.0f));
+#endif
         r = fmax(r, -EXP_RATE_MAX / len);       /* exp(-r t) grows: keep it in float range */
         /* MIS where that falls or grows steeply over the scale of the light's own strategy:
          * the segment's length (uniform) or the light's distance h (equiangular) */
@@ -108,7 +135,7 @@ __kernel void raymarch(__global const BVHNode *nodes, __global const float4 *tri
              * and both densities at it */
             float t, pa;
             if (i < n_a) {
-                float xi = (i + rng_next(&rng)) / n_a;
+                float xi = (i + STRATUM_OFFSET(&rng)) / n_a;
                 if (equiangular) {
                     float tn = tan(th_a + xi * (th_b - th_a));
                     t = t_star + h * tn;
@@ -118,7 +145,7 @@ __kernel void raymarch(__global const BVHNode *nodes, __global const float4 *tri
                     pa = 1.0f / len;
                 }
             } else {
-                t = exp_sample(r, (i - n_a + rng_next(&rng)) / n_b, len);
+                t = exp_sample(r, (i - n_a + STRATUM_OFFSET(&rng)) / n_b, len);
                 float d = t - t_star;
                 pa = equiangular ? h / ((th_b - th_a) * (h * h + d * d)) : 1.0f / len;
             }
@@ -131,13 +158,31 @@ __kernel void raymarch(__global const BVHNode *nodes, __global const float4 *tri
             float dist;
             float4 E = light_arrival(L, x, &wi, &dist);
             if (E.x == 0.0f && E.y == 0.0f && E.z == 0.0f) continue;
+#ifdef DENSITY_GRIDS
+            float4 ss = density_sigma_s(medium, x);
+            if (ss.x == 0.0f && ss.y == 0.0f && ss.z == 0.0f) continue;
+            if (t < t_prev) {                   /* the other strategy's samples: from 0 */
+                t_prev = 0.0f;
+                tau_prev = (float4)(0.0f);
+            }
+            tau_prev += density_optical_depth(medium, sg.a, w, t_prev, t);
+            t_prev = t;
+#endif
             float4 T_light = light_transmission(nodes, tris, light_grid, li, medium, x, wi, dist,
                                                 1e-5f);
             float cos_theta = dot3(-wi, -w);      /* light travels along -wi; camera is at -w */
             float ph = hg_phase(cos_theta, medium->g);
+#ifdef DENSITY_GRIDS
+            acc += E * T_light * exp3(-tau_prev) * ss * (ph * dt);
+#else
             acc += E * T_light * transmittance(kap, t) * (ph * dt);
+#endif
         }
         result += acc;
     }
+#ifdef DENSITY_GRIDS
+    out[si] = result * sg.weight * sc;         /* sigma_s(x) is in every sample */
+#else
     out[si] = result * medium->sigma_s * sg.weight * sc;
+#endif
 }

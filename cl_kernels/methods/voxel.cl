@@ -18,6 +18,22 @@
  *   voxel_trace_camera/_rays     straight view paths outside the grid (includes view_paths.cl)
  */
 #include "voxel.h"
+#include "density.h"
+
+/* Surfaces lit through density grids: in a scene with density volumes the straight
+ * tracers get density.h's medium buffer (its Medium record first, so everything else reads
+ * it as before), and their shadow rays are attenuated through the grids (smoke's shadows);
+ * with the plain Medium record (no MEDIUM_DENSITY bit) they are the engine's. */
+float4 voxel_shadow(__global const BVHNode *nodes, __global const float4 *tris,
+                    __global const int *light_grid, int li, __global const Medium *m,
+                    float4 x, float4 wi, float dist, float tmin) {
+    if (m->present & MEDIUM_DENSITY)
+        return density_light_transmission(nodes, tris, light_grid, li, m, x, wi, dist, tmin);
+    return light_transmission(nodes, tris, light_grid, li, m, x, wi, dist, tmin);
+}
+#define light_transmission(nodes, tris, light_grid, li, m, x, wi, dist, tmin) \
+    voxel_shadow(nodes, tris, light_grid, li, m, x, wi, dist, tmin)
+
 #include "view_paths.cl"
 #include "light_paths.cl"   /* basis() */
 

@@ -15,11 +15,12 @@ from ..transport.view_paths import DeviceSegments
 
 def march_segments(ps: PreparedScene, segs: DeviceSegments, steps: int, stats: Stats,
                    show_progress: bool = True, per_launch: int = 65536,
-                   scale=None) -> np.ndarray:
+                   scale=None, program: str = "raymarch") -> np.ndarray:
     """``raymarch.cl`` over device segments, accumulated into an (H, W, 3) image on the
     device. ``scale``: a device buffer of one float per segment multiplying its result
     (0 skips it): how another method ray-marches part of the segments (epipolar's ring
-    and fallbacks) without compacting them."""
+    and fallbacks) without compacting them. ``program``: a build of ``raymarch.cl`` with
+    the same kernel (``density_march``: density grids, :mod:`.density_march`)."""
     eng = ps.engine
     n = segs.count
     chunk = max(1, min(int(per_launch), n))
@@ -29,7 +30,7 @@ def march_segments(ps: PreparedScene, segs: DeviceSegments, steps: int, stats: S
         with stats.stage("raymarch"), progress(n, "raymarch", show_progress) as bar:
             for start in range(0, n, chunk):
                 m = min(chunk, n - start)
-                ps.call("raymarch", "raymarch", m, segs=segs.buf, seg_offset=start, num_segs=m,
+                ps.call(program, "raymarch", m, segs=segs.buf, seg_offset=start, num_segs=m,
                         scale=scale if scale is not None else out_buf,
                         use_scale=int(scale is not None), steps=steps, seed=seed, out=out_buf)
                 eng.finish()                # progress that means something

@@ -201,6 +201,9 @@ class Method:
     # True for a method that scatters light inside dielectric objects (a material's
     # interior_sigma_s): the planner notes any other plan leaving that light out
     INTERIOR_SCATTERING: ClassVar[bool] = False
+    # True for a method that renders heterogeneous media (volumes with a density grid):
+    # ``auto`` passes over the others on such a scene, and the planner notes an explicit one
+    DENSITY: ClassVar[bool] = False
 
     def __init__(self, params: dict | None = None):
         self.params: dict[str, Any] = configure(type(self), params)
@@ -235,6 +238,11 @@ class Method:
     #: parameters; pass k's rays and radius depend on k alone) and be averaged: a cluster
     #: then splits the pass's lighting rays across workers, one task per pass
     SPLIT_PASSES: ClassVar[bool] = False
+
+    #: True when the method refines by progressive passes run through
+    #: ``ctx.progression(...)``: the session runs it after the fixed passes and gives it its
+    #: share of the render's time budget (``ctx.deadline``)
+    PROGRESSIVE: ClassVar[bool] = False
 
     #: for previews (a relighting page while the user drags): parameters scaled by this
     #: factor (integers rounded, at least 1) so a pass costs a fraction of its full time

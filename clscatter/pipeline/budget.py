@@ -20,9 +20,10 @@ from ..device.memory import memory_budget
 from ..errors import ClscatterError
 from ..methods import configure, get_method
 from ..methods.base import Estimate, camera_samples
+from ..transport.progressive import BUDGET_SLACK
 
 __all__ = ["Estimate", "camera_samples", "memory_budget", "estimate", "view_path_estimate",
-           "scene_estimate",
+           "scene_estimate", "time_budget", "AUTO_TIME_BUDGET", "BUDGET_SLACK",
            "check_budget", "peak_bytes", "human_bytes", "parse_bytes", "long_work_notes"]
 
 # bytes per camera sample kept by the view-path stage on the device: surface + escaped
@@ -41,6 +42,20 @@ REFUSE_WORK = 1e12
 # vertex normals (48), material index (4), its share of the BVH nodes and tile-grid lists
 # (the host's own copies are bounded by the loader, clscatter.scene.loader)
 DEVICE_BYTES_PER_TRIANGLE = 128
+#: ``auto``'s whole-render time budget in seconds when ``render.time_budget`` is 0: its
+#: progressive caustic passes share what the fixed passes leave of it
+AUTO_TIME_BUDGET = 10.0
+
+
+def time_budget(scene, requested: str) -> tuple[float, str]:
+    """The render's time budget in seconds (0: none) and where it comes from: the scene's
+    ``render.time_budget`` (also ``--time-budget``; 0 turns it off), or where that is
+    absent, for ``auto``, its default :data:`AUTO_TIME_BUDGET`."""
+    if scene.render.time_budget is not None:
+        return float(scene.render.time_budget), "render.time_budget"
+    if requested == "auto":
+        return AUTO_TIME_BUDGET, "auto's default"
+    return 0.0, "none"
 
 
 def view_path_estimate(scene) -> Estimate:

@@ -6,12 +6,16 @@ An image is the surface term of the view paths plus passes that each compute one
 ========================  ==================================================================
 term                      needed when the scene has
 ========================  ==================================================================
-``direct``                a (non-void) medium and lights
+``direct``                a (non-void) medium, or a density volume, and lights
 ``caustics``              a medium, lights and mirror or glass objects
 ``surface_caustics``      lights, mirror or glass objects and diffuse objects
-``volumes``               ``[[volumes]]`` (graded index: nothing else bends rays), or glass
-                          that scatters inside (``interior_sigma_s``)
+``volumes``               ``[[volumes]]`` with a shape or an index grid (graded index:
+                          nothing else bends rays), or glass that scatters inside
+                          (``interior_sigma_s``)
 ========================  ==================================================================
+
+A scene with density volumes (heterogeneous media) is rendered only by methods that
+declare ``DENSITY``: ``auto`` passes over the others, and a plan without one gets a note.
 
 For every needed term the planner takes, among the implemented methods that declare an
 ``AUTO`` role for it, whose assumptions hold for the scene (``Method.suits``) and which
@@ -55,7 +59,7 @@ def needed_terms(scene: Scene) -> tuple[list[str], list[str]]:
     kinds = {o.material.type for o in scene.objects}
     specular = bool(kinds & {"mirror", "dielectric"})
     lights = bool(scene.lights)
-    medium = scene.has_medium()
+    medium = scene.has_medium() or bool(scene.density_volumes())
     terms: list[str] = []
     if not lights:
         notes.append("no lights: no light-carrying pass")
@@ -70,7 +74,7 @@ def needed_terms(scene: Scene) -> tuple[list[str], list[str]]:
         notes.append("no participating medium: medium passes skipped")
     if specular and "diffuse" in kinds:
         terms.append("surface_caustics")
-    if scene.volumes or scene.scatters_inside_glass():
+    if any(v.refracts for v in scene.volumes) or scene.scatters_inside_glass():
         terms.append("volumes")        # light bent by volumes, or scattered inside glass
     return terms, notes
 
@@ -80,7 +84,7 @@ def plan(scene: Scene, requested: str) -> tuple[list[Pass], list[str]]:
     notes on what was chosen or skipped (a note ending in :data:`DROPS_LIGHT` for light
     the scene has and the plan leaves out)."""
     passes, notes = _plan(scene, requested)
-    return passes, notes + interior_scattering_note(scene, passes)
+    return passes, notes + interior_scattering_note(scene, passes) + density_note(scene, passes)
 
 
 def _plan(scene: Scene, requested: str) -> tuple[list[Pass], list[str]]:
@@ -95,7 +99,7 @@ def _plan(scene: Scene, requested: str) -> tuple[list[Pass], list[str]]:
             role = cls.AUTO.get(term)
             if role is None:
                 continue
-            why_not = cls.suits(scene) or cls.unreliable(scene)
+            why_not = cls.suits(scene) or cls.unreliable(scene) or _no_density(cls, scene)
             if why_not:
                 notes.append(f"{term}: not {name} ({why_not})")
                 continue
@@ -160,6 +164,27 @@ def interior_scattering_note(scene: Scene, passes: list[Pass]) -> list[str]:
     name = mats[0].key or mats[0].name
     return [f"{name}.interior_sigma_s: {who} does not scatter light inside glass "
             f"(only voxel does): {DROPS_LIGHT}"]
+
+
+def _no_density(cls, scene: Scene) -> str:
+    """Why ``auto`` passes over ``cls`` on ``scene``: it has density volumes and ``cls``
+    does not render them ('' otherwise)."""
+    if cls.DENSITY or not scene.density_volumes():
+        return ""
+    return f"{cls.NAME} does not render heterogeneous media (density volumes)"
+
+
+def density_note(scene: Scene, passes: list[Pass]) -> list[str]:
+    """One note when the scene has density volumes and no pass of the plan renders them:
+    the light they scatter, and their shadows, are not in the image."""
+    vols = scene.density_volumes()
+    methods = all_methods()
+    if not vols or not passes or any(methods[p.method].DENSITY for p in passes):
+        return []
+    who = "+".join(p.method for p in passes)
+    able = " and ".join(n for n, c in sorted(methods.items()) if c.DENSITY)
+    return [f"{vols[0].key}.density: {who} does not render heterogeneous media (only "
+            f"{able} do): the density is ignored, {DROPS_LIGHT}"]
 
 
 def dropped_light(notes: list[str]) -> list[str]:

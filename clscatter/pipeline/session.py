@@ -44,6 +44,7 @@ from ..scene.builtin import to_toml
 from ..scene.loader import apply_overrides, scene_from_dict, scene_source
 from ..scene.model import Scene
 from ..transport.context import PassCache, PassContext
+from ..transport.progressive import relmse_estimate
 from ..transport.prepared import (
     PreparedScene,
     geometry_key,
@@ -172,6 +173,7 @@ class RenderSession:
         of the plan (by index) and ``pass_params`` (``{index: {param: value}}``) overrides their
         parameters: how a cluster splits a render into tasks (:mod:`clscatter.cluster`).
         """
+        started = time.perf_counter()
         scene = _preview_scene(self.scene) if preview else self.scene
         stats = stats or Stats()
         ran: list[str] = []
@@ -251,40 +253,65 @@ class RenderSession:
         try:
             return self._run_passes(_Run(scene, req, ps, paths, stats, show_progress,
                                          stop_if_asked, ran, reused, preview, only,
-                                         pass_params or {}, clock, on_note))
+                                         pass_params or {}, clock, on_note,
+                                         _time_budget(scene, req, started, stats,
+                                                      preview or only is not None)))
         finally:
             engine.trim_pool()      # keep what this render freed for the next one
 
     def _run_passes(self, run: "_Run") -> RenderResult:
         """Run the plan's passes, each with its own :class:`PassContext`, and compose the
         image: the view paths' surface term (or the one a pass traced itself) plus every
-        pass's surface and medium radiance."""
-        scene, ps, stats = run.scene, run.ps, run.stats
+        pass's surface and medium radiance.
+
+        Passes whose method refines progressively (``Method.PROGRESSIVE``) run after the
+        others and share what those leave of the render's time budget, each the same part
+        of the rest; their noise estimates add up to the render's ``error_estimate``."""
+        scene, stats = run.scene, run.stats
         cam = scene.camera
-        base = run.paths.surface           # never written in place
+        views = [None] * len(run.req.passes)          # view_surface by plan index
         added = np.zeros((cam.height, cam.width, 3), np.float32)
         medium = np.zeros((cam.height, cam.width, 3), np.float32)
-        for k, p in enumerate(run.req.passes):
-            if run.only is not None and k not in run.only:
-                continue
+        errors = None                                  # (variance, squared bias) images
+        order = [k for k, p in enumerate(run.req.passes) if run.only is None or k in run.only]
+        order.sort(key=lambda k: bool(get_method(run.req.passes[k].method).PROGRESSIVE))
+        progressive_left = sum(1 for k in order if get_method(run.req.passes[k].method).PROGRESSIVE)
+
+        def base() -> np.ndarray:          # the last pass in plan order that traced one wins
+            return next((v for v in reversed(views) if v is not None), run.paths.surface)
+
+        def image_so_far() -> np.ndarray:
+            return base() + added + medium
+
+        for k in order:
+            p = run.req.passes[k]
             run.stop_if_asked()
             cls = get_method(p.method)
             table = {**p.table(scene), **run.pass_params.get(k, {})}
             method = cls(cls.preview(table) if run.preview else table)
-            with PassContext(ps, run.paths, stats, run.show_progress,
-                             self._caches.setdefault(p.method, PassCache()),
-                             run.on_note) as ctx:
+            deadline = None
+            if cls.PROGRESSIVE and run.budget.deadline is not None:
+                now = time.perf_counter()
+                deadline = now + max(run.budget.deadline - now, 0.0) / progressive_left
+                progressive_left -= 1
+            with PassContext(run.ps, run.paths, stats, run.show_progress,
+                             self._caches.setdefault(p.method, PassCache()), run.on_note,
+                             deadline, scene.render.target_error, image_so_far) as ctx:
                 out = method.render(ctx)
+                err = ctx.errors()
             run.ran.append(p.method)
-            if out.view_surface is not None:
-                base = out.view_surface
+            if err is not None:
+                errors = err if errors is None else (errors[0] + err[0], errors[1] + err[1])
+            views[k] = out.view_surface
             if out.surface is not None:
                 added = added + out.surface
             if out.medium is not None:
                 medium = medium + out.medium
-        surface = base + added
+        surface = base() + added
         with stats.stage("compose"):
             image = _finite(surface + medium, stats, run.on_note)
+        _report_error(stats, errors, image, scene.render.target_error, run.on_note)
+        _report_budget(stats, run.budget, run.on_note)
         return self._result(run, image, surface, medium)
 
     def _result(self, run: "_Run", image: np.ndarray, surface: np.ndarray,
@@ -368,6 +395,61 @@ class _Run:
     pass_params: dict
     clock: tuple[float, float]
     on_note: Callable[[str], None] | None
+    budget: "_Budget"
+
+
+@dataclass
+class _Budget:
+    """The render's time budget: seconds (0: none), where it comes from, when the render
+    started and the deadline its progressive passes end by (None: no deadline)."""
+
+    seconds: float
+    source: str
+    started: float
+    deadline: float | None
+
+
+def _time_budget(scene: Scene, req, started: float, stats: Stats, exempt: bool) -> _Budget:
+    """The render's :class:`_Budget` (:func:`budget.time_budget`), recorded in the stats.
+    ``exempt`` (a preview, or a cluster's task: fixed work) sets no deadline."""
+    seconds, source = budget.time_budget(scene, req.requested)
+    stats.set(time_budget=seconds, time_budget_source=source,
+              target_error=scene.render.target_error)
+    deadline = started + seconds if seconds > 0 and not exempt else None
+    return _Budget(seconds, source, started, deadline)
+
+
+def _report_error(stats: Stats, errors: tuple | None, image: np.ndarray,
+                  target: float, on_note) -> None:
+    """``error_estimate`` in the stats: the image's relMSE estimated from its progressive
+    passes (:mod:`clscatter.transport.progressive`: noise from independent halves, plus the
+    gather radii's blur; each also alone), None without any; and a note when the error
+    target was not reached."""
+    if errors is None:
+        stats.set(error_estimate=None)
+        return
+    noise = relmse_estimate(errors[0], image)
+    bias = max(relmse_estimate(errors[1], image), 0.0)
+    err = noise + bias
+    stats.set(error_estimate=err, error_estimate_noise=noise, error_estimate_bias=bias)
+    if target > 0 and err > target and on_note is not None:
+        on_note(f"render.target_error: the estimated relMSE is {err:.3g}, above the target "
+                f"{target:g}, when the passes stopped (raise render.time_budget to go on)")
+
+
+def _report_budget(stats: Stats, b: _Budget, on_note) -> None:
+    """A note when the render ran past its time budget by more than BUDGET_SLACK,
+    naming the stage that took longest."""
+    if b.deadline is None:
+        return
+    took = time.perf_counter() - b.started
+    if took <= budget.BUDGET_SLACK * b.seconds or on_note is None:
+        return
+    stages = stats.stages
+    name = max(stages, key=stages.get) if stages else "the render"
+    on_note(f"{b.source}: the render took {took:.3g} s of its {b.seconds:g} s budget; "
+            f"{name} alone took {stages.get(name, took):.3g} s (work that does not shrink "
+            f"with the budget: lower the resolution, spp or that stage's parameters)")
 
 
 def _finite(image: np.ndarray, stats: Stats, on_note) -> np.ndarray:
@@ -406,10 +488,10 @@ def _preview_scene(scene: Scene) -> Scene:
 
 
 def _absolute_paths(data: dict, base_dir: Path) -> dict:
-    """Make the ``file`` of mesh objects/volumes and ``grid`` of volumes absolute."""
+    """Make the ``file`` of mesh objects/volumes and ``grid``/``density`` of volumes absolute."""
     for section in ("objects", "volumes"):
         for item in data.get(section, []) or []:
-            for key in ("file", "grid"):
+            for key in ("file", "grid", "density"):
                 if isinstance(item, dict) and isinstance(item.get(key), str):
                     p = Path(item[key])
                     item[key] = str(p if p.is_absolute() else (base_dir / p).resolve())

@@ -19,8 +19,13 @@ materials                   type required; diffuse albedo 0.5, mirror reflectanc
                             1.0, dielectric ior 1.5, interior_sigma_a/s 0
 objects                     shape and material required; shape keys required;
                             transform translate 0, rotate [0, 1, 0, 0], scale 1
-volumes                     ior required (shapes), sigma_s 0, sigma_a 0, resolution 128
-render                      method "auto", max_depth 16, seed 0; ``[render.<m>]``
+volumes                     ior required (shapes), sigma_s 0, sigma_a 0, resolution 128;
+                            bounds required for a .npy index or density grid, else
+                            from the density file (.vdb transform, .vol box);
+                            density_grid "density" (files: ``grids.py``)
+render                      method "auto", max_depth 16, seed 0, time_budget absent
+                            (auto: 10 s, others none; 0: none), target_error 0
+                            (none); ``[render.<m>]``
                             tables are kept raw (clscatter.methods.configure
                             checks them against each method's declared PARAMS)
 ==========================  ======================================================
@@ -37,7 +42,7 @@ import math
 import os
 import re
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -48,7 +53,7 @@ except ModuleNotFoundError:  # Python 3.10
 
 from ..errors import SceneError
 from ..geometry import unit
-from . import shapes
+from . import grids, shapes
 from .model import (
     Camera,
     Light,
@@ -85,7 +90,8 @@ SHAPE_KEYS = {
 TRANSFORM_KEYS = ("translate", "rotate", "scale")
 VOLUME_KEYS = ("ior", "sigma_s", "sigma_a", "resolution")
 VOLUME_GRID_KEYS = ("grid", "bounds", "sigma_s", "sigma_a", "sigma_s_grid", "sigma_a_grid")
-RENDER_KEYS = ("method", "max_depth", "seed")
+VOLUME_DENSITY_KEYS = ("density", "density_grid", "grid", "bounds", "sigma_s", "sigma_a")
+RENDER_KEYS = ("method", "max_depth", "seed", "time_budget", "target_error")
 
 # a --set value that is not TOML but looks like one word is taken as a string
 _BARE_WORD = re.compile(r"[^\s\"'\[\]{}=,#]+")
@@ -486,14 +492,16 @@ def _objects(root: _Table, materials: dict[str, Material], base_dir: Path) -> li
 def _volume(t: _Table, base_dir: Path) -> Volume:
     sigma_s = t.colour("sigma_s", 0.0)
     sigma_a = t.colour("sigma_a", 0.0)
+    if t.has("density"):
+        return _density_volume(t, base_dir, sigma_s, sigma_a)
     if t.has("grid"):
         t.allow(VOLUME_GRID_KEYS, " for a grid volume (the grid holds the index of refraction)")
-        grid = _load_grid(base_dir / t.string("grid"), t.k("grid"))
+        grid = grids.load_grid(base_dir / t.string("grid"), t.k("grid"))
         bounds = _bounds(t.table("bounds"))
         per_voxel = {}
         for name in ("sigma_s_grid", "sigma_a_grid"):
             if t.has(name):
-                g = _load_grid(base_dir / t.string(name), t.k(name), positive=False)
+                g = grids.load_grid(base_dir / t.string(name), t.k(name), positive=False)
                 if g.shape != grid.shape:
                     raise _err(t.k(name), f"shape {g.shape} differs from grid's {grid.shape}")
                 per_voxel[name] = g
@@ -501,7 +509,8 @@ def _volume(t: _Table, base_dir: Path) -> Volume:
                       resolution=int(max(grid.shape)), grid=grid, grid_bounds=bounds, key=t.key,
                       **per_voxel)
     if not t.has("shape"):
-        raise _err(t.k("shape"), "missing required key (a volume needs a shape or a grid)")
+        raise _err(t.k("shape"), "missing required key (a volume needs a shape, a grid or a "
+                                 "density)")
     if t.raw("shape") == "quad":
         raise _err(t.k("shape"), "a quad encloses nothing: a volume needs a closed shape "
                                  "(mesh, sphere, box) or a grid")
@@ -517,24 +526,32 @@ def _volume(t: _Table, base_dir: Path) -> Volume:
                   mesh=mesh, key=t.key)
 
 
-def _load_grid(path: Path, key: str, positive: bool = True) -> np.ndarray:
-    if not path.is_file():
-        raise _err(key, f"grid file not found: {path}")
-    try:
-        grid = np.load(path, allow_pickle=False)
-    except Exception as exc:  # bad header, pickled object, truncated file...
-        raise _err(key, f"cannot read grid {path} as a .npy array: {exc}") from None
-    if not isinstance(grid, np.ndarray) or grid.ndim != 3 or grid.size == 0:
-        raise _err(key, f"grid {path} must be a non-empty 3-D array (got shape "
-                   f"{getattr(grid, 'shape', '?')})")
-    if not np.issubdtype(grid.dtype, np.number) or np.issubdtype(grid.dtype, np.complexfloating):
-        raise _err(key, f"grid {path} must hold real numbers (got {grid.dtype})")
-    grid = grid.astype(np.float64)
-    if positive and (not np.all(np.isfinite(grid)) or np.any(grid <= 0.0)):
-        raise _err(key, f"grid {path} must hold finite indices of refraction > 0")
-    if not positive and (not np.all(np.isfinite(grid)) or np.any(grid < 0.0)):
-        raise _err(key, f"grid {path} must hold finite coefficients >= 0")
-    return grid
+def _density_volume(t: _Table, base_dir: Path, sigma_s: np.ndarray,
+                    sigma_a: np.ndarray) -> Volume:
+    """A heterogeneous medium: ``density`` (.npy, .vdb, .vol), optionally with an index
+    ``grid``. Its box is ``bounds`` when given, else where the density file places it
+    (.vdb transform, .vol box); a .npy density or an index grid needs ``bounds``."""
+    t.allow(VOLUME_DENSITY_KEYS, " for a density volume")
+    name = t.string("density_grid") if t.has("density_grid") else None
+    dens = grids.load_density(base_dir / t.string("density"), t.k("density"), name,
+                              t.k("density_grid"))
+    bounds = _bounds(t.table("bounds")) if t.has("bounds") else dens.bounds
+    if bounds is None or (t.has("grid") and not t.has("bounds")):
+        why = "an index grid" if t.has("grid") else "a .npy density"
+        raise _err(t.k("bounds"), f"missing required key ({why} carries no placement)")
+    grid, ior = None, 1.0
+    if t.has("grid"):
+        grid = grids.load_grid(base_dir / t.string("grid"), t.k("grid"))
+        ior = float(grid.max())
+    lo, hi = (np.asarray(b, np.float64) for b in bounds)
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo < hi)
+            and np.all(np.abs(np.concatenate([lo, hi])) <= FLOAT32_MAX)):
+        raise _err(t.k("density"), f"the file places the grid in an empty or unbounded box "
+                   f"(min {_fmt_vec(lo)}, max {_fmt_vec(hi)}); give bounds")
+    shapes_ = [dens.values.shape] + ([grid.shape] if grid is not None else [])
+    return Volume(ior=ior, sigma_s=sigma_s, sigma_a=sigma_a,
+                  resolution=int(max(max(s) for s in shapes_)), grid=grid,
+                  grid_bounds=(lo, hi), key=t.key, density=dens.values)
 
 
 def _render(root: _Table) -> RenderSettings:
@@ -549,9 +566,12 @@ def _render(root: _Table) -> RenderSettings:
     method = t.string("method", "auto")
     max_depth = t.integer("max_depth", 16, lo=0)
     seed = t.integer("seed", 0, lo=0)
+    time_budget = t.number("time_budget", None, lo=0.0)
+    target_error = t.number("target_error", 0.0, lo=0.0)
     # method tables stay raw: clscatter.methods.configure checks them before any device work
     params = {m: copy.deepcopy(v) for m, v in t.data.items() if m not in RENDER_KEYS}
-    return RenderSettings(method=method, max_depth=max_depth, seed=seed, params=params)
+    return RenderSettings(method=method, max_depth=max_depth, seed=seed,
+                          time_budget=time_budget, target_error=target_error, params=params)
 
 
 # ---- Public API -------------------------------------------------------------------------
@@ -575,6 +595,10 @@ def scene_from_dict(data: dict, base_dir: Path | str = ".", source: str = "<memo
     materials = _materials(root)
     objects = _objects(root, materials, base_dir)
     volumes = [_volume(t, base_dir) for _, t in _array_of_tables(root, "volumes")]
+    dense = [v for v in volumes if v.density is not None]
+    if len(dense) > grids.MAX_DENSITY_VOLUMES:
+        raise _err(f"{dense[grids.MAX_DENSITY_VOLUMES].key}.density", f"at most "
+                   f"{grids.MAX_DENSITY_VOLUMES} density volumes per scene (merge their grids)")
     render = _render(root)
     return Scene(camera=camera, medium=medium, lights=lights, materials=materials,
                  objects=objects, volumes=volumes, render=render, source=source)
@@ -671,9 +695,12 @@ def read_toml(path: Path | str) -> dict:
         raise _err(name, f"invalid TOML: {msg}") from None
 
 
-def scene_source(spec: str | Path) -> tuple[dict, Path]:
-    """The raw scene dict of ``spec`` (a .toml path or ``builtin:NAME``) and the folder its
-    relative paths are resolved against; nothing is validated yet."""
+def scene_source(spec: str | Path, on_note: Callable[[str], None] | None = None
+                 ) -> tuple[dict, Path]:
+    """The raw scene dict of ``spec`` (a .toml path, a Mitsuba 3 .xml path or
+    ``builtin:NAME``) and the folder its relative paths are resolved against; nothing is
+    validated yet. ``on_note`` receives each note of a Mitsuba scene's conversion (one
+    line each: what was approximated or dropped, docs/mitsuba.md)."""
     spec = str(spec)
     if spec.startswith("builtin:"):
         from .builtin import BUILTIN
@@ -682,11 +709,20 @@ def scene_source(spec: str | Path) -> tuple[dict, Path]:
         if name not in BUILTIN:
             raise _err(spec, f"unknown built-in scene '{name}' (one of {', '.join(BUILTIN)})")
         return BUILTIN[name](), Path.cwd()
+    if Path(spec).suffix.lower() == ".xml":
+        from .mitsuba_in import read_xml
+
+        data, notes = read_xml(spec)
+        for line in notes if on_note is not None else ():
+            on_note(line)
+        return data, Path(spec).parent
     return read_toml(spec), Path(spec).parent
 
 
-def load_scene(spec: str | Path, overrides: Sequence[str] = ()) -> Scene:
-    """Load a scene: ``spec`` is a .toml path or ``builtin:NAME``; ``overrides`` are
-    ``--set key=value`` strings applied before validation."""
-    data, base_dir = scene_source(spec)
+def load_scene(spec: str | Path, overrides: Sequence[str] = (),
+               on_note: Callable[[str], None] | None = None) -> Scene:
+    """Load a scene: ``spec`` is a .toml or Mitsuba 3 .xml path or ``builtin:NAME``;
+    ``overrides`` are ``--set key=value`` strings applied before validation; ``on_note``
+    receives the notes of a Mitsuba scene's conversion."""
+    data, base_dir = scene_source(spec, on_note)
     return scene_from_dict(apply_overrides(data, overrides), base_dir, str(spec))

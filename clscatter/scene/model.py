@@ -86,8 +86,14 @@ class Object:
 
 @dataclass
 class Volume:
-    """A graded-index refractive volume, rendered by the voxel pipeline (docs/scene_format.md,
-    "What a volume means")."""
+    """A ``[[volumes]]`` region (docs/scene_format.md, "What a volume means"): a shape with a
+    constant index (``mesh``), or a box (``grid_bounds``) holding an index grid (``grid``),
+    a density grid (``density``) or both.
+
+    ``density`` (nx, ny, nz) float32 holds the density at the box's voxel centres; the
+    coefficients are then per unit density: sigma_s(x) = density(x) * ``sigma_s``, and
+    likewise ``sigma_a``. A density volume without an index grid has ``ior`` 1 and bends no
+    light (:attr:`refracts` is False)."""
 
     ior: float
     sigma_s: RGB
@@ -99,6 +105,13 @@ class Volume:
     key: str = ""
     sigma_s_grid: np.ndarray | None = None   # per-voxel coefficients of a grid volume
     sigma_a_grid: np.ndarray | None = None
+    density: np.ndarray | None = None        # density at the box's voxel centres (float32)
+
+    @property
+    def refracts(self) -> bool:
+        """True for a shape or an index grid: a region whose index the voxel pipeline
+        models (a pure density volume has n = 1 everywhere)."""
+        return self.mesh is not None or self.grid is not None
 
 
 # the method names the scene format reserves (render.method, [render.<name>] tables)
@@ -109,6 +122,8 @@ class RenderSettings:
     method: str = "auto"
     max_depth: int = 16
     seed: int = 0
+    time_budget: float | None = None  # seconds for the whole render; 0: none; None: the default
+    target_error: float = 0.0   # relMSE the progressive passes stop at; 0: none
     params: dict[str, dict[str, Any]] = field(default_factory=dict)  # [render.<method>] tables
 
 
@@ -136,6 +151,10 @@ class Scene:
             if m.type == "dielectric" and float(np.max(m.interior_sigma_s)) > 0.0:
                 seen.setdefault(id(m), m)
         return list(seen.values())
+
+    def density_volumes(self) -> list[Volume]:
+        """The volumes with a density grid (heterogeneous media), in scene order."""
+        return [v for v in self.volumes if v.density is not None]
 
     def has_medium(self) -> bool:
         """True when a medium exists and extinguishes light somewhere (a void medium, all

@@ -15,16 +15,24 @@ A method's ``render(ctx)`` reads everything through its :class:`PassContext`:
   when the session closes (values with a ``release()`` have it called): where a method
   keeps structures that survive a change that does not touch them;
 * ``ctx.note(line)``: a one-line note for the user (``render`` prints it as
-  ``clscatter: note: ...``), e.g. why a budget could not be kept.
+  ``clscatter: note: ...``), e.g. why a budget could not be kept;
+* ``ctx.progression(max_passes, planned, own_budget)``: the
+  :class:`~clscatter.transport.progressive.Progression` a method with progressive passes
+  runs them by: it ends them by the render's deadline (``ctx.deadline``, the share of
+  ``render.time_budget`` this pass was given) or the method's own budget, whichever comes
+  first, or at the render's error target, and estimates their noise (the session adds it
+  to the render's error estimate).
 """
 from __future__ import annotations
 
+import time
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from ..io.stats import Stats
 from .prepared import PreparedScene
+from .progressive import Progression
 from .view_paths import DeviceSegments, ViewPaths
 
 
@@ -46,8 +54,16 @@ class PassContext:
 
     def __init__(self, ps: PreparedScene, paths: ViewPaths, stats: Stats,
                  show_progress: bool = True, cache: PassCache | None = None,
-                 on_note: Callable[[str], None] | None = None):
+                 on_note: Callable[[str], None] | None = None,
+                 deadline: float | None = None, target_error: float = 0.0,
+                 image_so_far: Callable[[], np.ndarray | None] | None = None,
+                 clock: Callable[[], float] = time.perf_counter):
         self.ps = ps
+        self.clock = clock             # what deadlines are measured on (tests give a fake one)
+        self.deadline = deadline
+        self.target_error = float(target_error)
+        self._image_so_far = image_so_far
+        self.progressions: list[Progression] = []
         self._on_note = on_note
         self.paths = paths
         self.stats = stats
@@ -83,6 +99,32 @@ class PassContext:
         self.stats.set(notes=[*self.stats.values.get("notes", []), line])
         if self._on_note is not None:
             self._on_note(line)
+
+    def progression(self, max_passes: int, planned: int, own_budget: float = 0.0) -> Progression:
+        """A :class:`Progression` for this pass's progressive passes: at most ``max_passes``,
+        the time shared among ``planned``, ending by the render's deadline or ``own_budget``
+        seconds from now (0: none), whichever is first."""
+        prog = Progression(None, self.target_error, max_passes, planned, self._image_so_far,
+                           self.clock)
+        ends = [t for t in (self.deadline, prog.started + own_budget if own_budget > 0 else None)
+                if t is not None]
+        prog.deadline = min(ends) if ends else None
+        self.progressions.append(prog)
+        return prog
+
+    def errors(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The per-pixel variance and squared blur bias of this pass's progressions, summed
+        (None without one that has two halves; see
+        :meth:`~clscatter.transport.progressive.Progression.bias_squared`)."""
+        out = None
+        for p in self.progressions:
+            var = p.variance()
+            if var is None:
+                continue
+            bias = p.bias_squared(var)
+            bias = np.zeros_like(var) if bias is None else bias
+            out = (var, bias) if out is None else (out[0] + var, out[1] + bias)
+        return out
 
     def call(self, program: str, kernel: str, global_size: int | Sequence[int],
              defines: dict[str, object] | None = None, **args: Any) -> None:

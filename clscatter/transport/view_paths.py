@@ -211,13 +211,15 @@ def _first_samples(eng: Engine, lo: int, total: int, w: int, h: int, spp: int):
 def trace_view_paths(ps: PreparedScene, stats: Stats | None = None, show_progress: bool = True,
                      samples_per_launch: int = SAMPLES_PER_LAUNCH,
                      sample_range: tuple[int, int] | None = None,
-                     keep_hits: bool = False) -> ViewPaths:
+                     keep_hits: bool = False, program: str = "view_paths") -> ViewPaths:
     """Run ``view_paths.cl`` over every camera sample of ``ps`` (see the module docstring),
     or over the samples ``[lo, hi)`` of ``sample_range`` only: each sample's paths depend on
     its index alone, so disjoint ranges rendered apart sum to the whole image (how a render
     is split across workers, :mod:`clscatter.cluster`). With ``keep_hits`` the same launch
     also records the diffuse hits (:attr:`ViewPaths.hits`, on the device; what
-    :func:`shade_hits` relights after a light change).
+    :func:`shade_hits` relights after a light change). ``program`` names a build of
+    ``view_paths.cl`` with its medium functions replaced and the same ``trace_view``
+    signature (``density_view``: the view paths of a scene with density grids).
 
     Everything per sample stays on the device: the segments are appended per launch into
     one buffer, bucket-sorted by (sample, branch), and the per-sample surface and escaped
@@ -227,7 +229,8 @@ def trace_view_paths(ps: PreparedScene, stats: Stats | None = None, show_progres
     with stats.stage("view_paths"), progress(_sample_span(ps, sample_range, 1)[2], "view paths",
                                              show_progress) as bar:
         images, segs, hits = _trace(ps, sample_range, samples_per_launch, shade=True,
-                                    want_segs=True, want_hits=keep_hits, bar=bar)
+                                    want_segs=True, want_hits=keep_hits, bar=bar,
+                                    program=program)
     lo, hi, total, _ = _sample_span(ps, sample_range, samples_per_launch)
     stats.set(view_segments=int(segs.count), camera_samples=int(total))
     paths = ViewPaths(images[0], images[1], None, sample_range if sample_range is None else (lo, hi),
@@ -237,7 +240,7 @@ def trace_view_paths(ps: PreparedScene, stats: Stats | None = None, show_progres
 
 
 def _trace(ps: PreparedScene, sample_range, per_launch: int, shade: bool, want_segs: bool,
-           want_hits: bool, bar=None):
+           want_hits: bool, bar=None, program: str = "view_paths"):
     """The ``trace_view`` launches over the samples of ``sample_range``: the (surface,
     escaped) images when ``shade`` (else None), and the segments and diffuse hits, each
     sorted by (sample, branch) as a :class:`DeviceSegments` when wanted (else None)."""
@@ -258,8 +261,8 @@ def _trace(ps: PreparedScene, sample_range, per_launch: int, shade: bool, want_s
         for start in range(0, total, chunk):
             n = min(chunk, total - start)
             got = launch_appending(
-                eng, "view_paths", "trace_view", n, apps,
-                **ps.scene_args("view_paths", "trace_view"), max_depth=ps.scene.render.max_depth,
+                eng, program, "trace_view", n, apps,
+                **ps.scene_args(program, "trace_view"), max_depth=ps.scene.render.max_depth,
                     seed=seed, sample_offset=lo + start,
                 num_samples=n, shade=int(shade), want_segs=int(want_segs),
                 want_hits=int(want_hits), out_offset=start if shade else 0, surface=out_surf,

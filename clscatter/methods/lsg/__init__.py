@@ -2,27 +2,41 @@
 from __future__ import annotations
 
 import math
+import time
 from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
 from ...estimators.line_gather import BYTES_PER_SEGMENT, Gatherer
-from ...io.stats import Stats, Timer, progress
+from ...io.stats import Stats, progress
 from ...transport.context import PassContext
 from ...transport.emission import targeted_fraction
 from ...transport.light_paths import ray_counts, trace_light_paths
 from ...transport.prepared import PreparedScene
+from ...transport.progressive import BUDGET_SLACK
 from .. import register
 from ..base import AutoRole, Estimate, Method, Param, PassResult, camera_samples
 
 #: pair tests one lighting segment costs the gather, as an order of magnitude (the plane
 #: queries of a few hundred to a few thousand view segments): the work estimate's unit
 PAIRS_PER_SEGMENT = 1000
-#: a budget counts as kept while the time stays within this factor of it
-BUDGET_SLACK = 1.2
 #: most rays the automatic radius's pilot traces (in one piece: its segments stay in memory)
 PILOT_MAX = 1 << 18
+#: ... and under a time budget (the pilot also measures the cost that sizes passes)
+PILOT_BUDGETED = 2048
+#: fewest rays a pass under a time budget traces (fewer only if light_rays is smaller)
+MIN_PASS_RAYS = 1000
+#: a pass's gather visits about rays^(-1/6) of the lighting segments' tree per view segment
+#: (a 5-D hyperplane through 6-D Plücker points), so its cost grows like rays^(5/6)
+GATHER_EXPONENT = 5.0 / 6.0
+#: most a pass's size changes from the pass that sized it (from the pilot: its trial
+#: radius differs from the pass's, a looser guide)
+RESIZE_MAX = 4.0
+PILOT_RESIZE_MAX = 32.0
+#: most passes under an error target (the target or a deadline should end them first; a
+#: target the estimate cannot reach ends here, with a note)
+MAX_PASSES = 1024
 
 
 def _chunk_rays(counts: np.ndarray, k: int, n: int) -> int:
@@ -96,10 +110,18 @@ class LineSpaceGathering(Method):
     measured in the normalised frame, so the radius does not depend on the scene's scale
     or on objects far away. The pilot's rays are not part of the image.
 
-    *Progressive passes* (``passes`` > 1 or ``time_budget`` > 0): pass i traces fresh rays
-    and gathers them with ``r_{i+1} = r_i (i + alpha) / (i + 1)`` (:func:`ppb_radii`); the
-    image is the mean of the passes and converges without a radius bias floor. With a
-    ``time_budget``, passes run while one more fits in it (at least one runs).
+    *Progressive passes* (``passes`` > 1, or a time budget or error target): pass i traces
+    fresh rays and gathers them with ``r_{i+1} = r_i (i + alpha) / (i + 1)``
+    (:func:`ppb_radii`); the image is the mean of the passes and converges without a
+    radius bias floor. Under a deadline (this pass's share of ``render.time_budget``, or
+    ``time_budget``) passes are sized from measured throughput: the automatic radius's
+    pilot (at most :data:`PILOT_BUDGETED` rays) times its tracing and gathering, the first
+    pass traces what fits in the budget's share of one of ``passes`` planned passes (at
+    most ``light_rays``), each later pass is sized from the previous one, and passes run
+    while the next one is predicted to end in time, at most ``passes`` (a budget that
+    ``passes`` passes of ``light_rays`` fit in changes nothing). The passes' own images give
+    the render's noise estimate (:mod:`clscatter.transport.progressive`); with
+    ``render.target_error`` passes go on past ``passes`` until the estimate meets it.
 
     Rays are processed in chunks whose working set stays within ``max_bytes``; a chunk that
     turns out larger is traced again in smaller parts.
@@ -111,7 +133,8 @@ class LineSpaceGathering(Method):
     ``tree_build_seconds``, ``gather_seconds``, ``chunks``, ``lsg_chunks_retraced``,
     ``lsg_chunk_bytes_max``, ``lsg_radius`` (normalised; ``lsg_radius_world`` in scene
     units), ``lsg_radius_last``, ``lsg_passes``, ``lsg_pass_seconds``, ``lsg_time_budget``,
-    ``lsg_auto_radius``, ``lsg_targeted``, ``light_rays_specular_fraction``.
+    ``lsg_auto_radius``, ``lsg_targeted``, ``light_rays_specular_fraction``, ``lsg_pass_rays``,
+    ``lsg_stopped_by`` (passes, time_budget or target_error), ``lsg_error_estimate``.
 
     Usage: ``clscatter render scene.toml --method lsg --set render.lsg.light_rays=1000000
     --set render.lsg.time_budget=30``
@@ -124,8 +147,11 @@ class LineSpaceGathering(Method):
               "from the lighting-ray density and the pixel footprint", lo=0),
         Param("auto_count", 16.0, "automatic radius: lighting segments a typical lit view "
               "segment should gather", lo=1),
-        Param("passes", 1, "progressive passes of fresh rays (an upper bound with time_budget)", lo=1),
-        Param("time_budget", 0.0, "seconds for progressive passes (0: run `passes`)", lo=0),
+        Param("passes", 1, "progressive passes of fresh rays (under a time budget: sized to "
+              "fit it, fewer if even small ones do not; with an error target: more until it is met)",
+              lo=1),
+        Param("time_budget", 0.0, "seconds for this pass, pilot included (0: none; "
+              "render.time_budget also limits it)", lo=0),
         Param("first_pass", 0, "index of the first progressive pass to run (pass k uses its "
               "own rays and radius, so passes can run apart and be averaged: a cluster runs "
               "each pass as a task)", lo=0),
@@ -145,10 +171,11 @@ class LineSpaceGathering(Method):
     PREVIEW_SCALE = {"light_rays": 0.125, "passes": 0.0, "time_budget": 0.0}
     # a cluster may run each progressive pass as its own task (see clscatter.cluster)
     SPLIT_PASSES = True
-    # auto: the caustic pass alone (targeted), progressive under a time budget that the
-    # scene's [render.lsg] can change (defaults), caustics only (required)
+    PROGRESSIVE = True
+    # auto: the caustic pass alone (targeted), caustics only (required), progressive under
+    # auto's whole-render time budget, planned for 8 passes (a default [render.lsg] can change)
     AUTO = {"caustics": AutoRole(priority=10, params={"min_light_depth": 1},
-                                 defaults={"time_budget": 10.0, "passes": 8})}
+                                 defaults={"passes": 8})}
 
     @classmethod
     def estimate(cls, scene, params):
@@ -184,34 +211,32 @@ class LineSpaceGathering(Method):
         views = paths.segments
         p = self.params
         stats.set(view_segments=int(len(views)), lsg_targeted=self.targeted())
-        self._rays = self.traced_rays(ps)
+        self._rays = self._rays_cap = self.traced_rays(ps)
+        self._pass_rays: list[int] = []
         if len(views) == 0 or ps.num_lights == 0 or p["light_rays"] == 0:
             stats.set(pair_tests=0, pair_tests_bruteforce=0, valid_pairs=0, chunks=0,
                       lsg_radius=0.0, lsg_passes=0)
             return PassResult(medium=ctx.zeros())
-        eng = ps.engine
+        prog = self._progression(ctx)
         r_fixed = p["radius"] * ps.scene.scene_extent() / ps.frame.scale
         dev = ctx.segments()                                  # the same segments, in order
-        gat = Gatherer(eng, views, ps.medium, r_fixed or 1.0, p["min_sin"], p["leaf_size"],
+        gat = Gatherer(ps.engine, views, ps.medium, r_fixed or 1.0, p["min_sin"], p["leaf_size"],
                        p["segments_per_launch"], show_progress=show_progress, views_buf=dev.buf)
         try:
+            measured = None                      # (rays, seconds) of the pilot (sizes passes)
             if r_fixed > 0:
                 r1 = r_fixed
             else:
                 with stats.stage("lsg_auto_radius"):
-                    auto = self.auto_radius(ps, gat, views)
+                    auto, measured = self.auto_radius(ps, gat, views, prog)
                 r1 = auto.radius
                 stats.set(lsg_auto_radius=auto.__dict__)
-            totals, passes, pass_seconds = self._progressive(ps, gat, r1, stats, show_progress)
-            budget = float(p["time_budget"])
-            if budget > 0 and pass_seconds and pass_seconds[0] > BUDGET_SLACK * budget:
-                ctx.note(f"render.lsg.time_budget: the first pass alone took "
-                         f"{pass_seconds[0]:.3g} s, more than the {budget:g} s budget (a pass "
-                         f"is the smallest unit of work); lower render.lsg.light_rays to keep it")
-            with stats.stage("lsg_gather"):
-                image = gat.image(dev, 1.0 / max(passes, 1))
+            image, totals, pass_seconds = self._progressive(ps, gat, dev, r1, measured, prog,
+                                                            stats, show_progress)
+            self._budget_note(ctx, prog, pass_seconds)
         finally:
             gat.release()
+        passes = len(pass_seconds)
         radii = ppb_radii(r1, p["alpha"], p["first_pass"] + passes)
         totals["pair_tests_bruteforce"] = totals.pop("light_x_view")
         bf = max(totals["pair_tests_bruteforce"], 1)
@@ -223,40 +248,89 @@ class LineSpaceGathering(Method):
                   lsg_valid_fraction=totals["valid_pairs"] / max(totals["pair_tests"], 1),
                   lsg_radius=float(r1), lsg_radius_last=float(radii[-1]), lsg_passes=passes,
                   lsg_radius_world=float(r1) * ps.frame.scale,
-                  lsg_pass_seconds=pass_seconds, lsg_time_budget=p["time_budget"],
+                  lsg_pass_seconds=pass_seconds, lsg_pass_rays=self._pass_rays,
+                  lsg_time_budget=p["time_budget"], lsg_stopped_by=prog.stopped_by or "passes",
+                  lsg_error_estimate=prog.error,
                   light_rays_specular_fraction=spec / max(rays, 1))
         return PassResult(medium=image)
 
+    def _progression(self, ctx: PassContext):
+        """The pass's :class:`~clscatter.transport.progressive.Progression`: ``passes``
+        passes (fewer if a deadline, the render's share or ``time_budget``, comes first;
+        more, until the render's error target is met, if it is set)."""
+        p = self.params
+        planned = int(p["passes"])
+        prog = ctx.progression(planned, planned, float(p["time_budget"]))
+        if prog.target_error > 0:
+            prog.max_passes = MAX_PASSES
+        return prog
+
+    def _budget_note(self, ctx: PassContext, prog, seconds: list) -> None:
+        """Say why the time budget could not be kept, when the first pass alone broke it."""
+        if not prog.budgeted or not seconds:
+            return
+        allowed = prog.deadline - prog.started
+        if seconds[0] > BUDGET_SLACK * max(allowed, 0.0):
+            ctx.note(f"lsg: the first pass alone took {seconds[0]:.3g} s of the {allowed:.3g} s "
+                     f"this pass had (a pass of {self._pass_rays[0]} lighting rays is the "
+                     f"smallest unit of work); lower camera.resolution or camera.spp")
+
     # ---- automatic radius ----
-    def auto_radius(self, ps: PreparedScene, gat: Gatherer, views: np.ndarray) -> AutoRadius:
-        """The automatic radius (class docstring): a pilot gather at a trial radius."""
+    def auto_radius(self, ps: PreparedScene, gat: Gatherer, views: np.ndarray,
+                    prog=None) -> tuple[AutoRadius, tuple[int, float]]:
+        """The automatic radius (class docstring): a pilot gather at a trial radius, for the
+        rays the first pass will trace (under a deadline: as many as fit, by the pilot's
+        cost); and (pilot rays, seconds of their tracing and last gather)."""
         n_rays = self._rays
         pilot = int(min(n_rays, max(2000, n_rays // 8), PILOT_MAX))
+        if prog is not None and prog.budgeted:
+            pilot = min(pilot, PILOT_BUDGETED)
         cam = ps.camera
         mid = 0.5 * (views["a"][:, :3] + views["b"][:, :3]).astype(np.float64)
         dist = np.linalg.norm(mid - cam["origin"][:3].astype(np.float64), axis=1)
         pix = 2.0 * float(np.linalg.norm(cam["right"][:3])) / max(int(cam["width"]), 1)
         foot = dist * pix                       # pixel footprint at each view segment
+        clock = prog.clock if prog is not None else time.perf_counter
+        t0 = clock()
         lp = trace_light_paths(ps, pilot, None, gat.show_progress, targeted=self.targeted(),
                                seed_offset=-1 - self.params["light_seed"])
+        traced = clock() - t0
         segs = self._select(lp.segments)
         r0 = 0.25 * float(np.median(foot)) if len(foot) else 1e-3
         lit = np.zeros(0, np.int64)
         for _ in range(12):
             gat.reset()
             gat.radius = r0
+            t0 = clock()
             gat.add(segs)
+            gathered = clock() - t0
             lit = np.flatnonzero(gat.valid_per_view > 0)
             if len(lit) >= min(64, max(1, len(views) // 4)) or len(segs) == 0:
                 break
             r0 *= 2.0
+        measured = (pilot, traced + gathered)
+        if prog is not None and prog.budgeted:
+            n_rays = self._sized_rays(pilot, measured[1], prog, limit=PILOT_RESIZE_MAX)
+        self._rays = n_rays
         count = float(np.median(gat.valid_per_view[lit])) * n_rays / pilot if len(lit) else 0.0
         gat.reset()
         if len(lit) == 0:                       # no light reaches any view segment
-            return AutoRadius(r0, r0, pilot, 0.0, float(np.median(foot)), 0)
+            return AutoRadius(r0, r0, pilot, 0.0, float(np.median(foot)), 0), measured
         f = float(np.median(foot[lit]))
         r = max(r0 * self.params["auto_count"] / count, f / 16)
-        return AutoRadius(float(r), float(r0), pilot, count, f, int(len(lit)))
+        return AutoRadius(float(r), float(r0), pilot, count, f, int(len(lit))), measured
+
+    def _sized_rays(self, rays: int, seconds: float, prog, limit: float = 0.0) -> int:
+        """Rays for a pass that should take ``prog.pass_seconds()``, given that ``rays``
+        rays took ``seconds`` (a pilot or the previous pass): the gather's cost grows like
+        rays^:data:`GATHER_EXPONENT`, so ``rays * (wanted / seconds)^(1 / exponent)``,
+        within a factor ``limit`` (default :data:`RESIZE_MAX`) of ``rays`` and within
+        [MIN_PASS_RAYS, the pass's ray count]."""
+        most, limit = self._rays_cap, limit or RESIZE_MAX
+        ratio = prog.pass_seconds() / max(seconds, 1e-6)
+        want = rays * min(max(ratio, 1e-12) ** (1.0 / GATHER_EXPONENT), limit)
+        want = max(want, rays / limit)
+        return int(min(most, max(min(MIN_PASS_RAYS, most), want)))
 
     # ---- passes ----
     def _select(self, segs: np.ndarray) -> np.ndarray:
@@ -264,33 +338,54 @@ class LineSpaceGathering(Method):
             return segs[segs["depth"] >= self.params["min_light_depth"]]
         return segs
 
-    def _progressive(self, ps: PreparedScene, gat: Gatherer, r1: float, stats: Stats,
-                     show_progress: bool) -> tuple[dict, int, list]:
-        """Run the passes into ``gat``'s accumulator; (totals, passes run, seconds each)."""
+    def _progressive(self, ps: PreparedScene, gat: Gatherer, dev, r1: float,
+                     measured: tuple[int, float] | None, prog, stats: Stats,
+                     show_progress: bool) -> tuple[np.ndarray, dict, list]:
+        """Run the passes into ``gat``'s accumulator while ``prog`` says so; (the image,
+        the mean of the passes; totals; seconds of each pass). Each pass's own image goes
+        to ``prog`` (its error estimate); under a deadline each pass after the first is
+        sized from the previous one's measured rays per second."""
         p = self.params
-        budget = float(p["time_budget"])
-        most = int(p["passes"]) if budget <= 0 or p["passes"] > 1 else 1 << 30
         first = int(p["first_pass"])
         tot: dict = {}
         seconds: list[float] = []
+        self._pass_rays = []
         r = float(ppb_radii(r1, p["alpha"], first + 1)[-1])    # pass `first`'s radius
-        with progress(most if most < 1 << 30 else 0, "lsg passes", show_progress) as bar:
-            for i in range(first, first + most):
+        keep_images = prog.max_passes > 1
+        previous = None
+        total = prog.planned if prog.max_passes > prog.planned else prog.max_passes
+        with progress(total, "lsg passes", show_progress) as bar:
+            i = first
+            while prog.more():
                 done = i - first
-                if budget > 0 and done > 0 and sum(seconds) * (1 + 1 / done) > budget:
-                    break
-                with Timer() as t:
-                    gat.radius = r
-                    res = self._gather_chunks(ps, gat, stats, show_progress,
-                                              seed_offset=i + (self.params["light_seed"] << 16))
-                seconds.append(t.seconds)
+                if done > 0 and prog.budgeted:   # size from the previous pass's cost
+                    self._rays = self._sized_rays(self._pass_rays[-1], seconds[-1], prog)
+                elif done == 0 and prog.budgeted and measured is None:
+                    self._rays = min(self._rays, PILOT_BUDGETED)
+                t0 = prog.clock()
+                gat.radius = r
+                res = self._gather_chunks(ps, gat, stats, show_progress,
+                                          seed_offset=i + (self.params["light_seed"] << 16))
+                seconds.append(prog.clock() - t0)
+                self._pass_rays.append(int(self._rays))
+                cumulative = gat.image(dev) if keep_images else None
+                own = cumulative if previous is None or cumulative is None else cumulative - previous
+                prog.add(own, seconds[-1], radius=r)
+                previous = cumulative
                 if self.pass_callback is not None:
                     self.pass_callback(done + 1, r, gat.values() / (done + 1))
                 for key, v in res.items():
                     tot[key] = max(tot.get(key, 0), v) if key.endswith("_max") else tot.get(key, 0) + v
+                if done + 1 > bar.total:
+                    bar.total = done + 1
+                bar.set_postfix_str("" if prog.error is None else f"relMSE~{prog.error:.2g}")
                 bar.update(1)
                 r *= (i + 1 + p["alpha"]) / (i + 2)
-        return tot, len(seconds), seconds
+                i += 1
+        with stats.stage("lsg_gather"):
+            n = max(len(seconds), 1)
+            image = previous * np.float32(1.0 / n) if previous is not None else gat.image(dev, 1.0 / n)
+        return image, tot, seconds
 
     def _gather_chunks(self, ps: PreparedScene, gat: Gatherer, stats: Stats,
                        show_progress: bool, seed_offset: int = 0) -> dict:

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...errors import SceneError
+from ...estimators.density_march import upload
 from ...estimators.segment_march import march_segments
 from ...scene.model import Scene, Volume
 from ...transport.context import PassContext
@@ -71,6 +72,12 @@ class Voxel(Method):
     (``voxelise_dielectrics``), so glass is rendered by the ray equation, not by Snell's
     law (no Fresnel reflection).
 
+    Density volumes (heterogeneous media) are voxelised like grid volumes, their
+    coefficients the sampled density times ``sigma_s`` and ``sigma_a``; in a scene with
+    them the straight tracers' shadow rays are attenuated through the density grids
+    themselves (``density.h``, exact optical depths), so surfaces lie in the smoke's
+    shadow. Shadows of the other volumes on surfaces are not modelled.
+
     Usage: ``clscatter render scene.toml --method voxel --set render.voxel.resolution=128``;
     ``--stats`` reports the grid (``voxel_grid``: min, max, dims, voxel size in scene
     units), photons, marching steps and launches, and per-stage seconds.
@@ -115,6 +122,7 @@ class Voxel(Method):
     # planner honours ALONE; see docs/voxel.md).
     ALONE = True
     INTERIOR_SCATTERING = True    # voxelised glass carries its interior coefficients
+    DENSITY = True                # density volumes are voxelised like grid volumes
 
     # bytes per voxel of the grid while a frame renders: n, grad, sigma_s, kappa, octree
     # level and limit, deposits (2 float4), a blur temporary, the volumes' weights
@@ -158,8 +166,12 @@ class Voxel(Method):
                                                     stats, ctx.show_progress))
         vps = self._variant(ctx, scene) if scene is not ps.scene else ps
         pipe = self._pipeline(ctx, vps)
+        dens = None
+        if scene.density_volumes():          # surfaces' shadow rays through the grids
+            dens = ctx.cache["density"] = upload(vps, ctx.cache.get("density"))
         try:
-            out = pipe.update(vps, stats, ctx.show_progress)
+            out = pipe.update(vps, stats, ctx.show_progress,
+                              medium=dens.buf if dens is not None else None)
         except BaseException:
             ctx.cache.release()
             raise
@@ -240,7 +252,7 @@ def stage_keys(ps, params: dict) -> tuple[str, str, str]:
         geo += [v.resolution, None if v.mesh is None else v.mesh.vertices,
                 None if v.mesh is None else v.mesh.faces, v.grid, repr(v.grid_bounds)]
         mat += [v.ior, v.sigma_s, v.sigma_a, getattr(v, "sigma_s_grid", None),
-                getattr(v, "sigma_a_grid", None)]
+                getattr(v, "sigma_a_grid", None), v.density]
     g, m = _digest(*geo), _digest(*mat)
     light = _digest(g, m, ps.lights, ps.bvh.triangles, ps.scene.render.seed,
                     *(params[k] for k in ("photons", "adaptive", "step_min", "min_flux", "steps_per_launch",

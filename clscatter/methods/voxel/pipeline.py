@@ -119,9 +119,10 @@ class Pipeline:
                                    test_surfaces=len(ps.bvh.order) > 0, smoothing=p["smoothing"],
                                    outer=outer)
 
-    def update(self, ps, stats=None, show_progress: bool = True) -> dict:
+    def update(self, ps, stats=None, show_progress: bool = True, medium=None) -> dict:
         """Run the stages whose results are missing, then the view; returns
-        ``{"surface": (H,W,3), "medium": (H,W,3)}`` (full surface term, seen through the grid)."""
+        ``{"surface": (H,W,3), "medium": (H,W,3)}`` (full surface term, seen through the grid).
+        ``medium``: the density buffer of a scene with density volumes (``view_pass``)."""
         self.ran, self.timings = [], {}
         if self.box is None:
             self._timed("geometry", stats, lambda: self._geometry(ps))
@@ -129,14 +130,14 @@ class Pipeline:
             self._timed("material", stats, lambda: self._material(ps))
         if self.radiance is None:
             self._timed("lighting", stats, lambda: self._lighting(ps))
-        res = self._timed("view", stats, lambda: self._view(ps, stats, show_progress))
+        res = self._timed("view", stats, lambda: self._view(ps, stats, show_progress, medium))
         self.counters = {**self.radiance.counters, **res["counters"],
                          "voxel_grid": self.box.describe(ps.frame)}
         return res
 
-    def _view(self, ps, stats, show_progress) -> dict:
+    def _view(self, ps, stats, show_progress, medium=None) -> dict:
         vr = view_pass(ps, self.fields, self.radiance, self.params["view_rounds"], show_progress,
-                       test_surfaces=len(ps.bvh.order) > 0)
+                       test_surfaces=len(ps.bvh.order) > 0, medium=medium)
         cam = ps.scene.camera
         direct = np.zeros((cam.height, cam.width, 3), np.float32)
         beyond = np.zeros_like(direct)

@@ -55,9 +55,11 @@ class _Pass:
     read back: each launch's per-work-item values are summed into pixels on the device and
     the image (or a camera launch's band of pixels) is added here (float64)."""
 
-    def __init__(self, ps, box: GridBox, samples_per_launch: int):
+    def __init__(self, ps, box: GridBox, samples_per_launch: int, medium=None):
         eng = self.eng = ps.engine
         self.ps = ps
+        # the straight tracers' medium buffer (density grids: their shadow rays go through them)
+        self.medium = {"medium": medium} if medium is not None else {}
         cam = ps.scene.camera
         self.w, self.h, self.spp = cam.width, cam.height, cam.spp
         self.total = self.w * self.h * self.spp
@@ -91,7 +93,7 @@ class _Pass:
         eng, ps = self.eng, self.ps
         store = _Store(eng, VOX_RAY)
         surface = eng.empty(16 * self.chunk)
-        args = {**ps.scene_args("voxel", "voxel_trace_camera"),
+        args = {**ps.scene_args("voxel", "voxel_trace_camera"), **self.medium,
                 "max_depth": ps.scene.render.max_depth,
                 "seed": np.uint32(ps.scene.render.seed & 0xFFFFFFFF)}
         pixels = self.surface.reshape(-1, 3)
@@ -137,7 +139,7 @@ class _Pass:
         surface = eng.empty(16 * rays.count)
         try:
             self.trace("voxel_trace_rays", rays.count, store, surface,
-                       **ps.scene_args("voxel", "voxel_trace_rays"),
+                       **{**ps.scene_args("voxel", "voxel_trace_rays"), **self.medium},
                        max_depth=ps.scene.render.max_depth, min_weight=MIN_THROUGHPUT / self.spp,
                        rays=rays.buf, count=rays.count)
             self.surface += rays.accumulate(surface)
@@ -201,8 +203,10 @@ def march_args(ps, fields: Fields, radiance: Radiance, test_surfaces: bool) -> d
 
 def view_pass(ps, fields: Fields, radiance: Radiance, max_rounds: int = 4,
               show_progress: bool = True, test_surfaces: bool = True,
-              samples_per_launch: int = SAMPLES_PER_LAUNCH) -> ViewResult:
-    """Trace the whole image through the grid (see the module docstring).
+              samples_per_launch: int = SAMPLES_PER_LAUNCH, medium=None) -> ViewResult:
+    """Trace the whole image through the grid (see the module docstring). ``medium``: a
+    device buffer in ``density.h``'s layout for the straight tracers (a scene with density
+    volumes: surfaces are then lit through the grids), else the scene's own.
 
     Everything per camera sample and per ray stays on the device between the passes: the
     rays stopped at the grid are collected launch by launch and bucket-sorted by (sample,
@@ -224,7 +228,7 @@ def view_pass(ps, fields: Fields, radiance: Radiance, max_rounds: int = 4,
     box: GridBox = fields.box
     args = march_args(ps, fields, radiance, test_surfaces)
     counters = {"voxel_view_rays": 0, "voxel_view_rounds": 0}
-    vp = _Pass(ps, box, samples_per_launch)
+    vp = _Pass(ps, box, samples_per_launch, medium)
     rays = None
     try:
         with progress(vp.total, "voxel view", show_progress) as bar:

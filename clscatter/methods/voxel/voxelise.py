@@ -21,7 +21,10 @@ Stages, each a kernel of ``cl_kernels/voxel.cl`` except the per-volume mix:
 A grid volume (``grid = "*.npy"``) has n_v(x) = the grid's value trilinear between its
 centres, clamped at its outermost centres; its weight is the exact fraction of each voxel
 inside its bounds box, blurred like a shape's coverage, so the jump at the box faces is
-smoothed the same way while the interior keeps its sampled values unblurred.
+smoothed the same way while the interior keeps its sampled values unblurred. A density
+volume is a grid volume whose coefficients are per unit density: sigma_v(x) = density(x)
+sigma_v, the density sampled at the voxel centres as the index is (n_v = 1 without an
+index grid).
 """
 from __future__ import annotations
 
@@ -144,13 +147,17 @@ def sample_grid(box: GridBox, values: np.ndarray, bmin, bmax) -> np.ndarray:
 def volume_fields(box: GridBox, v: Volume, frame: Frame) -> tuple:
     """(n_v, sigma_s_v, sigma_a_v) of one volume at the grid's centres: scalars/rgb for
     shapes, sampled grids for grid volumes (per-voxel sigma grids when the volume has
-    ``sigma_s_grid`` / ``sigma_a_grid`` attributes, else the scalars)."""
+    ``sigma_s_grid`` / ``sigma_a_grid`` attributes, else the scalars), and the sampled
+    density times the coefficients for a density volume."""
     ss = frame.coefficient(v.sigma_s).astype(np.float32)
     sa = frame.coefficient(v.sigma_a).astype(np.float32)
-    if v.grid is None:
+    if v.grid is None and v.density is None:
         return np.float32(v.ior), ss, sa
     bmin, bmax = frame.point(v.grid_bounds[0]), frame.point(v.grid_bounds[1])
-    n = sample_grid(box, v.grid, bmin, bmax)
+    n = sample_grid(box, v.grid, bmin, bmax) if v.grid is not None else np.float32(1.0)
+    if v.density is not None:
+        d = sample_grid(box, v.density, bmin, bmax)[..., None]
+        return n, d * ss, d * sa
     for name in ("sigma_s_grid", "sigma_a_grid"):
         g = getattr(v, name, None)
         if g is not None:

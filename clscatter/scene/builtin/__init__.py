@@ -6,6 +6,7 @@ docs/scene_format.md, one module per family (no module imports another but ``par
 ``caustics``        glass ball, gem, torus, mirror dish, metaball blob (``caustic_*``)
 ``epipolar``        scenes of rising shadow complexity and the weak-spot sweeps (``epi_*``)
 ``volumes``         graded-index volumes for the voxel pipeline (``volume_*``)
+``smoke``           heterogeneous media: a density grid (``smoke_plume``)
 ==================  ======================================================================
 
 ``load_scene("builtin:NAME")`` validates them through the same ``scene_from_dict`` as a
@@ -18,13 +19,14 @@ from typing import Callable
 from .basic import BASIC_SCENES
 from .caustics import CAUSTIC_SCENES
 from .epipolar import EPIPOLAR_SCENES
+from .smoke import SMOKE_SCENES
 from .toml_writer import to_toml
 from .volumes import VOLUME_SCENES
 
 DEFAULT_BUILTIN = "shafts"
 
 BUILTIN: dict[str, Callable[[], dict]] = {**BASIC_SCENES, **CAUSTIC_SCENES, **EPIPOLAR_SCENES,
-                                          **VOLUME_SCENES}
+                                          **VOLUME_SCENES, **SMOKE_SCENES}
 
 
 def builtin_toml(name: str) -> str:

@@ -1,0 +1,234 @@
+"""Time budgets and error targets: the progression's stopping rules and noise estimate, a
+budgeted LSG pass against a fake clock (work that would take 10x the budget), the
+render-level budget and error estimate through the session and the command line."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from clscatter.cli import main
+from clscatter.estimators import line_gather
+from clscatter.io.stats import Stats
+from clscatter.methods.lsg import LineSpaceGathering
+from clscatter.pipeline import budget
+from clscatter.pipeline.render import render
+from clscatter.scene import load_scene
+from clscatter.transport.context import PassContext
+from clscatter.transport.prepared import prepare_scene
+from clscatter.transport.progressive import Progression, relmse_estimate
+from clscatter.transport.view_paths import trace_view_paths
+
+
+class FakeClock:
+    """A clock that moves only when told to."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_relmse_estimate_is_relmse_of_the_variance():
+    """relmse_estimate(var, I) = mean(var / (I^2 + 0.01 mean|I|^2)), exactly (1e-12)."""
+    rng = np.random.default_rng(1)
+    image = rng.uniform(0.0, 2.0, (6, 5, 3))
+    var = rng.uniform(0.0, 0.1, (6, 5, 3))
+    floor = 0.01 * np.mean(np.abs(image)) ** 2
+    assert relmse_estimate(var, image) == pytest.approx(np.mean(var / (image ** 2 + floor)), rel=1e-12)
+    assert relmse_estimate(np.zeros_like(var), np.zeros_like(image)) == 0.0
+    assert math.isinf(relmse_estimate(var, np.zeros_like(image)))
+
+
+def test_halves_estimate_tracks_the_true_error():
+    """Passes = truth + independent noise of known sigma: the halves' estimate of the mean's
+    relMSE is within a factor 1.3 of the true expected relMSE (sigma^2 / n against the
+    truth), at 2, 4 and 16 passes, and within 1.5x of the error the mean actually has."""
+    rng = np.random.default_rng(7)
+    truth = rng.uniform(0.5, 1.5, (40, 50, 3))
+    sigma = 0.1        # the estimate divides by the noisy image itself: noise well below it
+    for n in (2, 4, 16):
+        prog = Progression(max_passes=n, planned=n)
+        passes = truth + rng.normal(0.0, sigma, (n, *truth.shape))
+        for p in passes:
+            prog.add(p, 1.0)
+        expected = relmse_estimate(np.full(truth.shape, sigma ** 2 / n), truth)
+        actual = relmse_estimate((passes.mean(0) - truth) ** 2, truth)
+        assert prog.error == pytest.approx(expected, rel=0.3), n
+        assert 1 / 1.5 < prog.error / actual < 1.5, n
+        np.testing.assert_allclose(prog.mean(), passes.mean(0), rtol=1e-12)
+
+
+def test_progression_stops_at_deadline_target_and_count():
+    """The deadline stops passes when the mean pass time would overrun it (one pass always
+    runs), the error target once at least 4 passes met it, max_passes otherwise."""
+    clock = FakeClock()
+    prog = Progression(deadline=clock() + 10.0, max_passes=100, planned=4, clock=clock)
+    runs = 0
+    while prog.more():
+        clock.now += 3.0
+        prog.add(None, 3.0)
+        runs += 1
+    assert runs == 3 and prog.stopped_by == "time_budget"     # 9 s; a 4th would end at 12
+    clock = FakeClock()
+    late = Progression(deadline=clock() + 1.0, max_passes=100, clock=clock)
+    assert late.more()
+    clock.now += 5.0
+    late.add(None, 5.0)
+    assert not late.more()                                     # the first pass alone overran
+
+    prog = Progression(target_error=1e-3, max_passes=1000, planned=8)
+    truth = np.ones((8, 8, 3))
+    rng = np.random.default_rng(3)
+    while prog.more():
+        prog.add(truth + rng.normal(0.0, 0.1, truth.shape), 1.0)
+    n = len(prog.seconds)
+    assert prog.stopped_by == "target_error" and prog.error <= 1e-3
+    # sigma^2 / n < 1e-3 first holds at n = 10; the estimate's own noise moves it a little
+    assert 6 <= n <= 16
+    fixed = Progression(max_passes=3)
+    while fixed.more():
+        fixed.add(None, 1.0)
+    assert len(fixed.seconds) == 3 and fixed.stopped_by == "passes"
+    assert fixed.error is None and fixed.variance() is None
+
+
+CAUSTIC = "builtin:caustic_sphere"
+SMALL = ["camera.resolution=[40,30]", "camera.spp=1"]
+
+
+@pytest.fixture(scope="module")
+def caustic(engine):
+    scene = load_scene(CAUSTIC, SMALL)
+    ps = prepare_scene(scene, engine)
+    paths = trace_view_paths(ps, Stats(), False)
+    yield ps, paths
+    paths.release()
+    ps.release()
+
+
+def test_budgeted_lsg_keeps_its_budget_on_a_fake_clock(caustic, monkeypatch):
+    """Every gather advances a fake clock by a cost that grows like rays^(5/6) (the
+    gather's model); at the pass's light_rays the 8 passes would take 10x the budget. The
+    budgeted pass sizes its passes from what the pilot and each pass cost and ends within
+    1.2x the budget, with at least 2 passes and fewer rays per pass than light_rays."""
+    ps, paths = caustic
+    clock = FakeClock()
+    real_add = line_gather.Gatherer.add
+    rays_full = 40_000
+    per_pass_full = 10.0 * 8.0 / 8      # seconds one full pass costs: 8 of them = 10 x 8 s
+
+    def costly_add(self, segs, *a, **kw):
+        clock.now += per_pass_full * (max(len(segs), 1) / (3.0 * rays_full)) ** (5 / 6)
+        return real_add(self, segs, *a, **kw)
+
+    monkeypatch.setattr(line_gather.Gatherer, "add", costly_add)
+    m = LineSpaceGathering({"light_rays": rays_full, "passes": 8, "radius": 0.0})
+    stats = Stats()
+    with PassContext(ps, paths, stats, False, deadline=clock() + 8.0, clock=clock) as ctx:
+        started = clock()
+        m.render(ctx)
+    s = stats.to_dict()
+    took = clock() - started
+    assert took <= 1.2 * 8.0, s["lsg_pass_seconds"]
+    assert s["lsg_passes"] >= 2 and max(s["lsg_pass_rays"]) < m.traced_rays(ps)
+    assert s["lsg_stopped_by"] in ("time_budget", "passes")
+    assert s["lsg_error_estimate"] is not None and s["lsg_error_estimate"] > 0
+
+
+def test_budget_first_pass_over_budget_gives_a_note(caustic, monkeypatch):
+    """A budget smaller than the smallest pass: one pass runs and one note says so."""
+    ps, paths = caustic
+    clock = FakeClock()
+    real_add = line_gather.Gatherer.add
+
+    def slow_add(self, segs, *a, **kw):
+        clock.now += 5.0
+        return real_add(self, segs, *a, **kw)
+
+    monkeypatch.setattr(line_gather.Gatherer, "add", slow_add)
+    notes: list[str] = []
+    stats = Stats()
+    m = LineSpaceGathering({"light_rays": 20_000, "passes": 8})
+    with PassContext(ps, paths, stats, False, on_note=notes.append, deadline=clock() + 1.0,
+                     clock=clock) as ctx:
+        m.render(ctx)
+    assert stats.values["lsg_passes"] == 1
+    assert len(notes) == 1 and "the first pass alone took" in notes[0]
+
+
+def test_render_level_budget_and_error_estimate(engine):
+    """auto's default budget is in the stats; an explicit budget and target error are
+    recorded; a progressive render reports a finite error estimate; a render without
+    progressive passes reports none."""
+    scene = load_scene(CAUSTIC, SMALL + ["render.lsg.light_rays=3000", "render.lsg.passes=4"])
+    out = render(scene, "lsg", engine=engine, show_progress=False)
+    s = out.stats
+    assert s["time_budget"] == 0.0 and s["time_budget_source"] == "none"
+    assert s["target_error"] == 0.0
+    assert s["lsg_passes"] == 4 and math.isfinite(s["error_estimate"]) and s["error_estimate"] > 0
+
+    auto = load_scene(CAUSTIC, SMALL + ["render.lsg.light_rays=3000"])
+    assert budget.time_budget(auto, "auto") == (budget.AUTO_TIME_BUDGET, "auto's default")
+    assert budget.time_budget(load_scene(CAUSTIC, ["render.time_budget=0"]), "auto")[0] == 0.0
+    plain = render(load_scene("builtin:occluder", SMALL), "raymarch", engine=engine,
+                   show_progress=False)
+    assert plain.stats["error_estimate"] is None
+
+
+def test_target_error_passes_go_on_until_met(engine):
+    """With a reachable target the passes stop once the estimate meets it (more than
+    render.lsg.passes); the estimate reported is at most the target."""
+    base = SMALL + ["render.lsg.light_rays=2000", "render.lsg.passes=2", "render.lsg.radius=0.02",
+                    "render.time_budget=0"]
+    one = render(load_scene(CAUSTIC, base), "lsg", engine=engine, show_progress=False).stats
+    target = one["error_estimate"] / 3          # two passes' error / 3: about 6 passes
+    scene = load_scene(CAUSTIC, base + [f"render.target_error={target!r}"])
+    s = render(scene, "lsg", engine=engine, show_progress=False).stats
+    assert s["lsg_stopped_by"] == "target_error" and 4 <= s["lsg_passes"] <= 64
+    assert s["lsg_error_estimate"] <= target and s["error_estimate"] <= target
+
+
+def test_cli_time_budget_flags(tmp_path, capsys):
+    """--time-budget and --target-error reach the scene (check prints them); a negative
+    budget is one line naming the key, exit 2, nothing written."""
+    assert main(["check", CAUSTIC, "--time-budget", "3", "--target-error", "0.01"]) == 0
+    out = capsys.readouterr().out
+    assert "time: 3 s for the whole render (render.time_budget)" in out
+    assert "relMSE of 0.01" in out
+    assert main(["check", CAUSTIC]) == 0
+    assert "time: 10 s for the whole render (auto's default)" in capsys.readouterr().out
+    target = tmp_path / "x.png"
+    assert main(["render", CAUSTIC, "--time-budget=-1", "-o", str(target)]) == 2
+    err = capsys.readouterr().err
+    assert "render.time_budget" in err and len(err.strip().splitlines()) == 1
+    assert not target.exists()
+    stats = tmp_path / "s.json"
+    assert main(["render", CAUSTIC, "--method", "raymarch", "--time-budget", "30",
+                 "--set", "camera.resolution=[16,12]", "-o", str(tmp_path / "y.npy"),
+                 "--stats", str(stats)]) == 0
+    s = json.loads(stats.read_text())
+    assert s["time_budget"] == 30.0 and s["time_budget_source"] == "render.time_budget"
+
+
+@pytest.mark.parametrize("name,method", [("caustic_sphere", "auto"), ("caustic_sphere", "lsg"),
+                                         ("caustic_mirror", "auto")])
+def test_error_estimate_tracks_the_error_against_a_long_run(engine, name, method):
+    """The render's own error estimate (noise from independent halves plus the shrinking
+    radii's blur) is within a factor 2 of its relMSE against a long run (48 passes of 4x
+    the rays), after 4 and after 16 passes, on built-in caustic scenes: under auto the blur
+    dominates the error (caustic_sphere), under lsg the noise does."""
+    from clscatter.io.image import relmse
+    base = ["camera.resolution=[48,36]", "camera.spp=1", "render.time_budget=0"]
+    long = render(load_scene(f"builtin:{name}", base + ["render.lsg.light_rays=20000",
+                                                         "render.lsg.passes=48"]),
+                  method, engine=engine, show_progress=False).image
+    for passes in (4, 16):
+        r = render(load_scene(f"builtin:{name}", base + [
+            "render.lsg.light_rays=5000", f"render.lsg.passes={passes}",
+            "render.lsg.light_seed=3"]), method, engine=engine, show_progress=False)
+        ratio = r.stats["error_estimate"] / relmse(r.image, long)
+        assert 0.5 <= ratio <= 2.0, (passes, r.stats["error_estimate"], ratio)
