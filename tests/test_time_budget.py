@@ -140,24 +140,32 @@ def test_budgeted_lsg_keeps_its_budget_on_a_fake_clock(caustic, monkeypatch):
 
 
 def test_budget_first_pass_over_budget_gives_a_note(caustic, monkeypatch):
-    """A budget smaller than the smallest pass: one pass runs and one note says so."""
+    """A budget smaller than the smallest pass: one pass runs and one note says so, naming
+    what to lower; a first pass within 20% of the budget says nothing."""
     ps, paths = caustic
-    clock = FakeClock()
-    real_add = line_gather.Gatherer.add
 
-    def slow_add(self, segs, *a, **kw):
-        clock.now += 5.0
-        return real_add(self, segs, *a, **kw)
+    def first_pass(cost: float) -> tuple[list[str], int]:
+        clock = FakeClock()
+        real_add = line_gather.Gatherer.add
 
-    monkeypatch.setattr(line_gather.Gatherer, "add", slow_add)
-    notes: list[str] = []
-    stats = Stats()
-    m = LineSpaceGathering({"light_rays": 20_000, "passes": 8})
-    with PassContext(ps, paths, stats, False, on_note=notes.append, deadline=clock() + 1.0,
-                     clock=clock) as ctx:
-        m.render(ctx)
-    assert stats.values["lsg_passes"] == 1
-    assert len(notes) == 1 and "the first pass alone took" in notes[0]
+        def slow_add(self, segs, *a, **kw):
+            clock.now += cost
+            return real_add(self, segs, *a, **kw)
+
+        monkeypatch.setattr(line_gather.Gatherer, "add", slow_add)
+        notes: list[str] = []
+        stats = Stats()
+        m = LineSpaceGathering({"light_rays": 1500, "passes": 8, "radius": 0.02})
+        with PassContext(ps, paths, stats, False, on_note=notes.append,
+                         deadline=clock() + 1.0, clock=clock) as ctx:
+            m.render(ctx)
+        return notes, stats.values["lsg_passes"]
+
+    notes, passes = first_pass(5.0)
+    assert passes == 1 and len(notes) == 1
+    assert "the first pass alone took 5 s" in notes[0] and "camera.resolution" in notes[0]
+    notes, passes = first_pass(1.1)
+    assert passes == 1 and notes == []
 
 
 def test_render_level_budget_and_error_estimate(engine):
