@@ -1,6 +1,7 @@
 """Ray-map kd-tree and queries against brute force over every segment (NumPy, float64):
 every intersection domain returns the same set, every K-nearest metric the same K, for
-static, lazy, directional and LRU-collapsed trees alike."""
+static, lazy, directional, LRU-collapsed and balanced trees alike; the K-th nearest end
+point (the lazy refinement's reach) against NumPy and scipy."""
 from __future__ import annotations
 
 import numpy as np
@@ -9,12 +10,20 @@ import pytest
 from clscatter.estimators.knn_queries import (
     RayMap,
     intersect,
+    kth_end_distance,
     knn,
     knn_lists,
     knn_np,
     meets_np,
 )
-from clscatter.estimators.segment_tree import DIRECTIONAL, LEAF, SegmentTree, TreeParams
+from clscatter.estimators.ray_density import lazy_radius
+from clscatter.estimators.segment_tree import (
+    DIRECTIONAL,
+    LEAF,
+    SegmentTree,
+    TreeParams,
+    leaf_ranges,
+)
 
 
 def _segments(n, seed=1):
@@ -202,3 +211,65 @@ def test_knn_lists_k_above_candidates_and_no_domain(engine):
     with pytest.raises(ValueError):
         knn_lists(rm, x, n, 8, "segment", "none", 0.0)
     rm.release()
+
+
+# ---- the one tree: balanced point trees and the lazy refinement's reach ----
+def test_balanced_tree_invariants_and_rm_node_queries(engine):
+    """A balanced tree over points (vpm's photons, the ray map's end points) holds every
+    point once, in a leaf whose box contains it, and exported as RMNode records it answers
+    the photon map's K-nearest queries exactly like the spatial tree (brute force)."""
+    rng = np.random.default_rng(21)
+    p = rng.uniform(-0.5, 0.5, (5000, 3))
+    p[:800, 1] = 0.1                                    # ties along one axis
+    for n_pts, leaf in ((0, 8), (5, 8), (5000, 8), (5000, 1)):
+        t = SegmentTree.balanced(p[:n_pts], leaf)
+        assert t.n == 2 ** (t.levels + 1) - 1
+        if n_pts:
+            assert np.diff(leaf_ranges(n_pts, t.levels)).min() >= min(leaf, n_pts)
+        t.check()
+    a, b, d = _segments(3000, seed=22)
+    x, n = _queries(80, seed=23)
+    rm = RayMap(engine, b, b, d, np.ones_like(a), SMALL, points=True, lazy=False)
+    rm.tree = SegmentTree.balanced(b, 8)                # the balanced tree in RMNode form
+    idx, dist, _ = knn(rm, x, n, 16, "segment", "sphere", 0.2, True)
+    rm.release()
+    for q in range(len(x)):
+        ei, ed = knn_np("segment", x[q], n[q], b, b, d, 16, "sphere", 0.2, True)
+        assert np.allclose(dist[q, :len(ei)], ed, rtol=1e-4, atol=2e-6)
+        assert set(ei[ed < ed[-1] - 1e-5]) <= set(idx[q]) if len(ei) else (idx[q] == -1).all()
+
+
+@pytest.mark.parametrize("k", [1, 24, 300])
+def test_kth_end_distance_matches_brute_force(engine, k):
+    """rm_kth_end (the balanced point tree's k-nearest query over the segments' end points)
+    against NumPy: the k-th nearest end point's float64 distance where k lie within reach,
+    inf elsewhere (K = 300: the global heaps)."""
+    a, b, d = _segments(4000, seed=24)
+    x, _ = _queries(300, seed=25)
+    dist = np.sort(np.linalg.norm(x[:, None, :] - b[None, :, :], axis=2), axis=1)[:, k - 1]
+    reach = float(np.median(dist))                     # half the queries find k in reach
+    rm = RayMap(engine, a, b, d, np.ones_like(a), SMALL)
+    got = kth_end_distance(rm, x, k, reach)
+    rm.release()
+    want = np.where(dist < reach, dist, np.inf)
+    clear = np.abs(dist - reach) > 1e-5 * reach        # float32 at the boundary aside
+    assert clear.mean() > 0.99 and np.isfinite(want).mean() > 0.2 and np.isinf(want).any()
+    assert np.array_equal(got[clear], want[clear])
+
+
+def test_lazy_radius_is_the_kth_end_point_distance(engine):
+    """The lazy refinement's reach: 1.01 x the K-th nearest end point's distance, at most
+    max_radius, as scipy's point kd-tree gives it (also with fewer end points than K)."""
+    from scipy.spatial import cKDTree
+    a, b, d = _segments(3000, seed=26)
+    x, _ = _queries(400, seed=27)
+    below = []
+    for m, k, max_r in ((3000, 32, 0.15), (3000, 8, 0.5), (20, 32, 0.6)):
+        rm = RayMap(engine, a[:m], b[:m], d[:m], np.ones((m, 3)), SMALL)
+        got = lazy_radius(rm, x, k, max_r)
+        rm.release()
+        dist, _ = cKDTree(b[:m]).query(x, k=[min(k, m)])
+        want = np.minimum(dist[:, 0] * 1.01, max_r)
+        assert np.allclose(got, want, rtol=1e-12, atol=0)
+        below.append((got < max_r).mean())
+    assert 0 < below[0] < 1 and below[1] == 1 and below[2] == 0     # every regime

@@ -1,4 +1,5 @@
-"""Volumetric photon mapping (``vpm``): photon packing, the photon tree, the kNN query and
+"""Volumetric photon mapping (``vpm``): photon packing, the photon map (the estimators'
+balanced point tree), the kNN query and
 the gather kernel against plain NumPy/scipy references, photon deposition, and the whole
 method against the analytic references (point light in an unbounded medium, directional
 light in a bounded box)."""
@@ -22,7 +23,8 @@ from clscatter.methods.vpm import (
     gather,
     knn_points,
 )
-from clscatter.methods.vpm import photontree as pt
+from clscatter.estimators.segment_tree import POINT_NODE, leaf_ranges
+from clscatter.methods.vpm import photons as pt
 from clscatter.scene import scene_from_dict
 from clscatter.transport.prepared import prepare_scene
 from clscatter.transport.view_paths import accumulate_segments, trace_view_paths
@@ -39,8 +41,8 @@ HERE = Path(__file__).resolve().parent
 
 # ---- packing --------------------------------------------------------------------------------
 def test_struct_layouts_match(engine):
-    assert layout_mismatches(engine, "vpm.h", pt.ALL) == []
-    assert pt.PHOTON.itemsize == 20 and pt.PHOTON_NODE.itemsize == 24
+    assert layout_mismatches(engine, "vpm.h", {"Photon": pt.PHOTON, "PointNode": POINT_NODE}) == []
+    assert pt.PHOTON.itemsize == 20 and POINT_NODE.itemsize == 24
 
 
 def test_rgb9e5_round_trip():
@@ -93,7 +95,7 @@ def _random_photons(n, rng, clustered=True):
 def test_tree_structure(n, leaf):
     rng = np.random.default_rng(n)
     pos, dirs, power = _random_photons(n, rng)
-    tree = pt.build_photon_tree(pos, dirs, power, leaf)
+    tree = pt.photon_map_of(pos, dirs, power, leaf)
     assert tree.count == n and len(tree.nodes) == 2 ** (tree.levels + 1) - 1
     # the photons are a permutation of the input
     got = tree.positions()
@@ -102,7 +104,7 @@ def test_tree_structure(n, leaf):
     if n == 0:
         assert tree.levels == 0
         return
-    r = pt.leaf_ranges(n, tree.levels)
+    r = leaf_ranges(n, tree.levels)
     sizes = np.diff(r)
     assert sizes.min() >= min(leaf, n) and sizes.max() <= 2 * leaf
     first = 2 ** tree.levels - 1
@@ -144,7 +146,7 @@ def _reference_estimate(tree, kd, q, wo, knn, max_r, g):
 def test_knn_kernel_matches_ckdtree(engine, knn):
     rng = np.random.default_rng(knn)
     pos, dirs, power = _random_photons(6000, rng)
-    tree = pt.build_photon_tree(pos, dirs, power, 8)
+    tree = pt.photon_map_of(pos, dirs, power, 8)
     pmap = DevicePhotonMap.upload(engine, tree)
     q = np.concatenate([rng.random((1500, 3)), rng.uniform(-1, 2, (300, 3)),   # some far out
                         tree.positions()[:200] + 1e-4])                      # on photons
@@ -262,7 +264,7 @@ def _ball_in_box(c, r, lo, hi):
 def test_gather_kernel_matches_numpy_march(engine, bounded):
     rng = np.random.default_rng(5)
     pos, dirs, power = _random_photons(4000, rng)
-    tree = pt.build_photon_tree(pos, dirs, power, 8)
+    tree = pt.photon_map_of(pos, dirs, power, 8)
     n = 60
     segs = np.zeros(n, structs.VIEW_SEGMENT)
     a = rng.uniform(-0.3, 1.3, (n, 3))

@@ -1,11 +1,13 @@
 /* raymap.cl: batched ray-map queries and density estimation (raymap.h; host:
- * clscatter/methods/raymap/queries.py and density.py). One work-item per query.
+ * clscatter/estimators/knn_queries.py and ray_density.py). One work-item per query.
  *
  * rm_knn_batch     K nearest segments of every query (indices, distances, counts)
  * rm_knn_list      the same over host-built per-query candidate lists (domain queries)
  * rm_intersect     all segments meeting every query's domain, appended as (query, segment)
  *                  pairs (a segment listed by several leaves comes more than once; the
  *                  host removes repeats)
+ * rm_kth_end       the K-th nearest ray end point of every query (the reach of the lazy
+ *                  refinement, ray_density.lazy_radius), over a balanced point tree
  * rm_density       irradiance estimates on surfaces (Havran et al. 2005, eq. 1):
  *                  E(x) = sum_i w(t_i) Phi_i / (pi R^2)
  *                  over the K nearest incoming rays (ray map: RM_HEMIDISC, weights from the
@@ -20,6 +22,7 @@
  */
 #include "common.h"
 #include "raymap.h"
+#include "point_tree.h"
 
 /* this work-item's heap (raymap.h, RM_HEAP): scratch_d/x hold RM_K entries per work-item
  * when RM_K > 256 and are unused (1 element) otherwise */
@@ -54,7 +57,7 @@ __kernel void rm_knn_batch(__global const RMNode *nodes, __global const int *ref
     out_work[2 * q + 1] = work[1];
 }
 
-/* K nearest over a host-built candidate list (queries.py knn_lists): query q tests the
+/* K nearest over a host-built candidate list (knn_queries.py knn_lists): query q tests the
  * segments cand_ids[cand_off[q] .. cand_off[q + 1]) (unique, from every leaf meeting its
  * search box) with the same per-candidate test as the tree walk (rm_candidate). A domain
  * is required (radius > 0): it bounds the candidates. */
@@ -80,6 +83,26 @@ __kernel void rm_knn_list(__global const int *cand_off, __global const int *cand
         out_dist[q * k + j] = j < c ? hd[j] : -1.0f;
     }
     out_count[q] = c;
+}
+
+/* For every query, the K-th nearest of the end points `ends` (sorted by leaf of their
+ * balanced point tree, point_tree.h) with squared distance < r2_search: its index in
+ * that order, or -1 when fewer than K lie within. */
+__kernel void rm_kth_end(__global const float4 *ends, int num_ends,
+                         __global const PointNode *end_nodes, int levels,
+                         __global const float4 *qx, int num_q, int k, float r2_search,
+                         __global float *scratch_d, __global int *scratch_x,
+                         __global int *out_idx) {
+    int q = get_global_id(0);
+    if (q >= num_q) return;
+    RM_HEAP_DECLARE
+    int work[2] = {0, 0};
+    float4 x = qx[q];
+    x.w = 0.0f;
+    int kk = min(k, RM_K);
+    int c = pt_knn((__global const float *)ends, 4, num_ends, end_nodes, levels, x, r2_search,
+                   kk, hd, hx, work);
+    out_idx[q] = c == kk ? hx[0] : -1;
 }
 
 __kernel void rm_intersect(__global const RMNode *nodes, __global const int *refs,

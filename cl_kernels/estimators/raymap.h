@@ -1,6 +1,6 @@
 /* raymap.h: ray proximity queries over the ray map's kd-tree (Havran et al. 2005).
  *
- * The tree is built on the host (clscatter/methods/raymap/kdtree.py) and read as is:
+ * The tree is built on the host (clscatter/estimators/segment_tree.py) and read as is:
  * RMNode records (box, kind, children or the leaf's reference range) and an int array of
  * segment references sorted by leaf. Segments are given as start a, end b (float4, the
  * geometry the tree indexes; a == b for photons) and a unit travel direction d.
@@ -70,7 +70,7 @@ typedef struct {
     int first, count;   /* leaf: references [first, first + count) */
 } RMNode;
 
-/* ---- distances (float32; the host mirrors them in queries.py) ---- */
+/* ---- distances (float32; the host mirrors them in knn_queries.py) ---- */
 float rm_seg_dist(float4 x, float4 a, float4 b) {
     float4 ab = b - a;
     float l2 = dot3(ab, ab);
@@ -122,24 +122,44 @@ int rm_covered(__global const RMNode *nd, float4 n, float cos_alpha) {
 }
 
 /* Keep segment idx at distance v in the heap, once (a segment listed by several
- * leaves is offered by each). */
+ * leaves is offered by each). A full heap refuses v >= its root before the scan for a
+ * repeat: knn_heap_insert would refuse it too. */
 void rm_heap_push(RM_HEAP float *hd, RM_HEAP int *hx, int *count, int k, float v, int idx) {
+    if (*count == k && !(v < hd[0])) return;
     for (int j = 0; j < *count; ++j)
         if (hx[j] == idx) return;
     knn_heap_insert(hd, hx, count, k, v, idx);
 }
 
 /* Test one candidate segment s (incoming, domain, metric <= r) and keep it in the heap
- * if it qualifies (rm_leaf; rm_knn_list in raymap.cl over host-built candidate lists). */
+ * if it qualifies (rm_leaf; rm_knn_list in raymap.cl over host-built candidate lists).
+ * The domain's distance is computed once and reused by the metric it bounds (RM_SEGMENT
+ * in a sphere, RM_HEMIDISC in a hemisphere); a hemisphere-disc candidate whose
+ * hemisphere distance alone reaches a full heap's root is refused before its plane
+ * distance (the heap would refuse it: the metric is at least that distance). */
 void rm_candidate(int s, __global const float4 *seg_a, __global const float4 *seg_b,
                   __global const float4 *seg_d, float4 x, float4 n, int k, int metric,
                   int domain, float r, int incoming, RM_HEAP float *hd, RM_HEAP int *hx,
                   int *count) {
     float4 a = seg_a[s], b = seg_b[s], d = seg_d[s];
     if (incoming && dot3(d, n) >= 0.0f) return;
-    if (domain == RM_DOM_SPHERE && rm_seg_dist(x, a, b) > r) return;
-    if (domain == RM_DOM_HEMISPHERE && rm_hemi_dist(x, n, a, b) > r) return;
-    float v = rm_metric(metric, x, n, a, b, d);
+    float dom = 0.0f;
+    if (domain == RM_DOM_SPHERE) {
+        dom = rm_seg_dist(x, a, b);
+        if (dom > r) return;
+    } else if (domain == RM_DOM_HEMISPHERE) {
+        dom = rm_hemi_dist(x, n, a, b);
+        if (dom > r) return;
+    }
+    float v;
+    if (domain == RM_DOM_SPHERE && metric == RM_SEGMENT) {
+        v = dom;
+    } else if (domain == RM_DOM_HEMISPHERE && metric == RM_HEMIDISC) {
+        if (*count == k && !(dom < hd[0])) return;
+        v = fmax(rm_plane_dist(x, n, a, d), dom);
+    } else {
+        v = rm_metric(metric, x, n, a, b, d);
+    }
     if (!(v <= r)) return;                               /* also drops T_INF and NaN */
     rm_heap_push(hd, hx, count, k, v, s);
 }

@@ -20,7 +20,7 @@
 
 __kernel void vpm_gather(__global const ViewSegment *segs, int seg_offset, int num_segs,
                          __global const Photon *photons, int num_photons,
-                         __global const PhotonNode *nodes, int levels, float power_scale,
+                         __global const PointNode *nodes, int levels, float power_scale,
                          __global const Medium *medium, float dx, float max_r2, uint seed,
                          __global float4 *out, __global int2 *work_out) {
     int gid = get_global_id(0);
@@ -36,7 +36,7 @@ __kernel void vpm_gather(__global const ViewSegment *segs, int seg_offset, int n
 
     /* ---- the part of the segment within max_r of the photons' box ---- */
     float r = sqrt(max_r2);
-    __global const PhotonNode *root = &nodes[0];
+    __global const PointNode *root = &nodes[0];
     float4 lo = (float4)(root->bmin[0] - r, root->bmin[1] - r, root->bmin[2] - r, 0.0f);
     float4 hi = (float4)(root->bmax[0] + r, root->bmax[1] + r, root->bmax[2] + r, 0.0f);
     float t0, t1;
@@ -89,7 +89,7 @@ __kernel void vpm_gather(__global const ViewSegment *segs, int seg_offset, int n
  * count[q], the heap's photon indices idx[q * KNN + k] (k < count) and the estimate. */
 __kernel void vpm_knn(__global const float4 *points, __global const float4 *wo, int num_points,
                       __global const Photon *photons, int num_photons,
-                      __global const PhotonNode *nodes, int levels, float power_scale,
+                      __global const PointNode *nodes, int levels, float power_scale,
                       float g, float max_r2, __global int *count_out, __global int *idx_out,
                       __global float4 *est_out) {
     int gid = get_global_id(0);

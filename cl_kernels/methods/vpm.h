@@ -1,38 +1,28 @@
-/* vpm.h: the photon map of volumetric photon mapping (clscatter/methods/vpm/photontree.py builds
- * it) and its k-nearest-neighbour query.
+/* vpm.h: the photon map of volumetric photon mapping (clscatter/methods/vpm/photons.py
+ * builds it over the estimators' balanced point tree) and its k-nearest-neighbour estimate.
  *
  * Photon: 20 bytes, as in Jensen's photon map: position, octahedral direction code (the
- * way the light travels), RGB9E5 power relative to a per-map power_scale.
- * PhotonNode: the box of one node of a perfect binary tree stored breadth-first (node i
- * has children 2i+1, 2i+2; leaf j = node 2^levels - 1 + j holds photons
- * [floor(j n / 2^levels), floor((j + 1) n / 2^levels)), a balanced kd-tree's leaves).
- * An empty map is one root with the empty box (+1e30, -1e30).
- *
- * The query keeps the KNN nearest photons within max_r2 in a bounded max-heap in private
- * memory (root = farthest kept photon), visits the nearer child first and prunes every
- * box farther than the current search radius (max_r2 until the heap is full, then the
- * heap's root). The traversal stack is explicit: one entry per level at most.
+ * way the light travels), RGB9E5 power relative to a per-map power_scale. The photons are
+ * sorted by leaf of a balanced point tree (point_tree.h: PointNode boxes, breadth-first;
+ * leaf j holds photons [floor(j n / 2^levels), floor((j + 1) n / 2^levels))); knn_query
+ * is that tree's k-nearest query (pt_knn) over the photons' positions, with a heap of
+ * KNN entries in private memory.
  */
 #ifndef CLSCATTER_VPM_H
 #define CLSCATTER_VPM_H
 #include "common.h"
-#include "knn_heap.h"
+#include "point_tree.h"
 
 #ifndef KNN
 #define KNN 32
 #endif
-#define PT_STACK 48
+#define PHOTON_FLOATS 5     /* a Photon is 5 floats wide; x, y, z come first */
 
 typedef struct {
     float x, y, z;
     uint dir;      /* octahedral code: u in the low 16 bits, v in the high 16 */
     uint power;    /* RGB9E5 of power / power_scale */
 } Photon;
-
-typedef struct {
-    float bmin[3];
-    float bmax[3];
-} PhotonNode;
 
 float4 photon_direction(uint code) {
     float u = (float)(code & 0xFFFFu) * (2.0f / 65535.0f) - 1.0f;
@@ -49,65 +39,13 @@ float4 photon_power(uint w, float power_scale) {
     return (float4)((float)(w & 511u), (float)((w >> 9) & 511u), (float)((w >> 18) & 511u), 0.0f) * s;
 }
 
-float photon_dist2(__global const Photon *ph, float4 p) {
-    float dx = ph->x - p.x, dy = ph->y - p.y, dz = ph->z - p.z;
-    return dx * dx + dy * dy + dz * dz;
-}
-
-float node_dist2(__global const PhotonNode *nd, float4 p) {
-    float dx = fmax(fmax(nd->bmin[0] - p.x, p.x - nd->bmax[0]), 0.0f);
-    float dy = fmax(fmax(nd->bmin[1] - p.y, p.y - nd->bmax[1]), 0.0f);
-    float dz = fmax(fmax(nd->bmin[2] - p.z, p.z - nd->bmax[2]), 0.0f);
-    return dx * dx + dy * dy + dz * dz;
-}
-
 /* The (at most) KNN photons nearest to p with squared distance < r2_search, as a
  * max-heap (hd, hi); returns how many were found. work[0] += boxes tested, work[1] +=
  * photons tested (statistics). */
-int knn_query(__global const Photon *photons, int n, __global const PhotonNode *nodes,
+int knn_query(__global const Photon *photons, int n, __global const PointNode *nodes,
               int levels, float4 p, float r2_search, float *hd, int *hi, int *work) {
-    int count = 0;
-    float r2 = r2_search;
-    if (n <= 0 || node_dist2(&nodes[0], p) >= r2) return 0;
-    int stack[PT_STACK];
-    float sdist[PT_STACK];
-    int sp = 0;
-    int first_leaf = (1 << levels) - 1;
-    int node = 0;
-    while (1) {
-        if (node >= first_leaf) {
-            long j = node - first_leaf;
-            int start = (int)((j * n) >> levels);
-            int end = (int)(((j + 1) * n) >> levels);
-            work[1] += end - start;
-            for (int i = start; i < end; ++i) {
-                float d2 = photon_dist2(&photons[i], p);
-                if (d2 >= r2) continue;
-                knn_heap_insert(hd, hi, &count, KNN, d2, i);
-                if (count == KNN) r2 = hd[0];
-            }
-        } else {
-            int c = 2 * node + 1;
-            work[0] += 2;
-            float da = node_dist2(&nodes[c], p);
-            float db = node_dist2(&nodes[c + 1], p);
-            int near = da <= db ? c : c + 1;
-            float dn = fmin(da, db), df = fmax(da, db);
-            if (df < r2 && sp < PT_STACK) {
-                stack[sp] = near == c ? c + 1 : c;
-                sdist[sp] = df;
-                ++sp;
-            }
-            if (dn < r2) { node = near; continue; }
-        }
-        node = -1;
-        while (sp > 0) {
-            --sp;
-            if (sdist[sp] < r2) { node = stack[sp]; break; }
-        }
-        if (node < 0) break;
-    }
-    return count;
+    return pt_knn((__global const float *)photons, PHOTON_FLOATS, n, nodes, levels, p,
+                  r2_search, KNN, hd, hi, work);
 }
 
 /* The volumetric radiance estimate (Jensen & Christensen 1998; eq. 4 of the LSG paper),

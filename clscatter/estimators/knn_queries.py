@@ -1,9 +1,11 @@
 """Ray-map queries: batched device kernels (``cl_kernels/raymap.cl``) and their NumPy
 references (the same maths in float64, brute force over every segment).
 
-A :class:`RayMap` holds the segments on the device and the kd-tree (:mod:`.kdtree`) on
-the host. Every query call first lets the tree refine lazily for that batch (or not, for a
-static tree), uploads it if it changed, then runs one kernel over all queries of the batch.
+A :class:`RayMap` holds the segments on the device and the kd-tree
+(:mod:`.segment_tree`) on the host. Every query call first lets the tree refine lazily for
+that batch (or not, for a static tree), uploads it if it changed, then runs one kernel over
+all queries of the batch. The segments' end points also get a balanced point tree of the
+same kind (:func:`kth_end_distance`: what the lazy refinement's reach is measured with).
 """
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ METRICS = {"plane": 0, "segment": 1, "line": 2, "hemidisc": 3}
 DOMAINS = {"none": 0, "sphere": 1, "hemisphere": 2}
 QUERIES = {"disc": 0, "hemisphere": 1, "sphere": 2, "box": 3}
 HEAP_SIZES = (16, 64, 256, 1024)     # RM_K variants built on demand
+END_LEAF_SIZE = 8                    # end points per leaf of their balanced tree (8-16)
 
 
 def _f4(v: np.ndarray) -> np.ndarray:
@@ -55,6 +58,7 @@ class RayMap:
                     "seg_d": eng.to_device(_f4(self.d)), "seg_flux": eng.to_device(_f4(self.flux))}
         self._tree_buf = None
         self._tree_key = None
+        self._ends = None
         self.uploads = 0
 
     @property
@@ -78,13 +82,27 @@ class RayMap:
         return {"nodes": self._tree_buf[0], "refs": self._tree_buf[1], "seg_a": self.buf["seg_a"],
                 "seg_b": self.buf["seg_b"], "seg_d": self.buf["seg_d"]}
 
+    def end_points(self) -> tuple:
+        """The balanced point tree over the segments' end points ``b`` (float32), made and
+        uploaded once: (order, device end points float4 in leaf order, device
+        POINT_NODE boxes, levels)."""
+        if self._ends is None:
+            tree = SegmentTree.balanced(self.b.astype(np.float32), END_LEAF_SIZE)
+            order = tree.order
+            self._ends = (order, self.engine.to_device(_f4(self.b[order])),
+                          self.engine.to_device(tree.point_nodes()), tree.levels)
+        return self._ends
+
     def release(self) -> None:
         eng = self.engine
         eng.free(*self.buf.values())
         if self._tree_buf is not None:
             eng.free(*self._tree_buf)
+        if self._ends is not None:
+            eng.free(*self._ends[1:3])
         self.buf = {}
         self._tree_buf = None
+        self._ends = None
 
 
 def heap_scratch(engine, k: int, items: int) -> tuple:
@@ -126,6 +144,32 @@ def knn(rmap: RayMap, x: np.ndarray, n: np.ndarray, k: int, metric: str = "segme
     dist = np.where(idx >= 0, dist, np.inf)
     order = np.argsort(dist, axis=1, kind="stable")
     return (np.take_along_axis(idx, order, 1), np.take_along_axis(dist, order, 1), work)
+
+
+def kth_end_distance(rmap: RayMap, x: np.ndarray, k: int, reach: float) -> np.ndarray:
+    """Per query, the distance (float64) to its ``k``-th nearest segment end point when
+    at least ``k`` end points lie within ``reach`` of it, else inf. The device finds the
+    point (``rm_kth_end``: the balanced point tree's k-nearest query, float32); the
+    distance is measured here from the float64 end point."""
+    eng = rmap.engine
+    x = np.asarray(x, np.float64).reshape(-1, 3)
+    nq = len(x)
+    out = np.full(nq, np.inf)
+    if nq == 0 or len(rmap.b) < k or k < 1:
+        return out
+    order, ends, nodes, levels = rmap.end_points()
+    bufs = [eng.to_device(_f4(x)), eng.empty(4 * nq), *heap_scratch(eng, k, nq)]
+    try:
+        eng.call("raymap", "rm_kth_end", nq, heap_define(k), ends=ends, num_ends=len(order),
+                 end_nodes=nodes, levels=levels, qx=bufs[0], num_q=nq, k=k,
+                 r2_search=float(reach) ** 2, scratch_d=bufs[2], scratch_x=bufs[3],
+                 out_idx=bufs[1])
+        idx = eng.read(bufs[1], nq, np.int32)
+    finally:
+        eng.free(*bufs)
+    found = idx >= 0
+    out[found] = np.linalg.norm(x[found] - rmap.b[order[idx[found]]], axis=1)
+    return out
 
 
 def candidate_lists(rmap: RayMap, x: np.ndarray, n: np.ndarray, radius: float,

@@ -19,6 +19,7 @@ the rays that pass the boundary as if the surface went on (no boundary bias).
 """
 from __future__ import annotations
 
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,7 +29,7 @@ from ..io.stats import Stats, progress
 from ..transport import primitives as prim
 from ..transport.light_paths import trace_light_paths
 from ..transport.view_paths import trace_diffuse_hits_on_device
-from .knn_queries import RayMap, _f4, heap_define, heap_scratch
+from .knn_queries import RayMap, _f4, heap_define, heap_scratch, kth_end_distance
 from .segment_tree import TreeParams
 
 ESTIMATORS = ("raymap", "photonmap")
@@ -77,29 +78,31 @@ def build_map(engine, pieces: np.ndarray, estimator: str, settings: DensitySetti
 
 
 def lazy_radius(rmap: RayMap, x: np.ndarray, k: int, max_radius: float) -> np.ndarray:
-    """Per query, the region the lazy tree refines: the distance to the K-th nearest ray
-    end point (scipy's point kd-tree), at most ``max_radius``. The ray map's K nearest
-    rays mostly end near the query; the refinement only steers the work, the query
-    itself is exact whatever the tree."""
-    from scipy.spatial import cKDTree
+    """Per query, the region the lazy tree refines: 1.01 times the distance to the K-th
+    nearest ray end point, at most ``max_radius`` (the K-th of all of them when there are
+    fewer than K). The ray map's K nearest rays mostly end near the query; the refinement
+    only steers the work, the query itself is exact whatever the tree. The end points'
+    balanced tree is searched only within ``max_radius / 1.01`` (a little more, for float
+    rounding): a K-th point farther away gives ``max_radius`` anyway."""
+    x = np.asarray(x, np.float64).reshape(-1, 3)
     if len(rmap.b) == 0:
         return np.full(len(x), max_radius)
     kk = min(k, len(rmap.b))
-    tree = getattr(rmap, "_end_points", None)
-    if tree is None:
-        tree = rmap._end_points = cKDTree(rmap.b)          # once per map, not per batch
-    dist, _ = tree.query(x, k=[kk], workers=1)
-    return np.minimum(dist[:, 0] * 1.01, max_radius)
+    dist = kth_end_distance(rmap, x, kk, max_radius / 1.01 * (1 + 1e-5))
+    return np.minimum(dist * 1.01, max_radius)
 
 
 def estimate_on_device(rmap: RayMap, x: np.ndarray, n: np.ndarray, estimator: str,
-                       settings: DensitySettings, show_progress: bool = False):
+                       settings: DensitySettings, show_progress: bool = False,
+                       stats: Stats | None = None):
     """Irradiance at points ``x`` with unit normals ``n`` (normalised frame), left on the
     device: two new buffers (the caller frees them), Q float4 (rgb irradiance) and Q int2
     (nodes visited, references tested). Queries run in batches of ``settings.batch`` in
     the given order (keep them coherent, e.g. in pixel order): each batch refines the lazy
     tree on the host (its query positions: what that host structure needs), then one
-    kernel launch answers it into its part of the buffers."""
+    kernel launch answers it into its part of the buffers. With ``stats``, the lazy radii
+    and the refinement (with the tree's upload) are timed as the stages
+    ``<estimator>_radius`` and ``<estimator>_refine``."""
     eng = rmap.engine
     x = np.asarray(x, np.float64).reshape(-1, 3)
     n = np.asarray(n, np.float64).reshape(-1, 3)
@@ -117,7 +120,10 @@ def estimate_on_device(rmap: RayMap, x: np.ndarray, n: np.ndarray, estimator: st
             sl = slice(start, min(nq, start + batch))
             xb, nb = x[sl], n[sl]
             m = len(xb)
-            rmap.prepare(xb, nb, lazy_radius(rmap, xb, k, settings.max_radius) if rmap.lazy else 0.0)
+            with _stage(stats, f"{estimator}_radius"):
+                radius = lazy_radius(rmap, xb, k, settings.max_radius) if rmap.lazy else 0.0
+            with _stage(stats, f"{estimator}_refine"):
+                rmap.prepare(xb, nb, radius)
             run = max(1, int(settings.run))
             bufs = [eng.to_device(_f4(xb)), eng.to_device(_f4(nb)),
                     *heap_scratch(eng, k, (m + run - 1) // run)]
@@ -135,6 +141,11 @@ def estimate_on_device(rmap: RayMap, x: np.ndarray, n: np.ndarray, estimator: st
                 eng.free(*bufs)
             bar.update(m)
     return out_e, out_work
+
+
+def _stage(stats: Stats | None, name: str):
+    """``stats.stage(name)``, or nothing to time without statistics."""
+    return stats.stage(name) if stats is not None else nullcontext()
 
 
 def estimate(rmap: RayMap, x: np.ndarray, n: np.ndarray, estimator: str,
@@ -182,7 +193,7 @@ def surface_caustics(ps, estimator: str, rays: int, settings: DensitySettings, s
         try:
             with stats.stage(f"{estimator}_estimate"):
                 e_buf, w_buf = estimate_on_device(rmap, hits["p"][:, :3], hits["n"][:, :3],
-                                                  estimator, settings, show_progress)
+                                                  estimator, settings, show_progress, stats)
                 visited, tested = prim.int_totals(eng, w_buf, nh, 2)
                 v_buf = eng.empty(16 * nh)
                 ps.call("raymap", "rm_weigh_hits", nh, hits=dev.buf, e=e_buf, n=nh, out=v_buf)

@@ -45,8 +45,11 @@ class RayMapMethod(SurfaceDensityMethod):
 
     Statistics: ``raymap_rays_stored``, ``diffuse_hits``, ``raymap_tree_nodes``,
     ``raymap_tree_refs``, ``raymap_index_peak_bytes``, ``raymap_collapses``,
-    ``raymap_nodes_visited``, ``raymap_refs_tested``; stages ``raymap_trace``,
-    ``raymap_build``, ``raymap_estimate``.
+    ``raymap_nodes_visited``, ``raymap_refs_tested``; stages ``raymap_trace`` (lighting
+    rays and diffuse hits), ``raymap_build`` (the tree's root), ``raymap_radius`` (how far
+    each batch of queries refines: the K-th nearest ray end point), ``raymap_refine`` (the
+    lazy refinement on the host and the tree's upload), ``raymap_estimate`` (the queries
+    on the device).
 
     Usage: ``clscatter render builtin:caustic_sphere --method raymap --set render.raymap.k=128``
     """

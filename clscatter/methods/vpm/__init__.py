@@ -12,11 +12,11 @@ from ...transport.light_paths import trace_light_paths
 from ...transport.prepared import PreparedScene
 from .. import register
 from ..base import Estimate, Method, Param, PassResult, camera_samples
-from .photontree import (
+from .photons import (
     BUILD_BYTES_PER_PHOTON,
     PHOTON,
-    PhotonTree,
-    build_tree,
+    PhotonMap,
+    build_photon_map,
     encode_direction,
     encode_rgb9e5,
 )
@@ -107,14 +107,14 @@ class DevicePhotonMap:
     """A photon map uploaded to the device (what the gather kernel reads)."""
 
     photons: object          # device buffer of PHOTON
-    nodes: object            # device buffer of PHOTON_NODE
+    nodes: object            # device buffer of POINT_NODE
     count: int
     levels: int
     leaf_size: int
     power_scale: float
 
     @staticmethod
-    def upload(engine, tree: PhotonTree) -> "DevicePhotonMap":
+    def upload(engine, tree: PhotonMap) -> "DevicePhotonMap":
         return DevicePhotonMap(engine.to_device(tree.photons), engine.to_device(tree.nodes),
                                tree.count, tree.levels, tree.leaf_size, tree.power_scale)
 
@@ -206,8 +206,9 @@ class VolumetricPhotonMapping(Method):
     photons of (for grey media) equal power are stored in all (:func:`deposit_photons`:
     an unbiased track-length discretisation of the lighting rays; dim branches such as
     Fresnel reflections get proportionally fewer photons). The photon map stores 20 bytes
-    per photon (position, octahedral direction, RGB9E5 power) in a balanced kd-tree laid
-    out as an implicit perfect binary tree of boxes (``clscatter/methods/vpm/photontree.py``).
+    per photon (position, octahedral direction, RGB9E5 power), sorted by leaf of the
+    estimators' balanced point tree, laid out as an implicit perfect binary tree of boxes
+    (``clscatter/methods/vpm/photons.py``, ``SegmentTree.balanced``).
 
     *Gather.* Every view segment from the view-path tracer is marched with step ``dx``
     from a random offset (jittered regular samples, each standing for ``dx``). At each
@@ -292,7 +293,7 @@ class VolumetricPhotonMapping(Method):
         return max(1, round(self.params["photons"] / self.params["photons_per_ray"]))
 
     def build_photon_map(self, ps: PreparedScene, stats: Stats,
-                         show_progress: bool = True) -> PhotonTree:
+                         show_progress: bool = True) -> PhotonMap:
         """Trace the lighting rays and build the photon map (host arrays)."""
         eng = ps.engine
         with stats.stage("photon_trace") as t_trace:
@@ -316,7 +317,7 @@ class VolumetricPhotonMapping(Method):
                               + 160 * min(DEPOSIT_BATCH, n),
                               photons.nbytes + BUILD_BYTES_PER_PHOTON * n))
             del segs
-            tree = build_tree(photons, self.params["leaf_size"], scale)
+            tree = build_photon_map(photons, self.params["leaf_size"], scale)
             del photons
         stats.set(photon_build_seconds=t_build.seconds, photons=tree.count,
                   photon_map_bytes=tree.nbytes, photon_tree_levels=tree.levels)
