@@ -412,16 +412,31 @@ def _cmd_check(args: argparse.Namespace) -> int:
         print(f"  {n}")
     for e in req.estimates:
         keys = e.key if e.work_by == e.key else f"{e.key}; work: {e.work_by}"
-        print(f"estimate {e.stage}: {human_bytes(e.bytes)}, about {e.work:.2g} {e.unit} ({keys})")
+        print(f"estimate {e.stage}: {human_bytes(e.bytes)}, about {e.work:.2g} {e.unit} ({keys})"
+              + _predicted_time(device, e))
     max_memory = parse_bytes(args.max_memory) if args.max_memory is not None else None
     limit, source = memory_budget(device, max_memory)
     print(f"peak: about {human_bytes(peak_bytes(req.estimates))} of {human_bytes(limit)} ({source})")
     seconds, origin = time_budget(scene, req.requested)
-    print(f"time: {f'{seconds:g} s for the whole render ({origin}); progressive passes share what the others leave' if seconds > 0 else 'no time budget (render.time_budget)'}"
-          + (f"; passes stop at an estimated relMSE of {scene.render.target_error:g}"
-             if scene.render.target_error > 0 else ""))
+    line = (f"{seconds:g} s for the whole render ({origin}); progressive passes share what "
+            "the others leave" if seconds > 0 else "no time budget (render.time_budget)")
+    if scene.render.target_error > 0:
+        line += f"; passes stop at an estimated relMSE of {scene.render.target_error:g}"
+    print(f"time: {line}")
     check_budget(req.estimates, limit, source)
     return 0
+
+
+def _predicted_time(device, e) -> str:
+    """``; about N s on this device`` from earlier renders' measured rates
+    (:mod:`clscatter.pipeline.calibration`), or a word on why there is none."""
+    from .pipeline.calibration import MIN_WORK, predict
+    if device is None or e.work < MIN_WORK:
+        return ""
+    seconds = predict(device.name.strip(), e.stage, e.work)
+    if seconds is None:
+        return "; time not yet calibrated on this device (a render calibrates it)"
+    return f"; about {seconds:.2g} s on this device (before any time budget)"
 
 
 def _device_for_budget(spec: str | None):

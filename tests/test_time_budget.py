@@ -240,3 +240,30 @@ def test_error_estimate_tracks_the_error_against_a_long_run(engine, name, method
             "render.lsg.light_seed=3"]), method, engine=engine, show_progress=False)
         ratio = r.stats["error_estimate"] / relmse(r.image, long)
         assert 0.5 <= ratio <= 2.0, (passes, r.stats["error_estimate"], ratio)
+
+
+def test_calibration_learns_seconds_per_unit_of_work(tmp_path, monkeypatch, capsys):
+    """A rate is recorded per device and stage (negligible work is not), the prediction is
+    work times the geometric mean of the kept rates, the oldest beyond KEEP drop out; a
+    render records its full passes and check prints the time on the device."""
+    from clscatter.pipeline import calibration
+    monkeypatch.setenv("CLSCATTER_CACHE_DIR", str(tmp_path))
+    assert calibration.predict("dev", "lsg", 1e9) is None
+    calibration.record("dev", "lsg", 1e9, 2.0)
+    calibration.record("dev", "lsg", 1e9, 8.0)
+    calibration.record("dev", "lsg", 10.0, 5.0)                 # below MIN_WORK: ignored
+    assert calibration.predict("dev", "lsg", 2e9) == pytest.approx(8.0, rel=1e-12)  # 2e9 * 4e-9
+    assert calibration.predict("other", "lsg", 1e9) is None
+    for _ in range(calibration.KEEP):
+        calibration.record("dev", "lsg", 1e9, 1.0)
+    assert calibration.predict("dev", "lsg", 1e9) == pytest.approx(1.0, rel=1e-12)
+    (tmp_path / "costs.json").write_text("not json")
+    assert calibration.predict("dev", "lsg", 1e9) is None       # unreadable: ignored
+    args = [CAUSTIC, "--method", "raymarch", "--set", "camera.resolution=[64,48]"]
+    assert main(["check", *args]) == 0
+    assert "estimate raymarch" in (out := capsys.readouterr().out) and "not yet calibrated" in out
+    assert main(["render", *args, "-o", str(tmp_path / "a.npy")]) == 0
+    assert main(["check", *args]) == 0
+    out = capsys.readouterr().out
+    line = next(ln for ln in out.splitlines() if ln.startswith("estimate raymarch"))
+    assert "s on this device" in line

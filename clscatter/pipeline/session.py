@@ -53,7 +53,7 @@ from ..transport.prepared import (
     same_frame,
 )
 from ..transport.view_paths import ViewPaths, shade_hits, trace_view_paths
-from . import budget
+from . import budget, calibration
 from .check import check, scene_notes
 from .planner import user_notes
 
@@ -244,6 +244,9 @@ class RenderSession:
             self._paths_key = key
             self._pending = []
             ran.append("view_paths")
+            calibration.record(engine.device.name.strip(), "view_paths",
+                               sum(e.work for e in req.estimates if e.stage == "view_paths"),
+                               stats.stages.get("view_paths", 0.0))
         else:
             reused.append("view_paths")
             stats.set(view_segments=int(len(self._paths)))
@@ -294,11 +297,14 @@ class RenderSession:
                 now = time.perf_counter()
                 deadline = now + max(run.budget.deadline - now, 0.0) / progressive_left
                 progressive_left -= 1
+            t0 = time.perf_counter()
             with PassContext(run.ps, run.paths, stats, run.show_progress,
                              self._caches.setdefault(p.method, PassCache()), run.on_note,
                              deadline, scene.render.target_error, image_so_far) as ctx:
                 out = method.render(ctx)
                 err = ctx.errors()
+            if deadline is None and not run.preview and run.only is None:
+                _calibrate(run, p.method, time.perf_counter() - t0)
             run.ran.append(p.method)
             if err is not None:
                 errors = err if errors is None else (errors[0] + err[0], errors[1] + err[1])
@@ -417,6 +423,13 @@ def _time_budget(scene: Scene, req, started: float, stats: Stats, exempt: bool) 
               target_error=scene.render.target_error)
     deadline = started + seconds if seconds > 0 and not exempt else None
     return _Budget(seconds, source, started, deadline)
+
+
+def _calibrate(run: "_Run", stage: str, seconds: float) -> None:
+    """Record a pass that ran in full against its estimated work
+    (:mod:`clscatter.pipeline.calibration`)."""
+    work = sum(e.work for e in run.req.estimates if e.stage == stage)
+    calibration.record(run.ps.engine.device.name.strip(), stage, work, seconds)
 
 
 def _report_error(stats: Stats, errors: tuple | None, image: np.ndarray,
