@@ -132,6 +132,30 @@ def test_vdb_transform_places_the_grid(tmp_path):
 
 
 @needs_vdb
+def test_rotated_vdb_needs_bounds_and_takes_them(tmp_path):
+    """A rotated transform cannot place the grid (one line asking for bounds); with
+    ``bounds`` the transform is not read and the values load as they are."""
+    from clscatter.errors import SceneError
+    vdb = grids.openvdb()
+    g = vdb.FloatGrid()
+    g.name = "density"
+    t = vdb.createLinearTransform(1.0)
+    t.rotate(0.3, vdb.Axis.Y)
+    g.transform = t
+    acc = g.getAccessor()
+    dense = np.arange(1, 9, dtype=np.float32).reshape(2, 2, 2)
+    for ijk in np.ndindex(*dense.shape):
+        acc.setValueOn(ijk, float(dense[ijk]))
+    vdb.write(str(tmp_path / "r.vdb"), grids=[g])
+    with pytest.raises(SceneError, match="give the volume's bounds"):
+        _load(tmp_path, [{"density": "r.vdb"}])
+    v = _load(tmp_path, [{"density": "r.vdb", "bounds": {"min": [0, 0, 0],
+                                                         "max": [1, 1, 1]}}]).volumes[0]
+    assert np.array_equal(v.density, dense)
+    np.testing.assert_array_equal(v.grid_bounds[1], [1.0, 1.0, 1.0])
+
+
+@needs_vdb
 def test_sparse_vdb_with_tiles_and_empty_space(tmp_path):
     """Two blobs far apart with inactive space between them, and an active tile (a
     16^3 region of one value, stored above the leaves): the dense array holds the tile's

@@ -111,10 +111,12 @@ def _axis_aligned(transform, key: str, path: Path) -> tuple[np.ndarray, np.ndarr
     return origin, size
 
 
-def read_vdb(path: Path, key: str, name: str = "density", name_key: str | None = None) -> GridFile:
+def read_vdb(path: Path, key: str, name: str = "density", name_key: str | None = None,
+             placed: bool = False) -> GridFile:
     """Float grid ``name`` of an OpenVDB file as a dense array over its active voxels and
     tiles (the rest of that box holds the grid's background value), placed by its
-    transform (see the module docstring). Unknown names are an error at ``name_key``
+    transform (see the module docstring) unless ``placed`` (the scene gives the box: the
+    transform is not read, and may be any). Unknown names are an error at ``name_key``
     listing the file's grids."""
     vdb = _need_openvdb(key, path)
     try:
@@ -142,6 +144,8 @@ def read_vdb(path: Path, key: str, name: str = "density", name_key: str | None =
         a = np.array(item["min"], np.int64) - lo
         b = np.array(item["max"], np.int64) - lo + 1
         values[a[0]:b[0], a[1]:b[1], a[2]:b[2]] = item["value"]
+    if placed:
+        return GridFile(values)
     origin, size = _axis_aligned(grid.transform, key, path)
     box = [origin + (lo - 0.5) * size, origin + (hi + 0.5) * size]
     return GridFile(values, tuple(np.where(np.abs(b) < 1e-9 * size, 0.0, b) for b in box))
@@ -249,9 +253,10 @@ def load_grid(path: Path, key: str, positive: bool = True) -> np.ndarray:
 
 
 def load_density(path: Path, key: str, name: str | None = None,
-                 name_key: str | None = None) -> GridFile:
+                 name_key: str | None = None, placed: bool = False) -> GridFile:
     """A density grid (``.npy``, ``.vdb`` grid ``name`` (default ``density``) or ``.vol``)
-    as float32, checked finite and >= 0; the first offending voxel is named."""
+    as float32, checked finite and >= 0; the first offending voxel is named. ``placed``:
+    the scene gives the box, so a ``.vdb``'s transform is not needed."""
     _exists(path, key, "density")
     suffix = path.suffix.lower()
     if suffix not in SUFFIXES:
@@ -263,7 +268,7 @@ def load_density(path: Path, key: str, name: str | None = None,
     if suffix == ".npy":
         got = GridFile(read_npy(path, key))
     elif suffix == ".vdb":
-        got = read_vdb(path, key, name or "density", name_key)
+        got = read_vdb(path, key, name or "density", name_key, placed)
     else:
         got = read_vol(path, key)
     with np.errstate(invalid="ignore"):

@@ -534,7 +534,7 @@ def _density_volume(t: _Table, base_dir: Path, sigma_s: np.ndarray,
     t.allow(VOLUME_DENSITY_KEYS, " for a density volume")
     name = t.string("density_grid") if t.has("density_grid") else None
     dens = grids.load_density(base_dir / t.string("density"), t.k("density"), name,
-                              t.k("density_grid"))
+                              t.k("density_grid"), placed=t.has("bounds"))
     bounds = _bounds(t.table("bounds")) if t.has("bounds") else dens.bounds
     if bounds is None or (t.has("grid") and not t.has("bounds")):
         why = "an index grid" if t.has("grid") else "a .npy density"
