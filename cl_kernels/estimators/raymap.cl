@@ -174,15 +174,20 @@ float4 rm_estimate(__global const float4 *seg_a, __global const float4 *seg_d,
 
 /* One work-item answers `run` consecutive queries (keep them coherent, e.g. in pixel
  * order); with reuse_eps > 0 it reuses candidate lists between them (raymap.h). Query q
- * writes out_e[out_offset + q] and its work pair there: batches fill one buffer. */
+ * writes out_e[out_offset + q] and its work pair there: batches fill one buffer. The
+ * domain radius is `radius`, or with per_query_radius qr[q] (progressive passes: a fixed
+ * radius per query, K then only bounds the rays gathered); with want_r, out_r[out_offset
+ * + q] gets the estimate's R (the K-th distance, or the domain radius when fewer exist). */
 __kernel void rm_density(__global const RMNode *nodes, __global const int *refs,
                          __global const float4 *seg_a, __global const float4 *seg_b,
                          __global const float4 *seg_d, __global const float4 *seg_flux,
                          __global const float4 *qx, __global const float4 *qn, int num_q,
                          int k, int metric, float radius, int plane_weights, int epanechnikov,
                          float cos_alpha, int run, float reuse_eps,
+                         __global const float *qr, int per_query_radius,
                          __global float *scratch_d, __global int *scratch_x, int out_offset,
-                         __global float4 *out_e, __global int *out_work) {
+                         __global float4 *out_e, __global int *out_work,
+                         __global float *out_r, int want_r) {
     int first = get_global_id(0) * run;
     if (first >= num_q) return;
     int last = min(first + run, num_q);
@@ -195,30 +200,32 @@ __kernel void rm_density(__global const RMNode *nodes, __global const int *refs,
     int domain = metric == RM_HEMIDISC ? RM_DOM_HEMISPHERE : RM_DOM_SPHERE;
     for (int q = first; q < last; ++q) {
         float4 x = qx[q], n = qn[q];
+        float rq = per_query_radius ? qr[q] : radius;
         int work[2] = {0, 0};
         int c = -1;
         if (nlist >= 0 && length3(x - x0) <= reuse_eps) {
             c = 0;
             for (int j = 0; j < nlist; ++j)
                 rm_leaf(&nodes[list[j]], refs, seg_a, seg_b, seg_d, x, n, kk, metric, domain,
-                        radius, 1, hd, hx, &c, work);
-            float dk = c == kk ? hd[0] : radius;
+                        rq, 1, hd, hx, &c, work);
+            float dk = c == kk ? hd[0] : rq;
             if (!(dk <= d0 + reuse_eps)) c = -1;           /* not provably exact: walk */
         }
         if (c < 0) {
-            c = rm_knn(nodes, refs, seg_a, seg_b, seg_d, x, n, kk, metric, domain, radius, 1,
+            c = rm_knn(nodes, refs, seg_a, seg_b, seg_d, x, n, kk, metric, domain, rq, 1,
                        cos_alpha, hd, hx, work);
             if (reuse_eps > 0.0f) {
                 x0 = x;
-                d0 = c == kk ? hd[0] : radius;
+                d0 = c == kk ? hd[0] : rq;
                 nlist = rm_collect(nodes, x, d0 + 2.0f * reuse_eps, list, RM_LIST);
             }
         }
         int o = out_offset + q;
-        out_e[o] = rm_estimate(seg_a, seg_d, seg_flux, x, n, hd, hx, c, kk, radius,
+        out_e[o] = rm_estimate(seg_a, seg_d, seg_flux, x, n, hd, hx, c, kk, rq,
                                plane_weights, epanechnikov);
         out_work[2 * o] = work[0];
         out_work[2 * o + 1] = work[1];
+        if (want_r) out_r[o] = c == kk ? hd[0] : rq;      /* the estimate's R */
     }
 }
 

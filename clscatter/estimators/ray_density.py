@@ -51,13 +51,14 @@ class DensitySettings:
 
 
 def caustic_pieces(ps, rays: int, stats: Stats | None = None, show_progress: bool = True,
-                   min_depth: int = 1, targeted: bool = True) -> np.ndarray:
+                   min_depth: int = 1, targeted: bool = True, seed_offset: int = 0) -> np.ndarray:
     """Lighting-ray pieces that carry light through mirrors or glass (``depth >=
     min_depth``), ending on a surface or leaving the scene (normalised frame).
     ``targeted``: emit only towards the specular objects (``clscatter.transport.emission``, exact
-    pdf weights), since light that never meets one is not kept anyway."""
+    pdf weights), since light that never meets one is not kept anyway. ``seed_offset``
+    selects an independent set of rays (progressive passes; 0: the first)."""
     lp = trace_light_paths(ps, rays, stats, show_progress, pieces=True,
-                           targeted=targeted and min_depth >= 1)
+                           targeted=targeted and min_depth >= 1, seed_offset=seed_offset)
     p = lp.segments
     return p[p["depth"] >= min_depth]
 
@@ -94,7 +95,8 @@ def lazy_radius(rmap: RayMap, x: np.ndarray, k: int, max_radius: float) -> np.nd
 
 def estimate_on_device(rmap: RayMap, x: np.ndarray, n: np.ndarray, estimator: str,
                        settings: DensitySettings, show_progress: bool = False,
-                       stats: Stats | None = None):
+                       stats: Stats | None = None, radii: np.ndarray | None = None,
+                       out_r=None):
     """Irradiance at points ``x`` with unit normals ``n`` (normalised frame), left on the
     device: two new buffers (the caller frees them), Q float4 (rgb irradiance) and Q int2
     (nodes visited, references tested). Queries run in batches of ``settings.batch`` in
@@ -102,7 +104,12 @@ def estimate_on_device(rmap: RayMap, x: np.ndarray, n: np.ndarray, estimator: st
     tree on the host (its query positions: what that host structure needs), then one
     kernel launch answers it into its part of the buffers. With ``stats``, the lazy radii
     and the refinement (with the tree's upload) are timed as the stages
-    ``<estimator>_radius`` and ``<estimator>_refine``."""
+    ``<estimator>_radius`` and ``<estimator>_refine``.
+
+    ``radii`` (Q, normalised): every query's own domain radius instead of
+    ``settings.max_radius`` (a fixed-radius estimate wherever fewer than K rays lie within;
+    the lazy tree then refines exactly that far). ``out_r``: a device buffer of Q floats
+    that gets each estimate's R (the K-th distance, or the domain radius)."""
     eng = rmap.engine
     x = np.asarray(x, np.float64).reshape(-1, 3)
     n = np.asarray(n, np.float64).reshape(-1, 3)
@@ -121,12 +128,16 @@ def estimate_on_device(rmap: RayMap, x: np.ndarray, n: np.ndarray, estimator: st
             xb, nb = x[sl], n[sl]
             m = len(xb)
             with _stage(stats, f"{estimator}_radius"):
-                radius = lazy_radius(rmap, xb, k, settings.max_radius) if rmap.lazy else 0.0
+                if radii is not None:
+                    radius = np.asarray(radii, np.float64)[sl] if rmap.lazy else 0.0
+                else:
+                    radius = lazy_radius(rmap, xb, k, settings.max_radius) if rmap.lazy else 0.0
             with _stage(stats, f"{estimator}_refine"):
                 rmap.prepare(xb, nb, radius)
             run = max(1, int(settings.run))
+            qr = np.asarray(radii, np.float32)[sl] if radii is not None else np.zeros(1, np.float32)
             bufs = [eng.to_device(_f4(xb)), eng.to_device(_f4(nb)),
-                    *heap_scratch(eng, k, (m + run - 1) // run)]
+                    *heap_scratch(eng, k, (m + run - 1) // run), eng.to_device(qr)]
             try:
                 eng.call("raymap", "rm_density", (m + run - 1) // run, heap_define(k),
                          **rmap.tree_args(), seg_flux=rmap.buf["seg_flux"], qx=bufs[0],
@@ -134,8 +145,10 @@ def estimate_on_device(rmap: RayMap, x: np.ndarray, n: np.ndarray, estimator: st
                          plane_weights=int(estimator == "raymap"),
                          epanechnikov=int(settings.kernel == "epanechnikov"),
                          cos_alpha=rmap.cos_alpha, run=run, reuse_eps=settings.reuse_eps,
+                         qr=bufs[4], per_query_radius=int(radii is not None),
                          scratch_d=bufs[2], scratch_x=bufs[3], out_offset=start, out_e=out_e,
-                         out_work=out_work)
+                         out_work=out_work, out_r=out_r if out_r is not None else bufs[4],
+                         want_r=int(out_r is not None))
                 eng.finish()                  # the next batch refines the tree in place
             finally:
                 eng.free(*bufs)
@@ -177,37 +190,55 @@ def surface_caustics(ps, estimator: str, rays: int, settings: DensitySettings, s
     img = np.zeros((cam.height, cam.width, 3), np.float32)
     if ps.num_lights == 0:
         return img
-    eng = ps.engine
     with stats.stage(f"{estimator}_trace"):
         pieces = caustic_pieces(ps, rays, stats, show_progress)
         dev = trace_diffuse_hits_on_device(ps, sample_range=sample_range)
     try:
-        nh = dev.count
-        stats.set(**{f"{estimator}_rays_stored": int(len(pieces)), "diffuse_hits": int(nh)})
-        if len(pieces) == 0 or nh == 0:
+        hits = read_hits(ps, dev)
+        stats.set(**{f"{estimator}_rays_stored": int(len(pieces)), "diffuse_hits": int(dev.count)})
+        if len(pieces) == 0 or dev.count == 0:
             return img
-        hits = eng.read(dev.buf, nh, structs.DIFFUSE_HIT)     # for the host-built tree
-        with stats.stage(f"{estimator}_build"):
-            rmap = build_map(eng, pieces, estimator, settings)
-        e_buf = w_buf = v_buf = None
-        try:
-            with stats.stage(f"{estimator}_estimate"):
-                e_buf, w_buf = estimate_on_device(rmap, hits["p"][:, :3], hits["n"][:, :3],
-                                                  estimator, settings, show_progress, stats)
-                visited, tested = prim.int_totals(eng, w_buf, nh, 2)
-                v_buf = eng.empty(16 * nh)
-                ps.call("raymap", "rm_weigh_hits", nh, hits=dev.buf, e=e_buf, n=nh, out=v_buf)
-                img = dev.accumulate(v_buf)
-            t = rmap.tree
-            stats.set(**{f"{estimator}_tree_nodes": int(t.n), f"{estimator}_tree_refs": int(t.num_refs),
-                         f"{estimator}_index_peak_bytes": int(t.peak_bytes),
-                         f"{estimator}_collapses": int(t.collapses),
-                         f"{estimator}_nodes_visited": int(visited),
-                         f"{estimator}_refs_tested": int(tested)})
-            eng.note_host(t.nbytes + pieces.nbytes + hits.nbytes)
-        finally:
-            rmap.release()
-            eng.free(*(b for b in (e_buf, w_buf, v_buf) if b is not None))
+        img = pass_image(ps, dev, hits, pieces, estimator, settings, stats, show_progress)
     finally:
         dev.release()
+    return img
+
+
+def read_hits(ps, dev) -> np.ndarray:
+    """The diffuse hits of ``dev`` on the host (what the host-built tree needs)."""
+    if dev.count == 0:
+        return np.zeros(0, structs.DIFFUSE_HIT)
+    return ps.engine.read(dev.buf, dev.count, structs.DIFFUSE_HIT)
+
+
+def pass_image(ps, dev, hits: np.ndarray, pieces: np.ndarray, estimator: str,
+               settings: DensitySettings, stats: Stats, show_progress: bool = False,
+               radii: np.ndarray | None = None, out_r=None) -> np.ndarray:
+    """One estimate's image (H, W, 3, finite): the map of ``pieces``, every hit of ``dev``
+    (``hits`` on the host) estimated (``radii``, ``out_r``: :func:`estimate_on_device`),
+    weighed and summed per pixel; the map's statistics set under ``estimator``."""
+    eng = ps.engine
+    nh = dev.count
+    with stats.stage(f"{estimator}_build"):
+        rmap = build_map(eng, pieces, estimator, settings)
+    e_buf = w_buf = v_buf = None
+    try:
+        with stats.stage(f"{estimator}_estimate"):
+            e_buf, w_buf = estimate_on_device(rmap, hits["p"][:, :3], hits["n"][:, :3],
+                                              estimator, settings, show_progress, stats,
+                                              radii=radii, out_r=out_r)
+            visited, tested = prim.int_totals(eng, w_buf, nh, 2)
+            v_buf = eng.empty(16 * nh)
+            ps.call("raymap", "rm_weigh_hits", nh, hits=dev.buf, e=e_buf, n=nh, out=v_buf)
+            img = dev.accumulate(v_buf)
+        t = rmap.tree
+        stats.set(**{f"{estimator}_tree_nodes": int(t.n), f"{estimator}_tree_refs": int(t.num_refs),
+                     f"{estimator}_index_peak_bytes": int(t.peak_bytes),
+                     f"{estimator}_collapses": int(t.collapses),
+                     f"{estimator}_nodes_visited": int(visited),
+                     f"{estimator}_refs_tested": int(tested)})
+        eng.note_host(t.nbytes + pieces.nbytes + hits.nbytes)
+    finally:
+        rmap.release()
+        eng.free(*(b for b in (e_buf, w_buf, v_buf) if b is not None))
     return np.where(np.isfinite(img), img, 0.0).astype(np.float32)

@@ -3,18 +3,19 @@ common parameters, the surface-caustic pass, and the medium method the planner r
 beside them when one is chosen explicitly. Not a method itself (nothing registers here)."""
 from __future__ import annotations
 
-import numpy as np
-
-from ..io.stats import Stats
+from ..estimators.ray_density import DensitySettings
+from ..estimators.surface_passes import SurfacePasses, progressive_surface_caustics
 from ..transport.context import PassContext
 from ..transport.prepared import PreparedScene
+from ..transport.progressive import BUDGET_SLACK
 from . import check_method_param
 from .base import Method, Param, PassResult, camera_samples, costs
 
 #: bytes one lighting ray costs the estimators: its traced pieces (about two of 80 bytes),
 #: their references in the tree and the device copies
 BYTES_PER_RAY = 512
-from ..estimators.ray_density import DensitySettings, surface_caustics
+#: most passes under an error target (the target or a deadline should end them first)
+MAX_PASSES = 1024
 
 #: the parameters every surface density estimator declares
 DENSITY_PARAMS = (
@@ -24,6 +25,15 @@ DENSITY_PARAMS = (
     Param("kernel", "epanechnikov", "density estimation kernel", choices=("epanechnikov", "box")),
     Param("max_radius", 0.05, "largest estimation radius, relative to the scene extent", lo=0,
           lo_open=True),
+    Param("radius", 0.0, "first pass's gather radius relative to the scene extent (k bounds "
+          "the rays it gathers); 0: automatic, every hit's k-th nearest distance", lo=0),
+    Param("passes", 1, "progressive passes of fresh rays, radii shrinking by ppm_alpha (under "
+          "a time budget: fewer if they do not fit; with an error target: more until it is met)",
+          lo=1),
+    Param("time_budget", 0.0, "seconds for this pass (0: none; render.time_budget also "
+          "limits it)", lo=0),
+    Param("ppm_alpha", 2.0 / 3.0, "progressive radius reduction r_(i+1)^2 = r_i^2 (i + "
+          "ppm_alpha) / (i + 1)", lo=0, hi=1, lo_open=True, hi_open=True),
     Param("batch", 32768, "queries per kernel launch (and per lazy refinement step)", lo=1),
     Param("medium", "lsg", "when chosen explicitly: the method the planner runs beside it for "
           "the medium (any method that computes direct light; 'none': surfaces only)"),
@@ -41,7 +51,8 @@ class SurfaceDensityMethod(Method):
     estimator's name) and :meth:`settings`."""
 
     TERMS = frozenset({"surface_caustics"})
-    PREVIEW_SCALE = {"photons": 0.125}
+    PREVIEW_SCALE = {"photons": 0.125, "passes": 0.0, "time_budget": 0.0}
+    PROGRESSIVE = True
 
     @classmethod
     def check_params(cls, params: dict) -> None:
@@ -68,14 +79,36 @@ class SurfaceDensityMethod(Method):
         raise NotImplementedError
 
     def render(self, ctx: PassContext) -> PassResult:
-        """Surface caustics, in the surface term."""
-        return PassResult(surface=self.surface_caustics(ctx.ps, ctx.stats, ctx.show_progress,
-                                                        ctx.paths.sample_range))
-
-    def surface_caustics(self, ps: PreparedScene, stats: Stats, show_progress: bool = True,
-                         sample_range: tuple[int, int] | None = None) -> np.ndarray:
-        """The surface-caustic image alone (H, W, 3)."""
+        """Surface caustics, in the surface term: the mean of the progressive passes
+        (:mod:`clscatter.estimators.surface_passes`), run by ``ctx.progression``."""
+        p, ps = self.params, ctx.ps
+        planned = int(p["passes"])
+        prog = ctx.progression(planned, planned, float(p["time_budget"]))
+        if prog.target_error > 0:
+            prog.max_passes = MAX_PASSES
         s = self.settings()
-        s.max_radius = self.params["max_radius"] * scene_relative(ps)
-        return surface_caustics(ps, self.NAME, self.params["photons"], s, stats, show_progress,
-                                sample_range=sample_range)
+        s.max_radius = p["max_radius"] * scene_relative(ps)
+        res = progressive_surface_caustics(ps, self.NAME, p["photons"], s, ctx.stats, prog,
+                                           p["ppm_alpha"], p["radius"] * scene_relative(ps),
+                                           show_progress=ctx.show_progress,
+                                           sample_range=ctx.paths.sample_range)
+        self._report(ctx, prog, res, ps)
+        return PassResult(surface=res.image)
+
+    def _report(self, ctx: PassContext, prog, res: SurfacePasses, ps: PreparedScene) -> None:
+        """The passes' statistics, and a note when the first pass alone broke the budget."""
+        name = self.NAME
+        ctx.stats.set(**{f"{name}_radius": res.radius,
+                         f"{name}_radius_world": res.radius * ps.frame.scale,
+                         f"{name}_radius_last": res.radius * float(res.scales[-1])
+                         if len(res.scales) else 0.0,
+                         f"{name}_passes": len(res.seconds),
+                         f"{name}_pass_seconds": res.seconds,
+                         f"{name}_time_budget": self.params["time_budget"],
+                         f"{name}_stopped_by": res.stopped_by,
+                         f"{name}_error_estimate": res.error})
+        if prog.budgeted and res.seconds:
+            allowed = prog.deadline - prog.started
+            if res.seconds[0] > BUDGET_SLACK * max(allowed, 0.0):
+                ctx.note(f"{name}: the first pass alone took {res.seconds[0]:.3g} s of the "
+                         f"{allowed:.3g} s this pass had; lower render.{name}.photons")

@@ -39,6 +39,17 @@ class RayMapMethod(SurfaceDensityMethod):
     as if the surface went on, so edges and corners keep their brightness where a photon
     map darkens them (boundary bias).
 
+    *Gather radius and progressive passes* (``clscatter.estimators.surface_passes``). With
+    ``radius = 0`` (automatic) the first pass's radius at a hit is the distance of its
+    ``k``-th nearest ray (at most ``max_radius``), in the normalised frame (independent of
+    the scene's scale); ``passes = 1`` is that estimate alone. Pass i > 1 traces fresh
+    rays and gathers all within ``s_i B(x)``, ``B = max(R_1, pixel footprint / 16)``,
+    ``s_(i+1)^2 = s_i^2 (i + ppm_alpha) / (i + 1)`` (progressive photon mapping, 2-D
+    kernel); the image is the mean of the passes, which converges. Passes stop at
+    ``passes``, at the deadline (this pass's share of ``render.time_budget``, or
+    ``time_budget``) or at ``render.target_error``; their own images give the render's
+    error estimate.
+
     Chosen explicitly it renders the whole picture: the planner runs the ``medium`` method
     beside it (``lsg`` by default: direct single scattering and volumetric caustics). In
     ``auto`` it is the surface-caustic pass only.
@@ -49,7 +60,9 @@ class RayMapMethod(SurfaceDensityMethod):
     rays and diffuse hits), ``raymap_build`` (the tree's root), ``raymap_radius`` (how far
     each batch of queries refines: the K-th nearest ray end point), ``raymap_refine`` (the
     lazy refinement on the host and the tree's upload), ``raymap_estimate`` (the queries
-    on the device).
+    on the device); per pass ``raymap_radius`` (median first radius, normalised),
+    ``raymap_radius_world``, ``raymap_radius_last``, ``raymap_passes``,
+    ``raymap_pass_seconds``, ``raymap_stopped_by``, ``raymap_error_estimate``.
 
     Usage: ``clscatter render builtin:caustic_sphere --method raymap --set render.raymap.k=128``
     """

@@ -1,0 +1,164 @@
+"""Progressive surface density estimation (``raymap``, ``photonmap``): the gather radius of
+every hit, its shrinking from pass to pass, and the passes themselves.
+
+*First pass, automatic radius.* Every diffuse hit x gathers its ``k`` nearest rays
+(photons) within ``max_radius`` (:func:`~.ray_density.estimate_on_device`): its radius
+``R_1(x)`` is the distance of the k-th, the radius whose disc holds ``k`` of this pass's
+rays at x (``max_radius`` where fewer lie within). With an explicit radius r the domain is
+r instead (the k nearest where more than k lie within). The estimates and the radii are in
+the normalised frame, so they do not depend on the scene's scale.
+
+*Later passes.* Pass i (from 1) traces fresh rays (``seed_offset`` i) and gathers at every
+hit all rays within the fixed radius ``R_i(x) = s_i B(x)``, the base
+``B(x) = max(R_1(x), f(x) / FOOTPRINT_FRACTION)`` (``f(x)``: the pixel footprint at x,
+:func:`footprints`; no disc smaller than a sixteenth of a pixel) and
+``s_i^2 = prod_{j<i} (j + alpha) / (j + 1)`` (:func:`ppm_scales`): progressive photon
+mapping's rule for a 2-D kernel (Hachisuka et al. 2008; Knaus and Zwicker 2011,
+``r_{i+1}^2 = r_i^2 (i + alpha) / (i + 1)``). A pass's expected count within its disc
+falls like ``i^(alpha - 1)`` while the mean of ``n`` passes has variance falling like
+``n^-alpha`` and a blur (bias ~ r^2) falling like ``n^(alpha - 1)``: the mean converges.
+Their heap holds ``2 k`` rays (:data:`LATER_HEAP`), far more than the ``k s_i^2`` a disc
+holds in expectation; where more lie within, the nearest ``2 k`` are the estimate.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..io.stats import Stats
+from ..transport.view_paths import trace_diffuse_hits_on_device
+from .knn_queries import HEAP_SIZES
+from .ray_density import DensitySettings, caustic_pieces, pass_image, read_hits
+
+#: the base radius is at least the pixel footprint divided by this
+FOOTPRINT_FRACTION = 16.0
+#: later passes gather up to this many times k rays (the heap bounds a fixed-radius disc)
+LATER_HEAP = 2
+
+
+def ppm_scales(alpha: float, passes: int) -> np.ndarray:
+    """Radius factors ``s_1 .. s_passes`` of progressive passes: ``s_1 = 1``,
+    ``s_{i+1}^2 = s_i^2 (i + alpha) / (i + 1)`` (a 2-D kernel's rule, module docstring)."""
+    s = np.empty(max(int(passes), 0))
+    cur = 1.0
+    for i in range(len(s)):
+        s[i] = np.sqrt(cur)
+        cur *= (i + 1 + alpha) / (i + 2)
+    return s
+
+
+def footprints(ps, points: np.ndarray) -> np.ndarray:
+    """The pixel footprint at ``points`` (normalised frame): their distance from the camera
+    times one pixel's width at unit distance (seen through mirrors or glass, the straight
+    distance: a guide, not a measure)."""
+    cam = ps.camera
+    pix = 2.0 * float(np.linalg.norm(cam["right"][:3])) / max(int(cam["width"]), 1)
+    dist = np.linalg.norm(np.asarray(points, np.float64)[:, :3]
+                          - cam["origin"][:3].astype(np.float64), axis=1)
+    return dist * pix
+
+
+@dataclass
+class SurfacePasses:
+    """What the passes gave: the image (their mean), each pass's seconds, the median base
+    radius over the lit hits (normalised; 0 without any), the radius factors used and why
+    they stopped."""
+
+    image: np.ndarray
+    seconds: list[float] = field(default_factory=list)
+    radius: float = 0.0
+    scales: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    stopped_by: str = "passes"
+    error: float | None = None
+
+
+def base_radii(first: np.ndarray, foot: np.ndarray, explicit: float) -> np.ndarray:
+    """``B(x)`` of the module docstring: ``explicit`` if it is positive, else the first
+    pass's radius ``first``; at least ``foot / FOOTPRINT_FRACTION``."""
+    b = np.full(len(first), explicit) if explicit > 0 else np.asarray(first, np.float64)
+    return np.maximum(b, np.asarray(foot, np.float64) / FOOTPRINT_FRACTION)
+
+
+def progressive_surface_caustics(ps, estimator: str, rays: int, settings: DensitySettings,
+                                 stats: Stats, prog, alpha: float, radius: float = 0.0,
+                                 seed: int = 0, show_progress: bool = False,
+                                 sample_range: tuple[int, int] | None = None) -> SurfacePasses:
+    """The surface caustics (as :func:`~.ray_density.surface_caustics`) refined by passes
+    while ``prog`` (a :class:`~clscatter.transport.progressive.Progression`) says so;
+    each pass's own image goes to ``prog.add`` with its radius (the median base radius
+    times ``s_i``). ``radius``: explicit first radius (normalised; 0: automatic);
+    ``seed``: selects independent sets of rays (pass i uses ``seed_offset = i + (seed <<
+    16)``). The first pass with ``seed`` 0 is exactly ``surface_caustics``."""
+    cam = ps.scene.camera
+    out = SurfacePasses(np.zeros((cam.height, cam.width, 3), np.float32))
+    if ps.num_lights == 0:
+        return out
+    with stats.stage(f"{estimator}_trace"):
+        dev = trace_diffuse_hits_on_device(ps, sample_range=sample_range)
+    try:
+        hits = read_hits(ps, dev)
+        stats.set(diffuse_hits=int(dev.count))
+        if dev.count > 0:
+            _run_passes(ps, dev, hits, estimator, rays, settings, stats, prog, alpha, radius,
+                        seed, show_progress, out)
+    finally:
+        dev.release()
+    return out
+
+
+def _run_passes(ps, dev, hits, estimator: str, rays: int, settings: DensitySettings,
+                stats: Stats, prog, alpha: float, radius: float, seed: int,
+                show_progress: bool, out: SurfacePasses) -> None:
+    """The pass loop of :func:`progressive_surface_caustics`, filling ``out``: until a
+    pass has rays, each is a first pass (it sets the radii); then fixed radii ``s_i B``."""
+    total = None
+    base = None
+    scales: list[float] = []
+    first = settings if radius <= 0 else replace(settings, max_radius=radius)
+    later = replace(settings, k=min(LATER_HEAP * settings.k, HEAP_SIZES[-1]))
+    foot = footprints(ps, hits["p"])
+    i = 0
+    while prog.more():
+        t0 = prog.clock()
+        s = float(ppm_scales(alpha, i + 1)[-1])
+        with stats.stage(f"{estimator}_trace"):
+            pieces = caustic_pieces(ps, rays, stats, show_progress, seed_offset=i + (seed << 16))
+        stats.add(f"{estimator}_rays_stored", int(len(pieces)))
+        if len(pieces) == 0:
+            own = np.zeros_like(out.image)
+        elif base is None:
+            own, base, out.radius = _first_pass(ps, dev, hits, pieces, estimator, first, stats,
+                                                show_progress, foot, radius)
+        else:
+            own = pass_image(ps, dev, hits, pieces, estimator, later, stats, show_progress,
+                             radii=(base * s).astype(np.float32))
+        out.seconds.append(prog.clock() - t0)
+        scales.append(s)
+        prog.add(own, out.seconds[-1], radius=None if base is None else s * max(out.radius, 1e-30))
+        total = own.astype(np.float64) if total is None else total + own
+        i += 1
+    n = max(len(out.seconds), 1)
+    if total is not None:
+        out.image = (total / n).astype(np.float32) if n > 1 else total.astype(np.float32)
+    out.scales = np.asarray(scales)
+    out.stopped_by = prog.stopped_by or "passes"
+    out.error = prog.error
+
+
+def _first_pass(ps, dev, hits, pieces, estimator: str, settings: DensitySettings, stats: Stats,
+                show_progress: bool, foot: np.ndarray, radius: float):
+    """The first pass's image, the base radii ``B`` it gives (:func:`base_radii`) and their
+    median over the hits it found k rays for (0 without any; with an explicit radius, over
+    every hit)."""
+    eng = ps.engine
+    r_buf = eng.empty(4 * dev.count)
+    try:
+        own = pass_image(ps, dev, hits, pieces, estimator, settings, stats, show_progress,
+                         out_r=r_buf)
+        r1 = eng.read(r_buf, dev.count, np.float32).astype(np.float64)
+    finally:
+        eng.free(r_buf)
+    base = base_radii(r1, foot, radius)
+    lit = np.flatnonzero(r1 < settings.max_radius) if radius <= 0 else np.arange(len(r1))
+    return own, base, float(np.median(base[lit])) if len(lit) else 0.0
