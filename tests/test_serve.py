@@ -479,3 +479,39 @@ def test_clscatter_serve_command():
     assert out.stderr.strip().splitlines() == [
         "clscatter: error: builtin:nope: unknown built-in scene 'nope' (one of "
         + ", ".join(__import__("clscatter.scene", fromlist=["BUILTIN"]).BUILTIN) + ")"]
+
+
+def test_progressive_passes_refine_after_the_full_frame():
+    """On a caustic scene the full frame is followed by refine frames: fresh LSG passes
+    (the next pass indices) averaged in, their count growing frame by frame, the image
+    moving towards convergence; Save stays the full frame. A newer change stops the
+    refinement: no refine frame of the old request follows the new request's frames."""
+    from clscatter.serve import app as app_mod
+
+    tiny = ["camera.resolution=[32,24]", "camera.spp=1", "render.lsg.light_rays=2000",
+            "render.lsg.passes=2", "render.raymap.photons=2000"]
+    rounds, app_mod.REFINE_ROUNDS = app_mod.REFINE_ROUNDS, 3
+    try:
+        with BackgroundServer("builtin:caustic_sphere", tiny) as srv:
+            p = Page(srv)
+            try:
+                full = p.final(0, timeout=120)
+                refs = [p.next(lambda m: m["type"] == "frame" and m["level"] == "refine", 120)
+                        for _ in range(3)]
+                p.next(lambda m: m["type"] == "idle", 60)
+                counts = [r["stats"]["refine_passes"]["lsg"] for r in refs]
+                assert counts[0] > 2 and counts == sorted(set(counts))      # 2: the full frame's
+                assert all(not r["final"] for r in refs)
+                assert not np.array_equal(decode(refs[-1]), decode(full))
+                rid = p.set(["lights[0].intensity=30.0"], mode="refine")
+                p.final(rid, timeout=120)
+                newer = p.set(["lights[0].intensity=20.0"], mode="refine")
+                p.final(newer, timeout=120)
+                p.next(lambda m: m["type"] == "idle", 180)
+                first_newer = next(i for i, m in enumerate(p.seen) if m.get("id") == newer)
+                assert not [m for m in p.seen[first_newer:]
+                            if m["type"] == "frame" and m["id"] == rid]
+            finally:
+                p.close()
+    finally:
+        app_mod.REFINE_ROUNDS = rounds

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import copy
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -44,7 +44,7 @@ from ..scene.builtin import to_toml
 from ..scene.loader import apply_overrides, scene_from_dict, scene_source
 from ..scene.model import Scene
 from ..transport.context import PassCache, PassContext
-from ..transport.progressive import relmse_estimate
+from ..transport.progressive import Cancelled, relmse_estimate
 from ..transport.prepared import (
     PreparedScene,
     geometry_key,
@@ -56,10 +56,6 @@ from ..transport.view_paths import ViewPaths, shade_hits, trace_view_paths
 from . import budget, calibration
 from .check import check, scene_notes
 from .planner import user_notes
-
-
-class Cancelled(Exception):
-    """A render was stopped by its ``cancel`` callback (between stages)."""
 
 
 def _view_key(scene: Scene) -> tuple:
@@ -166,7 +162,8 @@ class RenderSession:
         """Render the current scene, re-running only what changed since the last render.
 
         ``preview`` renders at a quarter of the resolution with one sample per pixel (the
-        stats say so); ``cancel()`` is polled between stages and raises :class:`Cancelled`.
+        stats say so); ``cancel()`` is polled between stages and between progressive
+        passes and raises :class:`Cancelled`.
         ``stats`` may be one the caller started earlier (the CLI times scene loading and
         output writing in it too). ``samples = (lo, hi)`` renders only those camera samples
         (see :func:`~clscatter.transport.view_paths.trace_view_paths`). ``only`` runs just those passes
@@ -258,7 +255,7 @@ class RenderSession:
                                          stop_if_asked, ran, reused, preview, only,
                                          pass_params or {}, clock, on_note,
                                          _time_budget(scene, req, started, stats,
-                                                      preview or only is not None)))
+                                                      preview or only is not None), cancel))
         finally:
             engine.trim_pool()      # keep what this render freed for the next one
 
@@ -276,6 +273,7 @@ class RenderSession:
         added = np.zeros((cam.height, cam.width, 3), np.float32)
         medium = np.zeros((cam.height, cam.width, 3), np.float32)
         errors = None                                  # (variance, squared bias) images
+        parts: dict[int, np.ndarray] = {}              # each pass's own surface + medium
         order = [k for k, p in enumerate(run.req.passes) if run.only is None or k in run.only]
         order.sort(key=lambda k: bool(get_method(run.req.passes[k].method).PROGRESSIVE))
         progressive_left = sum(1 for k in order if get_method(run.req.passes[k].method).PROGRESSIVE)
@@ -300,7 +298,8 @@ class RenderSession:
             t0 = time.perf_counter()
             with PassContext(run.ps, run.paths, stats, run.show_progress,
                              self._caches.setdefault(p.method, PassCache()), run.on_note,
-                             deadline, scene.render.target_error, image_so_far) as ctx:
+                             deadline, scene.render.target_error, image_so_far,
+                             cancel=run.cancel) as ctx:
                 out = method.render(ctx)
                 err = ctx.errors()
             if deadline is None and not run.preview and run.only is None:
@@ -313,12 +312,16 @@ class RenderSession:
                 added = added + out.surface
             if out.medium is not None:
                 medium = medium + out.medium
+            parts[k] = sum(x for x in (out.surface, out.medium) if x is not None)
         surface = base() + added
         with stats.stage("compose"):
             image = _finite(surface + medium, stats, run.on_note)
         _report_error(stats, errors, image, scene.render.target_error, run.on_note)
         _report_budget(stats, run.budget, run.on_note)
-        return self._result(run, image, surface, medium)
+        result = self._result(run, image, surface, medium)
+        result.parts = {k: np.asarray(v, np.float32) for k, v in parts.items()
+                        if isinstance(v, np.ndarray)}
+        return result
 
     def _result(self, run: "_Run", image: np.ndarray, surface: np.ndarray,
                 medium: np.ndarray) -> RenderResult:
@@ -337,6 +340,14 @@ class RenderSession:
                   preview=bool(run.preview))
         return RenderResult(image.astype(np.float32, copy=False), stats.to_dict(),
                             np.array(surface, np.float32), medium.astype(np.float32, copy=False))
+
+    def progressive_passes(self) -> list[tuple[int, str]]:
+        """(plan index, method) of the current plan's passes that can run further
+        progressive passes apart (``Method.SPLIT_PASSES``: pass k depends on k alone), so a
+        later ``render(only=..., pass_params={k: {"first_pass": n, ...}})`` adds fresh passes
+        to an image: how the relighting page refines after a full frame."""
+        req = check(self.scene, self.method)
+        return [(k, p.method) for k, p in enumerate(req.passes) if get_method(p.method).SPLIT_PASSES]
 
     def view_surface(self) -> np.ndarray:
         """The surface image of the last render's view paths (direct light on diffuse
@@ -380,6 +391,7 @@ class RenderResult:
     stats: dict[str, Any]
     surface: np.ndarray          # the surface part alone (direct light + surface caustics)
     medium: np.ndarray           # the medium part alone
+    parts: dict = field(default_factory=dict)  # plan index -> that pass's own radiance
 
 
 @dataclass
@@ -402,6 +414,7 @@ class _Run:
     clock: tuple[float, float]
     on_note: Callable[[str], None] | None
     budget: "_Budget"
+    cancel: Callable[[], bool] | None = None
 
 
 @dataclass

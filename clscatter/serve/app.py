@@ -13,8 +13,12 @@ Why this shape:
   that finishes anyway is dropped, never sent.
 * Progressive frames: a change first renders a preview (the session's reduced resolution,
   1 spp), then, unless the page asked for the preview alone (it does while the user drags),
-  the full render at the scene's own settings. That full image is the converged one: it is
-  exactly what ``clscatter render`` of the saved TOML gives (tested).
+  the full render at the scene's own settings. That full image is exactly what
+  ``clscatter render`` of the saved TOML gives (tested), and what Save downloads. Where
+  the plan has progressive passes (``lsg``), refinement rounds follow: fresh passes of
+  those methods alone, a couple of seconds each, streamed as ``refine`` frames of the
+  converging mean, until a newer change arrives (polled between passes, so stale work
+  stops within a pass) or :data:`REFINE_ROUNDS` have run.
 * Bad input is validated like the command line (``--set`` parsing, the loader, the method
   check) before the session changes; the page shows the same one-line message and the
   session keeps its last good state.
@@ -31,7 +35,8 @@ page -> server
     (sent when a drag ends: its previews were already shown)
 server -> page
     ``hello`` (page id, scene state, methods), ``state`` (after an accepted change),
-    ``busy`` (a render started), ``frame`` (a PNG as base64, its stats and ``notes``: the
+    ``busy`` (a render started), ``frame`` (level ``preview``, ``full`` or ``refine``; a
+    PNG as base64, its stats and ``notes``: the
     plan's notes that leave light out of the image, which the command line prints as
     ``clscatter: note: ...``), ``error`` (one line), ``cancelled`` (the request's render was
     superseded), ``idle`` (nothing left to do).
@@ -356,20 +361,72 @@ class PageWorker:
             if final:
                 self.last_full = Frame(result.image, self.session.to_toml(), result.stats,
                                        version)
-            self.send({"type": "frame", "id": request, "level": level, "final": final,
-                       "version": version, "seconds": seconds,
-                       "width": int(result.image.shape[1]), "height": int(result.image.shape[0]),
-                       "png": base64.b64encode(png_bytes(result.image)).decode("ascii"),
-                       "stats": frame_stats(result.stats),
-                       "notes": light_notes(result.stats)})
+            self._send_frame(request, level, final, version, seconds, result.image,
+                             result.stats)
+            if final and not self._refine(request, generation, version, result):
+                return
         self._send_idle(generation)
+
+    def _send_frame(self, request: int, level: str, final: bool, version: int,
+                    seconds: float, image: np.ndarray, stats: dict) -> None:
+        self.send({"type": "frame", "id": request, "level": level, "final": final,
+                   "version": version, "seconds": seconds,
+                   "width": int(image.shape[1]), "height": int(image.shape[0]),
+                   "png": base64.b64encode(png_bytes(image)).decode("ascii"),
+                   "stats": frame_stats(stats), "notes": light_notes(stats)})
+
+    def _refine(self, request: int, generation: int, version: int, full) -> bool:
+        """After a full frame, up to :data:`REFINE_ROUNDS` rounds of fresh progressive
+        passes (the plan's ``SPLIT_PASSES`` passes only, the next pass indices, at most
+        :data:`REFINE_SECONDS` each), each streamed as a ``refine`` frame: the image is the
+        full frame's fixed passes plus the mean of every progressive pass so far, so it
+        converges while nothing newer arrives. False when a newer change stopped it."""
+        from ..pipeline.session import Cancelled
+
+        split = [(k, m) for k, m in self.session.progressive_passes() if k in full.parts]
+        if not split or REFINE_ROUNDS == 0:
+            return True
+        done = {k: max(int(full.stats.get(f"{m}_passes") or 1), 1) for k, m in split}
+        sums = {k: full.parts[k].astype(np.float64) * done[k] for k, _ in split}
+        fixed = full.image.astype(np.float64) - sum(full.parts[k] for k, _ in split)
+        for _ in range(REFINE_ROUNDS):
+            if self._stale(generation):
+                return False
+            params = {k: {"first_pass": done[k], "passes": 1 << 10,
+                          "time_budget": REFINE_SECONDS} for k, _ in split}
+            t0 = time.perf_counter()
+            try:
+                with _DEVICE_LOCK:
+                    r = self.session.render(show_progress=False, only=[k for k, _ in split],
+                                            pass_params=params,
+                                            cancel=lambda: self._stale(generation))
+            except Cancelled:
+                self.cancels += 1
+                return False
+            for k, m in split:
+                n = max(int(r.stats.get(f"{m}_passes") or 1), 1)
+                sums[k] += r.parts[k].astype(np.float64) * n
+                done[k] += n
+            if self._stale(generation):
+                return False
+            image = (fixed + sum(sums[k] / done[k] for k, _ in split)).astype(np.float32)
+            stats = {**full.stats, "refine_passes": {m: done[k] for k, m in split}}
+            self.renders += 1
+            self._send_frame(request, "refine", False, version, time.perf_counter() - t0,
+                             image, stats)
+        return True
+
+
+#: refinement rounds after a full frame, and the seconds of progressive passes in each
+REFINE_ROUNDS = 8
+REFINE_SECONDS = 2.0
 
 
 def frame_stats(stats: dict) -> dict:
     """The stats the page shows: seconds per stage, what ran, what was re-used, the plan."""
     keep = ("method", "requested_method", "plan", "passes", "width", "height", "spp",
             "seconds_total", "stages", "stages_run", "reused", "preview", "device",
-            "peak_bytes", "nonfinite_pixels_zeroed")
+            "peak_bytes", "nonfinite_pixels_zeroed", "refine_passes")
     return {k: copy.deepcopy(stats[k]) for k in keep if k in stats}
 
 

@@ -57,8 +57,10 @@ class PassContext:
                  on_note: Callable[[str], None] | None = None,
                  deadline: float | None = None, target_error: float = 0.0,
                  image_so_far: Callable[[], np.ndarray | None] | None = None,
-                 clock: Callable[[], float] = time.perf_counter):
+                 clock: Callable[[], float] = time.perf_counter,
+                 cancel: Callable[[], bool] | None = None):
         self.ps = ps
+        self.cancel = cancel           # polled between progressive passes
         self.clock = clock             # what deadlines are measured on (tests give a fake one)
         self.deadline = deadline
         self.target_error = float(target_error)
@@ -105,7 +107,7 @@ class PassContext:
         the time shared among ``planned``, ending by the render's deadline or ``own_budget``
         seconds from now (0: none), whichever is first."""
         prog = Progression(None, self.target_error, max_passes, planned, self._image_so_far,
-                           self.clock)
+                           self.clock, self.cancel)
         ends = [t for t in (self.deadline, prog.started + own_budget if own_budget > 0 else None)
                 if t is not None]
         prog.deadline = min(ends) if ends else None

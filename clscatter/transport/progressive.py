@@ -38,6 +38,11 @@ from ..io.image import RELMSE_FLOOR
 
 #: a time budget counts as kept while the time taken stays within this factor of it
 BUDGET_SLACK = 1.2
+
+
+class Cancelled(Exception):
+    """A render was stopped by its ``cancel`` callback (between stages, or between the
+    passes of a progression)."""
 #: passes before the error target may stop a progression (two of each half)
 MIN_PASSES_FOR_TARGET = 4
 #: a pass's blur bias is modelled as c r^BIAS_EXPONENT (r: its gather radius)
@@ -69,12 +74,14 @@ class Progression:
     def __init__(self, deadline: float | None = None, target_error: float = 0.0,
                  max_passes: int = 1, planned: int = 1,
                  image_so_far: Callable[[], np.ndarray | None] | None = None,
-                 clock: Callable[[], float] = time.perf_counter):
+                 clock: Callable[[], float] = time.perf_counter,
+                 cancel: Callable[[], bool] | None = None):
         self.deadline = deadline
         self.target_error = float(target_error)
         self.max_passes = max(1, int(max_passes))
         self.planned = max(1, int(planned))
         self.clock = clock
+        self._cancel = cancel
         self._image_so_far = image_so_far
         self.started = clock()
         self.seconds: list[float] = []
@@ -100,7 +107,11 @@ class Progression:
         return max(self.remaining(), 0.0) / left
 
     def more(self) -> bool:
-        """Whether another pass should run; records why not in ``stopped_by``."""
+        """Whether another pass should run; records why not in ``stopped_by``. Raises
+        :class:`Cancelled` when the render's ``cancel()`` says so (a newer change on the
+        page: stale work stops within a pass's time)."""
+        if self._cancel is not None and self._cancel():
+            raise Cancelled("render cancelled")
         done = len(self.seconds)
         if done == 0:
             return True

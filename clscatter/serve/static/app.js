@@ -183,7 +183,8 @@ function showFrame(m) {
     canvas.dataset.frames = String(frames);
     canvas.dataset.finals = String(finals);
     canvas.dataset.level = m.level;
-    finalCurrent = m.final;
+    // a refine frame improves the full frame of the same settings: Save stays as it was
+    if (m.level !== "refine") finalCurrent = m.final;
     showStats(m);
     showNotes(m.notes || []);
     placeHandles();
