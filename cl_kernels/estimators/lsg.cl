@@ -8,6 +8,12 @@
  * exact segment-to-segment distance, and adds the cylinder-kernel estimate of lsg.h for
  * every pair closer than r.
  *
+ * Regions: the lighting segments of a launch all lie in one region (the scene medium, or
+ * the inside of one dielectric material whose interior scatters), `medium` holds that
+ * region's coefficients (sigma_s, kappa, g: the scene medium's, or the material's interior
+ * ones, built on the host), and only the view segments of the same region (view_region
+ * == region) gather; the others add 0. Light is gathered only where it is.
+ *
  * exhaustive = 1: the same per-pair code for every (view, light) pair, no culling: the
  * reference the tree must reproduce exactly (tests/test_lsg.py).
  *
@@ -58,6 +64,10 @@ int load_query(__global const ViewSegment *views, int vi, ViewQuery *q) {
     return len > 0.0f;
 }
 
+/* The region of a view segment (common.h: a.w, 0 in the scene medium, m + 1 inside
+ * dielectric material m). */
+int view_region(__global const ViewSegment *v) { return (int)rint(v->a.w); }
+
 /* Range of P . w over a node's 6-D box against [-thr, thr]. */
 int node_near(__global const LineNode *nd, const float *w, float thr) {
     float lo = 0.0f, hi = 0.0f;
@@ -75,7 +85,7 @@ __kernel void lsg_gather(__global const LineNode *nodes, __global const int2 *le
                          __global const int *line_ids, int num_lines, float max_m1,
                          __global const ViewSegment *views, int view_offset, int num_views,
                          float4 pl_centre, float pl_inv_scale, float radius, float min_sin,
-                         __global const Medium *medium, int exhaustive,
+                         __global const Medium *medium, int region, int exhaustive,
                          __global float4 *out, __global int4 *counts,
                          __global int2 *pairs, volatile __global int *pair_count, int max_pairs) {
     int gid = get_global_id(0);
@@ -84,7 +94,7 @@ __kernel void lsg_gather(__global const LineNode *nodes, __global const int2 *le
     ViewQuery q;
     int4 cnt = (int4)(0, 0, 0, 0);
     float4 acc = (float4)(0.0f);
-    if (load_query(views, vi, &q)) {
+    if (view_region(&views[vi]) == region && load_query(views, vi, &q)) {
         float4 kappa = medium->kappa;
         float g = medium->g;
         if (exhaustive) {

@@ -256,6 +256,79 @@ int4 voxel_of(float4 x, float4 lo, int4 dims, float inv_h) {
                   clamp((int)floor(p.z), 0, dims.z - 1), 0);
 }
 
+/* ------------------------------------------------ Fresnel at smoothed boundaries -- */
+
+/* Transmittance of a sharp dielectric interface from index n1 to n2 at incidence cosine
+ * cos_i (unpolarised: 1 minus the mean of the s and p reflectances, specular.h's
+ * fresnel_dielectric); 0 under total internal reflection. 1 when the indices differ by
+ * less than VOX_DN_MIN (no interface: such a step reflects below 2e-7 at normal
+ * incidence). */
+#define VOX_DN_MIN 1e-3f
+float vox_fresnel_t(float n1, float n2, float cos_i) {
+    if (fabs(n1 - n2) < VOX_DN_MIN) return 1.0f;
+    float ct;
+    return 1.0f - fresnel_dielectric(clamp(cos_i, 0.0f, 1.0f), n1 / n2, &ct);
+}
+
+/* Crossing a smoothed boundary. A voxelised volume's index rises from the outside's to
+ * the inside's over a band of voxels (its blurred coverage w), and the ray equation bends
+ * paths through the band as Snell's law would at the sharp boundary, which lies where
+ * w = 1/2. The boundary grid holds per voxel (w, n_lo, n_hi, 0): the blurred weight of
+ * the volume with the largest weight there and the indices on its outer (w -> 0) and
+ * inner (w -> 1) sides (equal where no volume is near: nothing to cross); trilinear like
+ * every field. A path's crossing state is w at its previous step start (-1: none yet).
+ * When w passes 1/2 between two step starts the path has crossed the boundary from
+ * n1 to n2 (n_lo -> n_hi going in, n_hi -> n_lo going out), and keeps the transmittance
+ * of the sharp interface, vox_fresnel_t(n1, n2, cos_i), once. The incidence comes from
+ * the ray equation's invariant across a layered index: the component of v (= n x unit
+ * direction) across grad n, k = |v x g| / |g| = n sin(theta), is the same on both sides,
+ * so sin(theta_i) = k / n1. A path with k >= min(n1, n2) cannot exist on the lower-index
+ * side: it is one that the band turns back (the continuous version of total internal
+ * reflection; it crosses 1/2 out and back in, or not at all) and it keeps everything, as
+ * total internal reflection does. Returns the factor for the path's flux / throughput. */
+float vox_crossing(float *w_prev, float4 side, float4 v, float4 g) {
+    float T = 1.0f;
+    float w = side.x;
+    if (*w_prev >= 0.0f && (*w_prev < 0.5f) != (w < 0.5f)) {
+        int entering = w >= 0.5f;
+        float n1 = entering ? side.y : side.z, n2 = entering ? side.z : side.y;
+        float gl = length3(g);
+        float k = gl > 0.0f ? length3(cross(v, g)) / gl : 0.0f;
+        if (k < fmin(n1, n2)) {
+            float s = k / n1;
+            T = vox_fresnel_t(n1, n2, sqrt(fmax(0.0f, 1.0f - s * s)));
+        }
+    }
+    *w_prev = w;
+    return T;
+}
+
+/* Test hook: vox_crossing along given paths. Path p has `len` step starts; at step i its
+ * sampled (w, n_lo, n_hi) is side[p * len + i], its v and grad n v[.], g[.]; out[p] is the
+ * product of the factors (the flux the path keeps). */
+__kernel void vox_crossing_test(__global const float4 *side, __global const float4 *v,
+                                __global const float4 *g, int count, int len,
+                                __global float *out) {
+    int p = get_global_id(0);
+    if (p >= count) return;
+    float w_prev = -1.0f, T = 1.0f;
+    for (int i = 0; i < len; ++i) {
+        int k = p * len + i;
+        float4 vv = v[k], gg = g[k];
+        vv.w = 0.0f;
+        gg.w = 0.0f;
+        T *= vox_crossing(&w_prev, side[k], vv, gg);
+    }
+    out[p] = T;
+}
+
+/* Test hook: vox_fresnel_t for arrays (n1, n2, cos_i) in xyz of each float4. */
+__kernel void vox_fresnel_test(__global const float4 *cases, int count, __global float *out) {
+    int i = get_global_id(0);
+    if (i >= count) return;
+    out[i] = vox_fresnel_t(cases[i].x, cases[i].y, cases[i].z);
+}
+
 /* ----------------------------------------------------------------- deposition -- */
 
 /* Float atomic add by compare-and-swap on the bit pattern (OpenCL 1.2 has no float
@@ -451,6 +524,9 @@ __kernel void photon_emit(__global const BVHNode *nodes, __global const float4 *
  * deposited voxel by voxel (deposit_segment), which also attenuates the flux. A photon
  * dies when it leaves the grid, hits a surface, or its flux falls below min_rel times its
  * starting flux. Live photons are counted in counters[0], steps taken in counters[1].
+ * Where a photon crosses a volume's smoothed boundary (grid `boundary`, vox_crossing; its
+ * crossing state kept in crossing[p] between launches, -1 at the start) its flux is
+ * multiplied by the Fresnel transmittance of the crossing; the reflected part is dropped.
  * pos.w afterwards: 1 live, 0 ended (surface, faded out), -1 left through a grid face (the
  * straight light beyond the grid: photon_exits). 
  * adaptive = 0 gives the fixed-step marcher (s = ds_min everywhere). */
@@ -460,7 +536,8 @@ __kernel void photon_march(__global float4 *pos, __global float4 *vel, __global 
                            __global const float4 *kappa, __global const uchar *level,
                            __global const float *smax, int adaptive, float ds_min, float min_rel,
                            __global const BVHNode *nodes, __global const float4 *tris,
-                           int test_surfaces, volatile __global float *rad,
+                           int test_surfaces, __global const float4 *boundary,
+                           __global float *crossing, volatile __global float *rad,
                            volatile __global float *dirs, volatile __global int *counters) {
     int p = get_global_id(0);
     if (p >= count) return;
@@ -468,6 +545,7 @@ __kernel void photon_march(__global float4 *pos, __global float4 *vel, __global 
     if (x.w != 1.0f) return;
     x.w = 0.0f;
     float4 v = vel[p], F = flux[p];
+    float xing = crossing[p];
     float inv_h = 1.0f / h;
     int alive = 1, taken = 0;
     float state = 1.0f;
@@ -480,6 +558,7 @@ __kernel void photon_march(__global float4 *pos, __global float4 *vel, __global 
         if (!(vl > 0.0f)) { alive = 0; break; }
         float4 dir = v / vl;
         dir.w = 0.0f;
+        F.xyz *= vox_crossing(&xing, tri_f4(boundary, dims, &tr), v, g);   /* Fresnel */
         float step = ds_min;
         if (adaptive) {
             int4 c = voxel_of(x, glo, dims, inv_h);
@@ -511,6 +590,7 @@ __kernel void photon_march(__global float4 *pos, __global float4 *vel, __global 
         if (!stop && !alive) state = 0.0f;        /* faded out */
     }
     pending_flush(&pd, rad, dirs);
+    crossing[p] = xing;
     pos[p] = (float4)(x.x, x.y, x.z, alive ? 1.0f : (state == 2.0f ? -1.0f : 0.0f));
     vel[p] = v;
     flux[p] = F;
@@ -622,15 +702,17 @@ __kernel void outer_view(__global const ViewSegment *segs, int count, __global c
  * outside, with its throughput) or at a surface (rays_out from the step's start with
  * flags |= VOX_SKIP_FIRST: the straight tracer takes the surface from there, the piece up
  * to it already integrated here). radiance[r] is the ray's in-scattered light (weighted
- * by its throughput). */
+ * by its throughput). Where the ray crosses a volume's smoothed boundary its throughput
+ * is multiplied by the Fresnel transmittance of the crossing (vox_crossing, as for
+ * photons); the reflected branch is not followed. */
 __kernel void voxel_view_march(__global const VoxRay *rays, int count, float4 glo, float4 ghi,
                                int4 dims, float h, __global const float *n_grid,
                                __global const float4 *grad, __global const float4 *sigma_s,
                                __global const float4 *kappa, __global const float4 *rad,
                                __global const float4 *dirs, float g_phase, int max_steps,
                                __global const BVHNode *nodes, __global const float4 *tris,
-                               int test_surfaces, __global float4 *radiance,
-                               __global VoxRay *rays_out) {
+                               int test_surfaces, __global const float4 *boundary,
+                               __global float4 *radiance, __global VoxRay *rays_out) {
     int r = get_global_id(0);
     if (r >= count) return;
     VoxRay ray = rays[r];
@@ -643,6 +725,7 @@ __kernel void voxel_view_march(__global const VoxRay *rays, int count, float4 gl
     float4 L = (float4)(0.0f);
     int ended = 0;
     float4 dir = ray.d;
+    float xing = -1.0f;
     for (int s = 0; s < max_steps; ++s) {
         Tri tr = tri_setup(x, glo, dims, inv_h);
         float n = tri_f(n_grid, dims, &tr);
@@ -651,6 +734,7 @@ __kernel void voxel_view_march(__global const VoxRay *rays, int count, float4 gl
         if (!(vl > 0.0f)) break;
         dir = v / vl;
         dir.w = 0.0f;
+        thr *= vox_crossing(&xing, tri_f4(boundary, dims, &tr), v, g);   /* Fresnel */
         float len = fmin(h, box_exit(x, dir, glo, ghi));
         int leave = len < h;
         int surf = 0;

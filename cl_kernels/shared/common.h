@@ -90,7 +90,10 @@ typedef struct {
 /* One layout for every straight path piece (64 bytes; host: structs._segment): the ends
  * a, b (xyz), an rgb value, the owner (pixel or light), the specular bounces before the
  * piece, the path's index (camera sample or lighting ray) and its branch in that path's
- * tree (0 = the primary ray). View and light segments share it under their own names. */
+ * tree (0 = the primary ray). View and light segments share it under their own names.
+ * The w lane of a is the piece's region: 0 in the scene medium (every piece of the shared
+ * buffers), m + 1 inside dielectric material m whose interior scatters (only where a
+ * tracer is built with SEGMENT_REGIONS & 2: line space gathering's own traces). */
 #define SEGMENT_FIELDS(value, owner, index) \
     float4 a; float4 b; float4 value; int owner; int depth; int index; int branch;
 

@@ -253,10 +253,10 @@ int density_piece(__global const Medium *m, const Branch *br, float t_hit, float
 }
 
 /* Attenuation of a branch over [0, t_hit]: the grids and the scene medium outside objects,
- * or the interior absorption of the dielectric it is inside. */
+ * or the interior extinction (interior_kappa) of the dielectric it is inside. */
 float4 density_branch_attenuation(__global const Medium *m, __global const Material *materials,
                                   const Branch *br, float t_hit) {
-    if (br->inside >= 0) return transmittance(materials[br->inside].interior_sigma_a, t_hit);
+    if (br->inside >= 0) return transmittance(interior_kappa(&materials[br->inside]), t_hit);
     return exp3(-density_optical_depth(m, br->o, br->d, 0.0f, t_hit));
 }
 

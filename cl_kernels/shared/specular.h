@@ -129,11 +129,42 @@ int medium_piece(__global const Medium *medium, const Branch *br, float t_hit, f
     return 1;
 }
 
+/* Extinction inside a dielectric: its interior absorption plus its interior scattering
+ * (light scattered inside leaves the branch as it does in the medium). */
+float4 interior_kappa(__global const Material *mat) {
+    return mat->interior_sigma_a + mat->interior_sigma_s;
+}
+
+/* 1 when a dielectric's interior scatters light (interior_sigma_s above 0 in any channel). */
+int scatters_inside(__global const Material *mat) {
+    float4 s = mat->interior_sigma_s;
+    return mat->type == MAT_DIELECTRIC && fmax(s.x, fmax(s.y, s.z)) > 0.0f;
+}
+
+/* The region tag of a path piece (common.h, SEGMENT_FIELDS: the w lane of a): 0 in the
+ * scene medium, m + 1 inside dielectric material m. */
+float region_tag(int inside) { return inside >= 0 ? (float)(inside + 1) : 0.0f; }
+
+/* The straight piece [*a, *b] = [o, o + t_hit d] of a branch inside a dielectric whose
+ * interior scatters (scatters_inside), ending where it meets the object's surface again
+ * (found: a branch inside a closed object always does; an open surface gives none).
+ * a.w holds the region tag (inside + 1). Returns 0 when there is none. */
+int interior_piece(__global const Material *materials, const Branch *br, int found, float t_hit,
+                   float4 *a, float4 *b) {
+    if (br->inside < 0 || !found || !(t_hit > 0.0f) || !scatters_inside(&materials[br->inside]))
+        return 0;
+    *a = br->o;
+    *b = br->o + t_hit * br->d;
+    a->w = region_tag(br->inside);
+    b->w = 0.0f;
+    return 1;
+}
+
 /* Attenuation of a branch over [0, t_hit]: the medium outside objects, or the interior
- * absorption of the dielectric it is inside. */
+ * extinction (interior_kappa: absorption and scattering) of the dielectric it is inside. */
 float4 branch_attenuation(__global const Medium *medium, __global const Material *materials,
                           const Branch *br, float t_hit) {
-    if (br->inside >= 0) return transmittance(materials[br->inside].interior_sigma_a, t_hit);
+    if (br->inside >= 0) return transmittance(interior_kappa(&materials[br->inside]), t_hit);
     if (!medium->present) return (float4)(1.0f, 1.0f, 1.0f, 0.0f);
     return transmittance(medium->kappa, medium_path_length(medium, br->o, br->d, 0.0f, t_hit));
 }

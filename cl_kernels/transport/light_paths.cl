@@ -7,7 +7,8 @@
  * flux, flux_per_ray = emitted power / N, computed on the host (clscatter/light_paths.py).
  * Mirrors and dielectrics split the ray deterministically (specular.h); diffuse and black
  * surfaces end it (single scattering: no diffuse bounce lights the medium). Every
- * straight piece inside the medium is appended to the LightSegment buffer.
+ * straight piece inside the medium is appended to the LightSegment buffer (built with
+ * SEGMENT_REGIONS = 3, the pieces inside glass that scatters too, tagged: see below).
  *
  * Targeted emission (num_targets > 0; clscatter/emission.py derives the maths): a point
  * or spot light's rays are drawn in cones around the specular objects' bounding spheres
@@ -30,6 +31,29 @@
 #else
 #define LIGHT_RECORD LightSegment
 #endif
+/* which pieces trace_light appends as LightSegments (bits): 1 the pieces in the scene
+ * medium, 2 the pieces inside dielectrics whose interior scatters (specular.h,
+ * interior_piece: tagged with the material in a.w, flux at a; line space gathering) */
+#ifndef SEGMENT_REGIONS
+#define SEGMENT_REGIONS 1
+#endif
+
+/* Append the piece [a, b] of branch br of lighting ray `ray` of light `light`. */
+void append_light_segment(__global LightSegment *segs, int max_segs, volatile __global int *count,
+                          float4 a, float4 b, const Branch *br, int light, int ray) {
+    int idx = atomic_inc(count);
+    if (idx < max_segs) {
+        LightSegment sg;
+        sg.a = a;
+        sg.b = b;
+        sg.flux = br->thr;
+        sg.light = light;
+        sg.depth = br->depth;
+        sg.ray = ray;
+        sg.branch = br->id;
+        segs[idx] = sg;
+    }
+}
 
 /* Each byte with its bits reversed. */
 __constant uchar REVERSED_BYTE[256] = {
@@ -201,20 +225,14 @@ __kernel void trace_light(__global const BVHNode *nodes, __global const float4 *
         }
 #else
         float4 a, b;
-        if (medium_piece(medium, &br, t_hit, &a, &b)) {
-            int idx = atomic_inc(seg_count);
-            if (idx < max_segs) {
-                LightSegment sg;
-                sg.a = a;
-                sg.b = b;
-                sg.flux = br.thr;
-                sg.light = light_index;
-                sg.depth = br.depth;
-                sg.ray = ray;
-                sg.branch = br.id;
-                segs[idx] = sg;
-            }
-        }
+#if SEGMENT_REGIONS & 1
+        if (medium_piece(medium, &br, t_hit, &a, &b))
+            append_light_segment(segs, max_segs, seg_count, a, b, &br, light_index, ray);
+#endif
+#if SEGMENT_REGIONS & 2
+        if (interior_piece(materials, &br, found, t_hit, &a, &b))
+            append_light_segment(segs, max_segs, seg_count, a, b, &br, light_index, ray);
+#endif
 #endif
         if (br.id == 0 && found) {
             int mt0 = materials[tri_mat[hit.tri]].type;

@@ -11,7 +11,8 @@
  *   surface[s]  radiance of diffuse surfaces lit directly (shadow rays, medium attenuation)
  *   escaped[s]  throughput of branches that left the scene (for energy tests; no sky)
  * and the shared segment buffer: every straight piece of a path inside the medium, with
- * its weight = throughput * transmittance from the eye (common.h, ViewSegment).
+ * its weight = throughput * transmittance from the eye (common.h, ViewSegment); built
+ * with SEGMENT_REGIONS = 2, the pieces inside glass that scatters instead (below).
  */
 #include "common.h"
 #include "bvh.h"
@@ -22,6 +23,13 @@
 #define PATH_STACK 16
 #endif
 #define MIN_THROUGHPUT 1e-4f
+/* which pieces trace_view appends (bits): 1 the pieces in the scene medium (the shared
+ * view segments), 2 the pieces inside dielectrics whose interior scatters (specular.h,
+ * interior_piece; tagged with the material in a.w, weight = throughput at a, i.e. the
+ * interior extinction from a on is the estimator's, as the medium's is) */
+#ifndef SEGMENT_REGIONS
+#define SEGMENT_REGIONS 1
+#endif
 
 /* Primary ray direction for sample k of pixel (px, py); stratified when spp is square. */
 float4 camera_dir(__global const Camera *cam, int px, int py, int k, Rng *rng) {
@@ -180,8 +188,14 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
 
         /* ---- the straight piece in the medium (the medium lies outside all objects) ---- */
         float4 a, b;
+#if SEGMENT_REGIONS & 1
         if (want_segs && medium_piece(medium, &br, t_hit, &a, &b))
             append_view_segment(segs, max_segs, seg_count, a, b, &br, pixel, s);
+#endif
+#if SEGMENT_REGIONS & 2
+        if (want_segs && interior_piece(materials, &br, found, t_hit, &a, &b))
+            append_view_segment(segs, max_segs, seg_count, a, b, &br, pixel, s);
+#endif
         if (found) br.thr *= branch_attenuation(medium, materials, &br, t_hit);
         if (!found) {
             escape += br.thr;

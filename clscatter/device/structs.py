@@ -59,6 +59,13 @@ def _segment(value: str, owner: str, index: str) -> np.dtype:
 VIEW_SEGMENT = _segment("weight", "pixel", "sample")
 LIGHT_SEGMENT = _segment("flux", "light", "ray")
 
+
+def segment_regions(segs: np.ndarray) -> np.ndarray:
+    """The region of every view or light segment (int32): 0 in the scene medium, m + 1
+    inside dielectric material m (the w lane of ``a``, common.h: only the tracers built
+    with ``SEGMENT_REGIONS & 2`` write anything but 0 there)."""
+    return np.rint(segs["a"][:, 3]).astype(np.int32)
+
 # RayPiece.end values (PIECE_* in common.h)
 PIECE_DIFFUSE, PIECE_BLACK, PIECE_ESCAPED = 0, 1, 2
 

@@ -170,6 +170,10 @@ class Gatherer:
     segments' box grown by the radius); ``frame`` fixes the Plücker frame (tests).
     ``views_buf``: the same view segments already on the device (a render's
     :class:`~clscatter.transport.view_paths.DeviceSegments` buffer; not freed here), else uploaded.
+    ``region``: the region the lighting segments and ``medium`` belong to
+    (:func:`~clscatter.device.structs.segment_regions`: 0 the scene medium, m + 1 the inside
+    of dielectric material m, ``medium`` then holding its interior coefficients,
+    :func:`region_media`); view segments of other regions gather nothing.
 
     Per view segment, the estimate and the work counters (tests, valid pairs, leaf points)
     accumulate on the device; an :meth:`add` reads back the counters' totals only, and
@@ -181,8 +185,9 @@ class Gatherer:
     def __init__(self, engine: Engine, views: np.ndarray, medium: np.ndarray, radius: float,
                  min_sin: float = 1e-6, leaf_size: int = 4, per_launch: int = 65536,
                  record_pairs: int = 0, show_progress: bool = False, clip: bool = True,
-                 frame: PluckerFrame | None = None, views_buf=None):
+                 frame: PluckerFrame | None = None, views_buf=None, region: int = 0):
         self.eng = engine
+        self.region = int(region)
         self.views = views
         self.n = len(views)
         self.medium = np.asarray(medium).reshape(1)
@@ -243,7 +248,7 @@ class Gatherer:
                                  max_m1=prep.max_m1, views=self.views_buf, view_offset=start,
                                  num_views=m, pl_centre=centre, pl_inv_scale=1.0 / fr.scale,
                                  radius=self.radius, min_sin=self.min_sin, medium=self.medium_buf,
-                                 exhaustive=int(bruteforce), out=self.out_buf,
+                                 region=self.region, exhaustive=int(bruteforce), out=self.out_buf,
                                  counts=self.counts_buf, pairs=self.pairs_buf,
                                  pair_count=self.pair_count, max_pairs=self.record)
                         eng.finish()
@@ -288,3 +293,126 @@ class Gatherer:
     def release(self) -> None:
         self.eng.free(*([self.views_buf] if self._own_views else []), self.medium_buf,
                       self.out_buf, self.counts_buf, self.pairs_buf, self.pair_count)
+
+
+def scene_materials(scene) -> list:
+    """The scene's materials in the order of the device material table (the first use of
+    each by the objects, in scene order: :func:`clscatter.scene.normalised.triangle_soup`)."""
+    seen: dict[int, object] = {}
+    for o in scene.objects:
+        seen.setdefault(id(o.material), o.material)
+    return list(seen.values())
+
+
+def interior_medium(material_row: np.ndarray, g: float) -> np.ndarray:
+    """A Medium record (``structs.MEDIUM``) of the homogeneous medium inside a dielectric
+    (one row of the device material table, normalised units): sigma_s and sigma_a its
+    interior ones, kappa their sum, phase ``g``, unbounded (the object's surface bounds it:
+    the segments inside end there)."""
+    m = np.zeros(1, structs.MEDIUM)
+    ss = material_row["interior_sigma_s"][:3].astype(np.float64)
+    sa = material_row["interior_sigma_a"][:3].astype(np.float64)
+    m["sigma_s"] = structs.vec4(ss)
+    m["sigma_a"] = structs.vec4(sa)
+    m["kappa"] = structs.vec4(ss + sa)
+    m["bmin"], m["bmax"] = structs.vec4([-1e30] * 3), structs.vec4([1e30] * 3)
+    m["g"], m["present"], m["bounded"], m["t_far"] = g, 1, 0, 1e30
+    return m
+
+
+def region_media(ps) -> list[tuple[int, np.ndarray]]:
+    """(region, Medium record) of every dielectric material of the prepared scene ``ps``
+    whose interior scatters (``interior_sigma_s`` above 0 in a channel): region m + 1 for
+    material m (:func:`~clscatter.device.structs.segment_regions`), phase ``interior_g``, or
+    the scene medium's g where the material gives none (0 without a medium), as the
+    scene format says."""
+    mats = scene_materials(ps.scene)
+    g_medium = float(ps.scene.medium.g) if ps.scene.medium is not None else 0.0
+    out = []
+    for i, row in enumerate(ps.materials if ps.materials is not None else []):
+        if int(row["type"]) != structs.MAT_DIELECTRIC or float(row["interior_sigma_s"][:3].max()) <= 0:
+            continue
+        g = mats[i].interior_g if i < len(mats) and mats[i].interior_g is not None else g_medium
+        out.append((i + 1, interior_medium(row, float(g))))
+    return out
+
+
+@dataclass
+class _Part:
+    gatherer: Gatherer
+    segs: DeviceSegments       # the view segments it gathers into, on the device
+
+
+class RegionGatherer:
+    """Several :class:`Gatherer`, one per region, behind the interface of one: the scene
+    medium's over the shared view segments, and one per dielectric whose interior scatters
+    over the view segments inside glass (:func:`~clscatter.transport.view_paths.trace_interior_segments`).
+    :meth:`add` hands each lighting segment to the gatherer of its region (its tag), so a
+    pair is only ever formed inside one region, with that region's sigma_s, g and kappa.
+    ``views``, :meth:`values` and :attr:`valid_per_view` run over the parts' view segments
+    in order; :meth:`image` sums every part's image."""
+
+    def __init__(self, parts: list[tuple[Gatherer, DeviceSegments]]):
+        self.parts = [_Part(g, d) for g, d in parts]
+        views = [p.gatherer.views for p in self.parts]
+        self.views = np.concatenate(views) if views else np.zeros(0, structs.VIEW_SEGMENT)
+        self.n = len(self.views)
+        self.show_progress = any(p.gatherer.show_progress for p in self.parts)
+
+    @property
+    def radius(self) -> float:
+        return self.parts[0].gatherer.radius if self.parts else 0.0
+
+    @radius.setter
+    def radius(self, r: float) -> None:
+        for p in self.parts:
+            p.gatherer.radius = float(r)
+
+    def add(self, segs: np.ndarray, bruteforce: bool = False) -> ChunkResult:
+        """Gather the lighting segments ``segs`` (any regions) into their region's part."""
+        regions = structs.segment_regions(segs) if len(segs) else np.zeros(0, np.int32)
+        res = ChunkResult(0, 0, 0, 0, 0.0, 0.0, None, 0)
+        pairs = []
+        for p in self.parts:
+            sub = segs[regions == p.gatherer.region]
+            if not len(sub) or not p.gatherer.n:
+                continue
+            r = p.gatherer.add(sub, bruteforce)
+            res.pair_tests += r.pair_tests
+            res.valid_pairs += r.valid_pairs
+            res.kept += r.kept
+            res.nbytes = max(res.nbytes, r.nbytes)
+            res.tree_seconds += r.tree_seconds
+            res.gather_seconds += r.gather_seconds
+            res.leaf_points += r.leaf_points
+            if r.pairs is not None:
+                pairs.append(r.pairs)
+        res.pairs = np.concatenate(pairs) if pairs else None
+        return res
+
+    def reset(self) -> None:
+        for p in self.parts:
+            p.gatherer.reset()
+
+    @property
+    def valid_per_view(self) -> np.ndarray:
+        got = [p.gatherer.valid_per_view for p in self.parts]
+        return np.concatenate(got) if got else np.zeros(0, np.int64)
+
+    def values(self) -> np.ndarray:
+        got = [p.gatherer.values() for p in self.parts]
+        return np.concatenate(got) if got else np.zeros((0, 4), np.float32)
+
+    def image(self, segs: DeviceSegments | None = None, scale: float = 1.0) -> np.ndarray:
+        """Every part's estimate summed into one (H, W, 3) image on the device, times
+        ``scale`` (``segs`` is not used: each part has its own view segments; it is there
+        so that this stands in for :meth:`Gatherer.image`)."""
+        img = None
+        for p in self.parts:
+            part = p.gatherer.image(p.segs, scale)
+            img = part if img is None else img + part
+        return img
+
+    def release(self) -> None:
+        for p in self.parts:
+            p.gatherer.release()

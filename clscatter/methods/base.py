@@ -18,10 +18,12 @@ A method is one class in one module (or package) of :mod:`clscatter.methods`:
 Terms (the pieces an image is made of):
 
 ``direct``            single scattering of light that came straight from a light (shadowed)
-``caustics``          single scattering of light that came through mirrors or glass
+``caustics``          single scattering of light that came through mirrors or glass,
+                      including light scattered inside glass (a dielectric's
+                      ``interior_sigma_s``: that light always came through the surface)
 ``surface_caustics``  diffuse surfaces lit through mirrors or glass
-``volumes``           light bent by graded-index ``[[volumes]]``, and light scattered inside
-                      glass (a dielectric's ``interior_sigma_s``)
+``volumes``           light bent by graded-index ``[[volumes]]`` (and scattering glass in a
+                      scene with density grids)
 """
 from __future__ import annotations
 

@@ -26,6 +26,14 @@ class RayMarch(Method):
     marched (no caustics):
     light bounced by mirrors or bent by glass is the caustic methods' job.
 
+    Inside glass (a dielectric's ``interior_sigma_s``): not rendered, and the plan says so
+    in one note. A shadow ray reaches a light only in a straight line, and every straight
+    line from a point inside a closed glass object to a light meets its surface, where the
+    light would have been refracted: the direct light raymarch computes is none there (it
+    would be exact only for glass of index 1, which bends nothing). The view segments
+    inside glass are not among those it marches; ``lsg`` gathers the refracted light
+    inside.
+
     Heterogeneous media (``[[volumes]]`` with a ``density`` grid and no index grid): the
     pass traces its own view paths (``density_view.cl``: segments across the grid boxes,
     view rays and every shadow ray, the surfaces' included, attenuated through the grids)

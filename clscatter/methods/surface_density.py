@@ -7,7 +7,6 @@ from ..estimators.ray_density import DensitySettings
 from ..estimators.surface_passes import SurfacePasses, progressive_surface_caustics
 from ..transport.context import PassContext
 from ..transport.prepared import PreparedScene
-from ..transport.progressive import BUDGET_SLACK
 from . import check_method_param
 from .base import Method, Param, PassResult, camera_samples, costs
 
@@ -107,8 +106,6 @@ class SurfaceDensityMethod(Method):
                          f"{name}_time_budget": self.params["time_budget"],
                          f"{name}_stopped_by": res.stopped_by,
                          f"{name}_error_estimate": res.error})
-        if prog.budgeted and res.seconds:
-            allowed = prog.deadline - prog.started
-            if res.seconds[0] > BUDGET_SLACK * max(allowed, 0.0):
-                ctx.note(f"{name}: the first pass alone took {res.seconds[0]:.3g} s of the "
-                         f"{allowed:.3g} s this pass had; lower render.{name}.photons")
+        line = prog.overrun_note(name, "a pass of all its photons", f"render.{name}.photons")
+        if line:
+            ctx.note(line)

@@ -7,12 +7,20 @@ An image is the surface term of the view paths plus passes that each compute one
 term                      needed when the scene has
 ========================  ==================================================================
 ``direct``                a (non-void) medium, or a density volume, and lights
-``caustics``              a medium, lights and mirror or glass objects
+``caustics``              a medium, lights and mirror or glass objects; or lights and glass
+                          that scatters inside (``interior_sigma_s``: all light inside glass
+                          came through its surface, so it is caustic light)
 ``surface_caustics``      lights, mirror or glass objects and diffuse objects
 ``volumes``               ``[[volumes]]`` with a shape or an index grid (graded index:
-                          nothing else bends rays), or glass that scatters inside
-                          (``interior_sigma_s``)
+                          nothing else bends rays), or glass that scatters inside in a scene
+                          with density volumes (the voxel pipeline renders both)
 ========================  ==================================================================
+
+Scattering inside glass is rendered by the methods that declare ``INTERIOR_SCATTERING``
+(``lsg``, which ``auto`` runs for the caustics, and ``voxel``, which ``auto`` runs where
+the scene needs it anyway: graded-index volumes); any plan without one gets one note that
+the light is left out, and a plan whose method does not model ``interior_g`` (one without
+``INTERIOR_PHASE``) one note that it is approximated.
 
 A scene with density volumes (heterogeneous media) is rendered only by methods that
 declare ``DENSITY``: ``auto`` passes over the others, and a plan without one gets a note.
@@ -60,6 +68,7 @@ def needed_terms(scene: Scene) -> tuple[list[str], list[str]]:
     specular = bool(kinds & {"mirror", "dielectric"})
     lights = bool(scene.lights)
     medium = scene.has_medium() or bool(scene.density_volumes())
+    inside = bool(scene.scatters_inside_glass())
     terms: list[str] = []
     if not lights:
         notes.append("no lights: no light-carrying pass")
@@ -71,11 +80,14 @@ def needed_terms(scene: Scene) -> tuple[list[str], list[str]]:
         else:
             notes.append("no mirrors or glass: caustic pass skipped")
     else:
-        notes.append("no participating medium: medium passes skipped")
+        if inside:
+            terms.append("caustics")   # light refracted into glass that scatters inside
+        notes.append("no participating medium: medium passes skipped"
+                     + (" (but for the light scattered inside glass)" if inside else ""))
     if specular and "diffuse" in kinds:
         terms.append("surface_caustics")
-    if any(v.refracts for v in scene.volumes) or scene.scatters_inside_glass():
-        terms.append("volumes")        # light bent by volumes, or scattered inside glass
+    if any(v.refracts for v in scene.volumes) or (inside and scene.density_volumes()):
+        terms.append("volumes")        # light bent by volumes (or glass among density grids)
     return terms, notes
 
 
@@ -149,21 +161,27 @@ def _explicit(scene: Scene, requested: str, terms: list[str],
 
 def interior_scattering_note(scene: Scene, passes: list[Pass]) -> list[str]:
     """A note when a dielectric material scatters light inside (``interior_sigma_s`` above
-    0) and no pass of the plan renders that: the light is not in the image, and the user
-    is told so rather than left to find it missing."""
+    0) and no pass of the plan renders that (none declares ``INTERIOR_SCATTERING``): the
+    light is not in the image, and the user is told so rather than left to find it
+    missing. With one that does not model ``interior_g`` (no ``INTERIOR_PHASE``), a note
+    per material whose ``interior_g`` differs from the medium's phase."""
     mats = sorted(scene.scatters_inside_glass(), key=lambda m: m.key or m.name)
     methods = all_methods()
     if not mats:
         return []
-    if any(methods[p.method].INTERIOR_SCATTERING for p in passes):
+    inside = [methods[p.method] for p in passes if methods[p.method].INTERIOR_SCATTERING]
+    if inside:
+        if all(getattr(c, "INTERIOR_PHASE", False) for c in inside):
+            return []                  # interior_g is modelled
         g = scene.medium.g if scene.medium is not None else 0.0
         return [f"{m.key or m.name}.interior_g: light inside the glass scatters with the scene "
                 f"medium's phase (g = {g:g}), not {m.interior_g:g}: {APPROXIMATES}" for m in mats
                 if m.interior_g is not None and m.interior_g != g]
     who = "+".join(p.method for p in passes) or "this plan"
     name = mats[0].key or mats[0].name
+    able = " and ".join(n for n, c in sorted(methods.items()) if c.INTERIOR_SCATTERING)
     return [f"{name}.interior_sigma_s: {who} does not scatter light inside glass "
-            f"(only voxel does): {DROPS_LIGHT}"]
+            f"(only {able} do): {DROPS_LIGHT}"]
 
 
 def _no_density(cls, scene: Scene) -> str:

@@ -34,6 +34,15 @@ from .emission import targets as emission_targets
 from .prepared import PreparedScene
 
 
+def scatters_inside(ps: PreparedScene) -> bool:
+    """True when a dielectric material of ``ps`` scatters light inside (interior_sigma_s)."""
+    m = ps.materials
+    if m is None or not len(m):
+        return False
+    return bool(np.any((m["type"] == structs.MAT_DIELECTRIC)
+                       & (m["interior_sigma_s"][:, :3].max(axis=1) > 0)))
+
+
 def ray_counts(ps: PreparedScene, num_rays: int, targeted: bool = False) -> np.ndarray:
     """Lighting rays per light, proportional to emitted power (largest remainder); with
     ``targeted``, to the power sent towards the specular objects."""
@@ -65,7 +74,8 @@ class LightPaths:
 def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = None,
                       show_progress: bool = True, rays_per_launch: int = 1 << 16,
                       chunk: tuple[int, int] | None = None, pieces: bool = False,
-                      targeted: bool = False, seed_offset: int = 0) -> LightPaths:
+                      targeted: bool = False, seed_offset: int = 0,
+                      interior: bool = False) -> LightPaths:
     """Trace ``num_rays`` lighting rays (shared among lights by power).
 
     ``chunk = (k, n)`` traces only the k-th of n equal parts of every light's rays (the
@@ -76,7 +86,11 @@ def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = No
     medium (the surface-caustic methods: ``raymap``, ``photonmap``).
     ``targeted=True`` emits only towards the specular objects (:mod:`clscatter.transport.emission`;
     for passes that keep only light with a specular bounce). ``seed_offset`` selects an
-    independent set of rays (progressive passes).
+    independent set of rays (progressive passes). ``interior=True`` (line space gathering)
+    also keeps the pieces inside dielectrics whose interior scatters (a material's
+    ``interior_sigma_s``), each tagged with its region (:func:`~clscatter.device.structs.segment_regions`:
+    material index + 1; 0 for the pieces in the medium) and carrying the flux at its
+    start (the interior extinction up to it included), with or without a medium.
     """
     stats = stats or Stats()
     eng = ps.engine
@@ -87,8 +101,9 @@ def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = No
     fluxes = np.zeros((ps.num_lights, 3))
     launch = max(1, int(rays_per_launch))
     record = structs.RAY_PIECE if pieces else structs.LIGHT_SEGMENT
-    defines = {"RAY_PIECES": 1} if pieces else None
-    wanted = pieces or ps.has_medium
+    interior = bool(interior) and not pieces and scatters_inside(ps)
+    defines = {"RAY_PIECES": 1} if pieces else {"SEGMENT_REGIONS": 3} if interior else None
+    wanted = pieces or ps.has_medium or interior
     segs = AppendBuffer(eng, record, launch * 2) if wanted else None
     seed = np.uint32((ps.scene.render.seed * 2654435761 + 11 + 0x632BE5AB * int(seed_offset))
                      & 0xFFFFFFFF)

@@ -129,6 +129,22 @@ class Progression:
                 return False
         return True
 
+    def overrun_note(self, method: str, unit: str, lower: str) -> str | None:
+        """One line when the first pass alone ran past this pass's share of the budget by
+        more than :data:`BUDGET_SLACK` (None otherwise): ``unit`` says what the smallest
+        pass was, ``lower`` which keys shrink it. A share used up by the passes before
+        this one is said as such."""
+        if not self.budgeted or not self.seconds:
+            return None
+        allowed = self.deadline - self.started
+        first = self.seconds[0]
+        if first <= BUDGET_SLACK * max(allowed, 0.0):
+            return None
+        share = (f"of the {allowed:.3g} s this pass had" if allowed > 0 else
+                 "with no time left for it (the passes before it used the budget)")
+        return (f"{method}: the first pass alone took {first:.3g} s {share} ({unit} is the "
+                f"smallest unit of work); lower {lower}")
+
     def add(self, image: np.ndarray | None, seconds: float, radius: float | None = None) -> None:
         """One pass's own image (its estimate alone, not the running mean; None: not
         tracked, no error estimate), its time and its gather radius (None: no blur)."""

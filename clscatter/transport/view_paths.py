@@ -240,17 +240,20 @@ def trace_view_paths(ps: PreparedScene, stats: Stats | None = None, show_progres
 
 
 def _trace(ps: PreparedScene, sample_range, per_launch: int, shade: bool, want_segs: bool,
-           want_hits: bool, bar=None, program: str = "view_paths"):
+           want_hits: bool, bar=None, program: str = "view_paths", interior: bool = False):
     """The ``trace_view`` launches over the samples of ``sample_range``: the (surface,
     escaped) images when ``shade`` (else None), and the segments and diffuse hits, each
-    sorted by (sample, branch) as a :class:`DeviceSegments` when wanted (else None)."""
+    sorted by (sample, branch) as a :class:`DeviceSegments` when wanted (else None).
+    ``interior``: the segments are the pieces inside glass that scatters instead of those
+    in the medium (``view_paths.cl`` built with ``SEGMENT_REGIONS = 2``)."""
     eng = ps.engine
     cam = ps.scene.camera
     w, h, spp = cam.width, cam.height, cam.spp
     lo, hi, total, chunk = _sample_span(ps, sample_range, per_launch)
     per_sample = 16 * max(total, 1) if shade else 16
     out_surf, out_esc = eng.empty(per_sample), eng.empty(per_sample)
-    want_segs = want_segs and ps.has_medium
+    want_segs = want_segs and (interior or ps.has_medium)
+    defines = {"SEGMENT_REGIONS": 2} if interior else None
     wanted = {"segs": (want_segs, structs.VIEW_SEGMENT, 2 * chunk),
               "hits": (want_hits, structs.DIFFUSE_HIT, chunk)}
     apps = {k: AppendBuffer(eng, dt, cap if on else 1) for k, (on, dt, cap) in wanted.items()}
@@ -261,7 +264,7 @@ def _trace(ps: PreparedScene, sample_range, per_launch: int, shade: bool, want_s
         for start in range(0, total, chunk):
             n = min(chunk, total - start)
             got = launch_appending(
-                eng, program, "trace_view", n, apps,
+                eng, program, "trace_view", n, apps, defines,
                 **ps.scene_args(program, "trace_view"), max_depth=ps.scene.render.max_depth,
                     seed=seed, sample_offset=lo + start,
                 num_samples=n, shade=int(shade), want_segs=int(want_segs),
@@ -291,6 +294,24 @@ def _pixel_image(eng: Engine, per_sample, first, w: int, h: int) -> np.ndarray:
         return eng.read(img, (w * h, 4), np.float32)[:, :3].reshape(h, w, 3)
     finally:
         eng.free(img)
+
+
+def trace_interior_segments(ps: PreparedScene, sample_range: tuple[int, int] | None = None,
+                            samples_per_launch: int = SAMPLES_PER_LAUNCH) -> DeviceSegments:
+    """The view segments inside dielectrics whose interior scatters (a material's
+    ``interior_sigma_s``), on the device, sorted by (sample, branch), with pixel offsets.
+
+    The same camera paths as :func:`trace_view_paths` (same seeds and branching; the
+    samples of ``sample_range``), traced again with ``view_paths.cl`` built with
+    ``SEGMENT_REGIONS = 2``: every straight piece of a branch inside such an object, from
+    where it enters (or reflects inside) to where it meets the surface again, with
+    weight = the throughput at its start (the interior extinction beyond it is the
+    estimator's) and its region in ``a.w``
+    (:func:`~clscatter.device.structs.segment_regions`: the material index + 1). A
+    separate trace, so the shared segments every medium method reads stay the pieces in
+    the medium alone."""
+    return _trace(ps, sample_range, samples_per_launch, shade=False, want_segs=True,
+                  want_hits=False, interior=True)[1]
 
 
 def trace_diffuse_hits_on_device(ps: PreparedScene, samples_per_launch: int = SAMPLES_PER_LAUNCH,

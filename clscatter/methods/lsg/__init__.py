@@ -8,13 +8,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...estimators.line_gather import BYTES_PER_SEGMENT, Gatherer
+from ...device import structs
+from ...estimators.line_gather import BYTES_PER_SEGMENT, Gatherer, RegionGatherer, region_media
 from ...io.stats import Stats, progress
 from ...transport.context import PassContext
 from ...transport.emission import targeted_fraction
 from ...transport.light_paths import ray_counts, trace_light_paths
 from ...transport.prepared import PreparedScene
-from ...transport.progressive import BUDGET_SLACK
+from ...transport.view_paths import DeviceSegments, trace_interior_segments
 from .. import register
 from ..base import AutoRole, Estimate, Method, Param, PassResult, camera_samples
 
@@ -23,6 +24,8 @@ from ..base import AutoRole, Estimate, Method, Param, PassResult, camera_samples
 PAIRS_PER_SEGMENT = 1000
 #: most rays the automatic radius's pilot traces (in one piece: its segments stay in memory)
 PILOT_MAX = 1 << 18
+#: view segments the pilot gathers at most (every k-th: it needs medians, not an image)
+PILOT_VIEWS = 16384
 #: ... and under a time budget (the pilot also measures the cost that sizes passes)
 PILOT_BUDGETED = 2048
 #: fewest rays a pass under a time budget traces (fewer only if light_rays is smaller)
@@ -123,6 +126,24 @@ class LineSpaceGathering(Method):
     the render's noise estimate (:mod:`clscatter.transport.progressive`); with
     ``render.target_error`` passes go on past ``passes`` until the estimate meets it.
 
+    *Inside glass* (a dielectric's ``interior_sigma_s``, ``interior_sigma_a``,
+    ``interior_g``: a homogeneous medium inside the closed object). Every straight piece of
+    a lighting ray inside such an object is kept too, with the flux at its start: the
+    light that reached it, refracted through the surface with Fresnel's weight and
+    attenuated by the interior extinction (absorption plus scattering) on the way. The
+    pass traces the camera paths again for the view segments inside
+    (:func:`~clscatter.transport.view_paths.trace_interior_segments`) and gathers each
+    object's lighting segments against its own view segments only, with its interior
+    sigma_s, extinction and phase (``interior_g``, or the scene medium's g): the same
+    estimate as in the medium, region by region (:class:`~clscatter.estimators.line_gather.RegionGatherer`);
+    no pair joins light inside the glass to a view segment outside, or the reverse. This
+    needs no scene medium. Light inside is always refracted light (at least one specular
+    bounce), so the caustic pass ``auto`` runs (``min_light_depth = 1``) includes it.
+    Within ``radius`` of the glass surface the gather's disc reaches outside the object,
+    where no lighting segment of the region lies: a thin darker rim, as large as the blur
+    (the medium's box faces continue their lighting segments beyond the face; glass
+    surfaces do not). ``interior = false`` leaves this light out, with a note.
+
     Rays are processed in chunks whose working set stays within ``max_bytes``; a chunk that
     turns out larger is traced again in smaller parts.
 
@@ -134,7 +155,8 @@ class LineSpaceGathering(Method):
     ``lsg_chunk_bytes_max``, ``lsg_radius`` (normalised; ``lsg_radius_world`` in scene
     units), ``lsg_radius_last``, ``lsg_passes``, ``lsg_pass_seconds``, ``lsg_time_budget``,
     ``lsg_auto_radius``, ``lsg_targeted``, ``light_rays_specular_fraction``, ``lsg_pass_rays``,
-    ``lsg_stopped_by`` (passes, time_budget or target_error), ``lsg_error_estimate``.
+    ``lsg_stopped_by`` (passes, time_budget or target_error), ``lsg_error_estimate``,
+    ``lsg_interior_view_segments``.
 
     Usage: ``clscatter render scene.toml --method lsg --set render.lsg.light_rays=1000000
     --set render.lsg.time_budget=30``
@@ -166,8 +188,14 @@ class LineSpaceGathering(Method):
         Param("segments_per_launch", 65536, "view segments per kernel launch (progress)", lo=1),
         Param("min_light_depth", 0, "gather only lighting segments with at least this many "
               "specular bounces (1: caustics only, as auto uses it beside a direct method)", lo=0),
+        Param("interior", True, "also gather inside glass that scatters (a dielectric's "
+              "interior_sigma_s), with its interior coefficients"),
     )
     TERMS = frozenset({"direct", "caustics"})
+    # the lighting segments inside glass carry the refracted light: lsg gathers them
+    # against the view segments inside, with the material's interior_sigma_s and interior_g
+    INTERIOR_SCATTERING = True
+    INTERIOR_PHASE = True
     PREVIEW_SCALE = {"light_rays": 0.125, "passes": 0.0, "time_budget": 0.0}
     # a cluster may run each progressive pass as its own task (see clscatter.cluster)
     SPLIT_PASSES = True
@@ -213,15 +241,26 @@ class LineSpaceGathering(Method):
         stats.set(view_segments=int(len(views)), lsg_targeted=self.targeted())
         self._rays = self._rays_cap = self.traced_rays(ps)
         self._pass_rays: list[int] = []
-        if len(views) == 0 or ps.num_lights == 0 or p["light_rays"] == 0:
+        inside = self._interior_views(ctx)
+        self._interior = inside is not None
+        n_inside = inside.count if inside is not None else 0
+        stats.set(lsg_interior_view_segments=int(n_inside))
+        if len(views) + n_inside == 0 or ps.num_lights == 0 or p["light_rays"] == 0:
+            if inside is not None:
+                inside.release()
             stats.set(pair_tests=0, pair_tests_bruteforce=0, valid_pairs=0, chunks=0,
                       lsg_radius=0.0, lsg_passes=0)
             return PassResult(medium=ctx.zeros())
         prog = self._progression(ctx)
         r_fixed = p["radius"] * ps.scene.scene_extent() / ps.frame.scale
-        dev = ctx.segments()                                  # the same segments, in order
-        gat = Gatherer(ps.engine, views, ps.medium, r_fixed or 1.0, p["min_sin"], p["leaf_size"],
-                       p["segments_per_launch"], show_progress=show_progress, views_buf=dev.buf)
+        dev = ctx.segments() if len(views) else None          # the same segments, in order
+        try:
+            gat = self._gatherer(ps, views, dev, inside, r_fixed or 1.0, show_progress)
+        except BaseException:
+            if inside is not None:
+                inside.release()
+            raise
+        views = gat.views
         try:
             measured = None                      # (rays, seconds) of the pilot (sizes passes)
             if r_fixed > 0:
@@ -236,6 +275,8 @@ class LineSpaceGathering(Method):
             self._budget_note(ctx, prog, pass_seconds)
         finally:
             gat.release()
+            if inside is not None:
+                inside.release()
         passes = len(pass_seconds)
         radii = ppb_radii(r1, p["alpha"], p["first_pass"] + passes)
         totals["pair_tests_bruteforce"] = totals.pop("light_x_view")
@@ -254,6 +295,50 @@ class LineSpaceGathering(Method):
                   light_rays_specular_fraction=spec / max(rays, 1))
         return PassResult(medium=image)
 
+    # ---- regions: the scene medium, and the inside of glass that scatters ----
+    def _interior_views(self, ctx: PassContext) -> DeviceSegments | None:
+        """The view segments inside dielectrics whose interior scatters (traced for this
+        pass: :func:`~clscatter.transport.view_paths.trace_interior_segments`), or None when
+        the scene has none or ``interior`` is off (noted: that light is then left out)."""
+        ps = ctx.ps
+        if not region_media(ps):
+            return None
+        if not self.params["interior"]:
+            ctx.note("lsg: render.lsg.interior = false: light scattered inside glass "
+                     "(interior_sigma_s) is not in this image")
+            return None
+        with ctx.stats.stage("view_paths_interior"):
+            return trace_interior_segments(ps, ctx.paths.sample_range)
+
+    def _gatherer(self, ps: PreparedScene, views: np.ndarray, dev: DeviceSegments | None,
+                  inside: DeviceSegments | None, radius: float, show_progress: bool):
+        """The gatherer of this pass: a :class:`Gatherer` over the medium's view segments
+        when nothing scatters inside glass (as it always was), else a
+        :class:`RegionGatherer` with one part per region that has view segments: the scene
+        medium's (``dev``), and one per scattering dielectric over ``inside``, each with
+        that region's coefficients."""
+        p = self.params
+        def make(v, medium, buf, region):
+            return Gatherer(ps.engine, v, medium, radius, p["min_sin"], p["leaf_size"],
+                            p["segments_per_launch"], show_progress=show_progress,
+                            views_buf=buf, region=region)
+        if inside is None:
+            return make(views, ps.medium, dev.buf, 0)
+        parts = []
+        try:
+            if dev is not None and len(views):
+                parts.append((make(views, ps.medium, dev.buf, 0), dev))
+            if inside.count:
+                host = ps.engine.read(inside.buf, inside.count, structs.VIEW_SEGMENT)
+                for region, medium in region_media(ps):
+                    if np.any(structs.segment_regions(host) == region):
+                        parts.append((make(host, medium, inside.buf, region), inside))
+        except BaseException:
+            for g, _ in parts:
+                g.release()
+            raise
+        return RegionGatherer(parts)
+
     def _progression(self, ctx: PassContext):
         """The pass's :class:`~clscatter.transport.progressive.Progression`: ``passes``
         passes (fewer if a deadline, the render's share or ``time_budget``, comes first;
@@ -267,24 +352,42 @@ class LineSpaceGathering(Method):
 
     def _budget_note(self, ctx: PassContext, prog, seconds: list) -> None:
         """Say why the time budget could not be kept, when the first pass alone broke it."""
-        if not prog.budgeted or not seconds:
-            return
-        allowed = prog.deadline - prog.started
-        if seconds[0] > BUDGET_SLACK * max(allowed, 0.0):
-            ctx.note(f"lsg: the first pass alone took {seconds[0]:.3g} s of the {allowed:.3g} s "
-                     f"this pass had (a pass of {self._pass_rays[0]} lighting rays is the "
-                     f"smallest unit of work); lower camera.resolution or camera.spp")
+        if seconds:
+            line = prog.overrun_note("lsg", f"a pass of {self._pass_rays[0]} lighting rays",
+                                     "camera.resolution or camera.spp")
+            if line:
+                ctx.note(line)
 
     # ---- automatic radius ----
     def auto_radius(self, ps: PreparedScene, gat: Gatherer, views: np.ndarray,
                     prog=None) -> tuple[AutoRadius, tuple[int, float]]:
         """The automatic radius (class docstring): a pilot gather at a trial radius, for the
         rays the first pass will trace (under a deadline: as many as fit, by the pilot's
-        cost); and (pilot rays, seconds of their tracing and last gather)."""
+        cost); and (pilot rays, seconds of their tracing and last gather). The pilot needs
+        medians only, so it gathers at most about :data:`PILOT_VIEWS` view segments (every
+        k-th of them)."""
         n_rays = self._rays
         pilot = int(min(n_rays, max(2000, n_rays // 8), PILOT_MAX))
         if prog is not None and prog.budgeted:
             pilot = min(pilot, PILOT_BUDGETED)
+        stride = max(1, len(views) // PILOT_VIEWS) if isinstance(gat, Gatherer) else 1
+        if stride > 1:                          # statistics: a subset of the view segments
+            views = views[::stride]
+            p = self.params
+            gat = Gatherer(ps.engine, views, ps.medium, gat.radius, p["min_sin"],
+                           p["leaf_size"], p["segments_per_launch"],
+                           show_progress=gat.show_progress)
+        try:
+            return self._pilot(ps, gat, views, prog, pilot, stride)
+        finally:
+            if stride > 1:
+                gat.release()
+
+    def _pilot(self, ps: PreparedScene, gat: Gatherer, views: np.ndarray, prog, pilot: int,
+               stride: int) -> tuple[AutoRadius, tuple[int, float]]:
+        """:meth:`auto_radius` on ``views`` (every ``stride``-th view segment: the pilot's
+        gather time is scaled by ``stride`` to stand for all of them)."""
+        n_rays = self._rays
         cam = ps.camera
         mid = 0.5 * (views["a"][:, :3] + views["b"][:, :3]).astype(np.float64)
         dist = np.linalg.norm(mid - cam["origin"][:3].astype(np.float64), axis=1)
@@ -293,7 +396,8 @@ class LineSpaceGathering(Method):
         clock = prog.clock if prog is not None else time.perf_counter
         t0 = clock()
         lp = trace_light_paths(ps, pilot, None, gat.show_progress, targeted=self.targeted(),
-                               seed_offset=-1 - self.params["light_seed"])
+                               seed_offset=-1 - self.params["light_seed"],
+                               interior=getattr(self, "_interior", False))
         traced = clock() - t0
         segs = self._select(lp.segments)
         r0 = 0.25 * float(np.median(foot)) if len(foot) else 1e-3
@@ -308,7 +412,7 @@ class LineSpaceGathering(Method):
             if len(lit) >= min(64, max(1, len(views) // 4)) or len(segs) == 0:
                 break
             r0 *= 2.0
-        measured = (pilot, traced + gathered)
+        measured = (pilot, traced + gathered * stride)
         if prog is not None and prog.budgeted:
             n_rays = self._sized_rays(pilot, measured[1], prog, limit=PILOT_RESIZE_MAX)
         self._rays = n_rays
@@ -413,7 +517,8 @@ class LineSpaceGathering(Method):
                 continue
             with stats.stage("light_paths"):
                 lp = trace_light_paths(ps, n_rays, None, show_progress,
-                                       chunk=(k, n), targeted=targeted, seed_offset=seed_offset)
+                                       chunk=(k, n), targeted=targeted, seed_offset=seed_offset,
+                                       interior=getattr(self, "_interior", False))
             segs = self._select(lp.segments)
             seg_per_ray = max(seg_per_ray, len(segs) / rays)
             need = len(segs) * BYTES_PER_SEGMENT

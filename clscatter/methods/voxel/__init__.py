@@ -70,7 +70,13 @@ class Voxel(Method):
     bounces inside the grid, no surface caustics: surfaces are lit by the engine's direct
     light); dielectric objects are voxelised as constant-index volumes
     (``voxelise_dielectrics``), so glass is rendered by the ray equation, not by Snell's
-    law (no Fresnel reflection).
+    law. Fresnel at the smoothed boundaries: a photon or view ray whose path crosses a
+    volume's boundary (where the volume's blurred weight passes 1/2) from index n1 to n2
+    keeps the unpolarised Fresnel transmittance of a sharp n1 -> n2 interface at its
+    angle of incidence (from the ray equation's invariant n sin theta across the band),
+    once per crossing; the reflected part is dropped (no reflected photons, no reflection
+    of the scene in a voxelised ball), and a path the band turns back (total internal
+    reflection) keeps everything.
 
     Density volumes (heterogeneous media) are voxelised like grid volumes, their
     coefficients the sampled density times ``sigma_s`` and ``sigma_a``; in a scene with
@@ -125,8 +131,9 @@ class Voxel(Method):
     DENSITY = True                # density volumes are voxelised like grid volumes
 
     # bytes per voxel of the grid while a frame renders: n, grad, sigma_s, kappa, octree
-    # level and limit, deposits (2 float4), a blur temporary, the volumes' weights
-    BYTES_PER_VOXEL = 4 + 16 + 16 + 16 + 1 + 4 + 32 + 16 + 8
+    # level and limit, deposits (2 float4), a blur temporary, the volumes' weights, the
+    # boundary sides (Fresnel)
+    BYTES_PER_VOXEL = 4 + 16 + 16 + 16 + 1 + 4 + 32 + 16 + 8 + 16
 
     @classmethod
     def estimate(cls, scene, params):

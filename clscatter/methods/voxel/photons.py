@@ -42,7 +42,7 @@ from .voxelise import SMOOTH_TAPS, blur_buffers, gradient, medium_at_centres
 @dataclass
 class Fields:
     """Device grids of one material state: index, its gradient, scattering, extinction,
-    octree. Built by :func:`upload_fields`."""
+    octree, boundary sides. Built by :func:`upload_fields`."""
 
     box: GridBox
     n: object
@@ -51,20 +51,28 @@ class Fields:
     kappa: object         # float4 per voxel (rgb)
     octree: Octree
     n_host: np.ndarray
+    boundary: object = None   # float4 per voxel: w, n_lo, n_hi (voxelise.boundary_sides)
 
     def free(self, eng: Engine) -> None:
         eng.free(self.n, self.grad, self.sigma_s, self.kappa)
+        if self.boundary is not None:
+            eng.free(self.boundary)
         self.octree.free(eng)
 
 
 def upload_fields(eng: Engine, box: GridBox, n: np.ndarray, sigma_s4: np.ndarray, kappa4: np.ndarray,
-                  eps: float, eps2: float, limit: float) -> Fields:
-    """Upload n, sigma_s, kappa (host grids) and build grad n and the octree on the device."""
+                  eps: float, eps2: float, limit: float, boundary: np.ndarray | None = None) -> Fields:
+    """Upload n, sigma_s, kappa (host grids) and build grad n and the octree on the device.
+    ``boundary`` ((nx, ny, nz, 4), :func:`~.voxelise.boundary_sides`) says where paths
+    cross the volumes' smoothed boundaries and between which indices (they keep the
+    Fresnel transmittance there); None: no boundaries (no Fresnel loss anywhere)."""
     n = np.ascontiguousarray(n, np.float32)
     nb = eng.to_device(n)
+    b = (np.zeros((*box.dims, 4), np.float32) if boundary is None
+         else np.ascontiguousarray(boundary, np.float32))
     return Fields(box, nb, gradient(eng, box, nb), eng.to_device(np.ascontiguousarray(sigma_s4, np.float32)),
                   eng.to_device(np.ascontiguousarray(kappa4, np.float32)),
-                  build_octree(eng, box, nb, eps, eps2, limit), n)
+                  build_octree(eng, box, nb, eps, eps2, limit), n, eng.to_device(b))
 
 
 @dataclass
@@ -146,15 +154,19 @@ def emitter(light: np.ndarray, box: GridBox, photons: int) -> Emitter:
 
 @dataclass
 class MarchState:
-    """Photon states on the device (pos.w = 1 while live)."""
+    """Photon states on the device (pos.w = 1 while live; ``crossing``: a float per
+    photon, the boundary-crossing state of ``vox_crossing``, -1 at the start)."""
 
     pos: object
     vel: object
     flux: object
     count: int
+    crossing: object = None
 
     def free(self, eng: Engine) -> None:
         eng.free(self.pos, self.vel, self.flux)
+        if self.crossing is not None:
+            eng.free(self.crossing)
 
     def host(self, eng: Engine) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return tuple(eng.read(b, (self.count, 4), np.float32) for b in (self.pos, self.vel, self.flux))
@@ -175,6 +187,10 @@ def march(eng: Engine, fields: Fields, state: MarchState, rad, dirs, ms: MarchSe
     """Launch ``photon_march`` until almost all photons are done; deposits add into
     ``rad``/``dirs``. Returns counters: launches, steps, photons still live."""
     box = fields.box
+    if state.crossing is None:
+        state.crossing = no_crossings(eng, state.count)
+    bnd = (fields.boundary if fields.boundary is not None
+           else eng.to_device(np.zeros((box.size, 4), np.float32)))
     counters = eng.empty(8)
     nodes, tris = (bvh if bvh is not None else (fields.n, fields.n))
     launches = steps = 0
@@ -188,13 +204,20 @@ def march(eng: Engine, fields: Fields, state: MarchState, rad, dirs, ms: MarchSe
                      grad=fields.grad, kappa=fields.kappa, level=fields.octree.level,
                      smax=fields.octree.smax, adaptive=ms.adaptive,
                      ds_min=ms.ds_min * box.h, min_rel=ms.min_rel, nodes=nodes,
-                     tris=tris, test_surfaces=test_surfaces, rad=rad, dirs=dirs,
-                     counters=counters)
+                     tris=tris, test_surfaces=test_surfaces, boundary=bnd,
+                     crossing=state.crossing, rad=rad, dirs=dirs, counters=counters)
             c = eng.read(counters, 2, np.int32)
             live, steps, launches = int(c[0]), steps + int(c[1]), launches + 1
     finally:
         eng.free(counters)
+        if fields.boundary is None:
+            eng.free(bnd)
     return {"launches": launches, "steps": steps, "live_at_end": live}
+
+
+def no_crossings(eng: Engine, count: int):
+    """A device float per photon, -1: no step start yet (``vox_crossing``'s state)."""
+    return eng.to_device(np.full(max(count, 1), -1.0, np.float32), True)
 
 
 def start_state(eng: Engine, pos: np.ndarray, vel: np.ndarray, flux: np.ndarray) -> MarchState:
@@ -262,7 +285,7 @@ def light_pass(eng: Engine, fields: Fields, ps, photons: int, ms: MarchSettings,
     for li in range(ps.num_lights):
         em = emitter(ps.lights[li], box, photons)
         N = em.S * em.S
-        st = MarchState(eng.empty(16 * N), eng.empty(16 * N), eng.empty(16 * N), N)
+        st = MarchState(eng.empty(16 * N), eng.empty(16 * N), eng.empty(16 * N), N, no_crossings(eng, N))
         try:
             prim.fill_int(eng, entering, 1, 0)
             ps.call("voxel", "photon_emit", N, light_index=li, S=em.S,

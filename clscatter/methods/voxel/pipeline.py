@@ -6,8 +6,8 @@ stage           computes                                     re-runs when
 ==============  ===========================================  ============================
 ``geometry``    grid box, coverage of every volume, blurred  a volume's shape moves or
                 weights (``voxelise.py``)                    changes; grid parameters
-``material``    n, sigma_s, kappa, grad n, octree            a volume's ior / sigma, the
-                (``voxelise.mix``, ``octree.py``)            medium; eps parameters
+``material``    n, sigma_s, kappa, grad n, octree, boundary  a volume's ior / sigma, the
+                sides (``voxelise.py``, ``octree.py``)       medium; eps parameters
 ``lighting``    photons, marching, deposition, smoothing     a light; anything above
 ``view``        view paths through the grid; direct light    the camera; anything above
                 outside it (``view.py`` + ``raymarch``)
@@ -27,6 +27,7 @@ from .photons import Fields, MarchSettings, Radiance, light_pass, upload_fields
 from .view import view_pass
 from .voxelise import (
     blur,
+    boundary_sides,
     gaussian_taps,
     medium_at_centres,
     mix,
@@ -107,7 +108,8 @@ class Pipeline:
         ss_m, sa_m = medium_at_centres(self.box, ps.medium)
         flds = [volume_fields(self.box, v, ps.frame) for v in ps.scene.volumes]
         n, ss, kappa = mix(self.weights, flds, ss_m, sa_m)
-        self.fields = upload_fields(ps.engine, self.box, n, ss, kappa, p["eps"], p["eps2"], p["step_max"])
+        self.fields = upload_fields(ps.engine, self.box, n, ss, kappa, p["eps"], p["eps2"],
+                                    p["step_max"], boundary_sides(self.weights, flds, n))
 
     def _lighting(self, ps) -> None:
         p = self.params

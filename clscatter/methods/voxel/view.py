@@ -198,7 +198,7 @@ def march_args(ps, fields: Fields, radiance: Radiance, test_surfaces: bool) -> d
     return dict(glo=box.lo4(), ghi=box.hi4(), dims=box.dims4(), h=box.h, n_grid=fields.n,
                 grad=fields.grad, sigma_s=fields.sigma_s, kappa=fields.kappa, rad=radiance.rad,
                 dirs=radiance.dirs, g_phase=float(ps.medium["g"]), max_steps=4 * sum(box.dims),
-                test_surfaces=int(test_surfaces))
+                test_surfaces=int(test_surfaces), boundary=fields.boundary)
 
 
 def view_pass(ps, fields: Fields, radiance: Radiance, max_rounds: int = 4,

@@ -17,6 +17,12 @@ Stages, each a kernel of ``cl_kernels/voxel.cl`` except the per-volume mix:
    sigma_v(x) (docs/scene_format.md: coefficients blend with the index's weights; outside
    every volume the scene medium holds).
 5. **Gradient** (``vox_gradient``): central differences of n.
+6. **Boundary sides** (``boundary_sides``, NumPy): per voxel the blurred weight w of
+   the volume weighing most there and the indices just outside and inside its boundary.
+   A path whose w passes 1/2 (the sharp boundary) crosses from n1 to n2 and keeps the
+   Fresnel transmittance of a sharp n1 -> n2 interface (``vox_crossing``): the ray
+   equation bends it through the smoothed band as Snell's law would, and the crossing
+   takes what the interface would reflect.
 
 A grid volume (``grid = "*.npy"``) has n_v(x) = the grid's value trilinear between its
 centres, clamped at its outermost centres; its weight is the exact fraction of each voxel
@@ -185,6 +191,33 @@ def medium_at_centres(box: GridBox, medium: np.ndarray) -> tuple[np.ndarray, np.
             inside &= ok[tuple(sl)]
     m = inside[..., None].astype(np.float32)
     return m * medium["sigma_s"][:3], m * medium["sigma_a"][:3]
+
+
+def boundary_sides(weights: list[np.ndarray], fields: list[tuple], n: np.ndarray) -> np.ndarray:
+    """Where the volumes' smoothed boundaries lie and what they separate, for the Fresnel
+    loss of paths crossing them (``vox_crossing`` in voxel.cl): per voxel (w, n_lo, n_hi,
+    0), float32 (nx, ny, nz, 4). w is the blurred weight of the volume weighing most
+    there (its sharp boundary lies where w = 1/2); n_lo and n_hi are the index ``n`` (of
+    :func:`mix`) with that volume's weight set to 0 and to 1, the indices just outside and
+    just inside its boundary. Where no volume weighs anything, w = 0 and n_lo = n_hi = n
+    (nothing to cross). ``weights`` and ``fields`` as :func:`mix` takes them."""
+    out = np.zeros((*n.shape, 4), np.float32)
+    out[..., 1] = out[..., 2] = n
+    if not weights:
+        return out
+    total = np.sum(weights, axis=0)
+    scale = np.where(total > 1.0, 1.0 / np.maximum(total, 1e-30), 1.0).astype(np.float32)
+    best = np.zeros(n.shape, np.float32)
+    for w, (nv, _, _) in zip(weights, fields):
+        w = w * scale
+        take = w > best
+        dn = (np.asarray(nv, np.float32) - 1.0) * scale           # n's change per unit weight
+        dn = np.broadcast_to(dn, n.shape)
+        out[..., 0] = np.where(take, w, out[..., 0])
+        out[..., 1] = np.where(take, n - w * dn, out[..., 1])
+        out[..., 2] = np.where(take, n + (1.0 - w) * dn, out[..., 2])
+        best = np.maximum(best, w)
+    return out
 
 
 def mix(weights: list[np.ndarray], fields: list[tuple], medium_ss: np.ndarray,
