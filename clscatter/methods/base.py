@@ -246,6 +246,10 @@ class Method:
     #: share of the render's time budget (``ctx.deadline``)
     PROGRESSIVE: ClassVar[bool] = False
 
+    #: True when a progressive method sizes each pass to the time it has (``lsg``): the
+    #: session runs it after the progressive passes of a fixed size, so it gets the rest
+    SIZES_PASSES: ClassVar[bool] = False
+
     #: for previews (a relighting page while the user drags): parameters scaled by this
     #: factor (integers rounded, at least 1) so a pass costs a fraction of its full time
     PREVIEW_SCALE: ClassVar[dict[str, float]] = {}

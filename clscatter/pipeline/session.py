@@ -266,7 +266,8 @@ class RenderSession:
 
         Passes whose method refines progressively (``Method.PROGRESSIVE``) run after the
         others and share what those leave of the render's time budget, each the same part
-        of the rest; their noise estimates add up to the render's ``error_estimate``."""
+        of the rest, those that size their passes to fit (``Method.SIZES_PASSES``) last;
+        their error estimates add up to the render's ``error_estimate``."""
         scene, stats = run.scene, run.stats
         cam = scene.camera
         views = [None] * len(run.req.passes)          # view_surface by plan index
@@ -275,7 +276,7 @@ class RenderSession:
         errors = None                                  # (variance, squared bias) images
         parts: dict[int, np.ndarray] = {}              # each pass's own surface + medium
         order = [k for k, p in enumerate(run.req.passes) if run.only is None or k in run.only]
-        order.sort(key=lambda k: bool(get_method(run.req.passes[k].method).PROGRESSIVE))
+        order.sort(key=lambda k: _budget_order(get_method(run.req.passes[k].method)))
         progressive_left = sum(1 for k in order if get_method(run.req.passes[k].method).PROGRESSIVE)
 
         def base() -> np.ndarray:          # the last pass in plan order that traced one wins
@@ -436,6 +437,12 @@ def _time_budget(scene: Scene, req, started: float, stats: Stats, exempt: bool) 
               target_error=scene.render.target_error)
     deadline = started + seconds if seconds > 0 and not exempt else None
     return _Budget(seconds, source, started, deadline)
+
+
+def _budget_order(cls) -> int:
+    """When a pass runs within a budgeted render: fixed work first, then progressive passes
+    of a fixed size, then those that size their passes to the time left."""
+    return 0 if not cls.PROGRESSIVE else 2 if cls.SIZES_PASSES else 1
 
 
 def _calibrate(run: "_Run", stage: str, seconds: float) -> None:

@@ -200,6 +200,7 @@ class LineSpaceGathering(Method):
     # a cluster may run each progressive pass as its own task (see clscatter.cluster)
     SPLIT_PASSES = True
     PROGRESSIVE = True
+    SIZES_PASSES = True
     # auto: the caustic pass alone (targeted), caustics only (required), progressive under
     # auto's whole-render time budget, planned for 8 passes (a default [render.lsg] can change)
     AUTO = {"caustics": AutoRole(priority=10, params={"min_light_depth": 1},

@@ -7,6 +7,7 @@ docs/scene_format.md, one module per family (no module imports another but ``par
 ``epipolar``        scenes of rising shadow complexity and the weak-spot sweeps (``epi_*``)
 ``volumes``         graded-index volumes for the voxel pipeline (``volume_*``)
 ``smoke``           heterogeneous media: a density grid (``smoke_plume``)
+``paper``           the LSG paper's scale: a 69k-triangle glass bunny (``paper_bunny``)
 ==================  ======================================================================
 
 ``load_scene("builtin:NAME")`` validates them through the same ``scene_from_dict`` as a
@@ -19,6 +20,7 @@ from typing import Callable
 from .basic import BASIC_SCENES
 from .caustics import CAUSTIC_SCENES
 from .epipolar import EPIPOLAR_SCENES
+from .paper import PAPER_SCENES
 from .smoke import SMOKE_SCENES
 from .toml_writer import to_toml
 from .volumes import VOLUME_SCENES
@@ -26,7 +28,7 @@ from .volumes import VOLUME_SCENES
 DEFAULT_BUILTIN = "shafts"
 
 BUILTIN: dict[str, Callable[[], dict]] = {**BASIC_SCENES, **CAUSTIC_SCENES, **EPIPOLAR_SCENES,
-                                          **VOLUME_SCENES, **SMOKE_SCENES}
+                                          **VOLUME_SCENES, **SMOKE_SCENES, **PAPER_SCENES}
 
 
 def builtin_toml(name: str) -> str:
