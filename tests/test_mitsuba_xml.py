@@ -484,11 +484,6 @@ def _graded(name: str) -> bool:
     return any(v.get("ior", 1.0) != 1.0 or "grid" in v for v in BUILTIN[name]().get("volumes", []))
 
 
-def _rgb_density(name: str) -> bool:
-    return any("density" in v and np.ptp(np.add(v.get("sigma_s", 0.0), v.get("sigma_a", 0.0))) > 0
-               for v in BUILTIN[name]().get("volumes", []))
-
-
 def _same_scene(a, b) -> None:
     """The numbers of two loaded scenes agree: camera, medium, lights, materials, the
     objects' triangles, volumes, seed (and max_depth where mirrors or glass use it)."""
@@ -533,8 +528,11 @@ def _same_scene(a, b) -> None:
     for va, vb in zip(a.volumes, b.volumes):
         np.testing.assert_array_equal(vb.density, va.density)
         np.testing.assert_allclose(vb.grid_bounds, va.grid_bounds, rtol=1e-13)
-        np.testing.assert_allclose(vb.sigma_s, va.sigma_s, rtol=1e-13)
-        np.testing.assert_allclose(vb.sigma_a, va.sigma_a, rtol=1e-13)
+        # coefficients that differ between r, g and b travel as a three-channel float32
+        # grid (density x colour): the colour comes back to float32's precision
+        tol = 1e-13 if np.ptp(va.sigma_s + va.sigma_a) == 0 else 1e-7
+        np.testing.assert_allclose(vb.sigma_s, va.sigma_s, rtol=tol)
+        np.testing.assert_allclose(vb.sigma_a, va.sigma_a, rtol=tol)
     assert a.render.seed == b.render.seed
     if any(o.material.type in ("mirror", "dielectric") for o in a.objects):
         assert a.render.max_depth == b.render.max_depth
@@ -546,9 +544,6 @@ def test_builtin_scenes_round_trip(name, tmp_path, monkeypatch):
         with pytest.raises(SceneError, match=r"volumes\[0\]: a graded index of refraction"):
             mitsuba_out.convert(BUILTIN[name]())
         pytest.skip("a graded index of refraction has no Mitsuba 3 equivalent")
-    if _rgb_density(name):
-        pytest.skip("extinction that differs between r, g and b needs a three-channel Mitsuba "
-                    "grid; the scene format's density has one channel")
     monkeypatch.chdir(tmp_path)
     mitsuba_out.write_xml(BUILTIN[name](), tmp_path / "scene.xml")
     _same_scene(load_scene(f"builtin:{name}"), load_scene(tmp_path / "scene.xml"))

@@ -16,8 +16,9 @@ voxel centres of a box (docs/scene_format.md, "What a volume means"). Formats:
            NumPy interop (built for NumPy 1.x, that crashes under NumPy 2: array copies,
            a transform from a matrix)
 ``.vol``   Mitsuba's binary grid volume: ``VOL``, version 3, encoding int32 (1 =
-           float32), xres, yres, zres, channels (1), the box as 6 float32 (min, max),
-           then the values with x fastest; placed by that box
+           float32), xres, yres, zres, channels (1, or 3: a density times a colour),
+           the box as 6 float32 (min, max), then the values with x fastest; placed by
+           that box
 =========  ==========================================================================
 
 Every failure is a one-line :class:`~clscatter.errors.SceneError` naming the scene key.
@@ -55,6 +56,7 @@ class GridFile:
 
     values: np.ndarray
     bounds: tuple[np.ndarray, np.ndarray] | None = None
+    colour: np.ndarray | None = None    # a 3-channel .vol's channels over its density
 
 
 def _err(key: str, message: str) -> SceneError:
@@ -189,7 +191,8 @@ def write_vdb(path: Path | str, values: np.ndarray, bounds=None, name: str = "de
 # ---- Mitsuba .vol -----------------------------------------------------------------------
 
 def read_vol(path: Path, key: str) -> GridFile:
-    """A Mitsuba binary grid volume (see the module docstring): one float32 channel."""
+    """A Mitsuba binary grid volume (see the module docstring): float32, one channel
+    (values (nx, ny, nz)) or several ((nx, ny, nz, channels))."""
     try:
         data = path.read_bytes()
     except OSError as exc:
@@ -199,17 +202,19 @@ def read_vol(path: Path, key: str) -> GridFile:
     tag, version, encoding, nx, ny, nz, channels, *box = _VOL_HEADER.unpack_from(data)
     if tag != b"VOL" or version != 3:
         raise _err(key, f"{path.name} is not a version-3 Mitsuba .vol file")
-    if encoding != 1 or channels != 1:
-        raise _err(key, f"{path.name}: only float32 (encoding 1) grids of one channel are "
-                   f"read (encoding {encoding}, {channels} channels)")
+    if encoding != 1 or channels not in (1, 3):
+        raise _err(key, f"{path.name}: only float32 (encoding 1) grids of one or three "
+                   f"channels are read (encoding {encoding}, {channels} channels)")
     if min(nx, ny, nz) <= 0:
         raise _err(key, f"{path.name}: bad resolution {nx} x {ny} x {nz}")
-    count = nx * ny * nz
+    count = nx * ny * nz * channels
     if len(data) - _VOL_HEADER.size != 4 * count:
         raise _err(key, f"{path.name}: {len(data) - _VOL_HEADER.size} data bytes, expected "
-                   f"{4 * count} for {nx} x {ny} x {nz} float32 values")
+                   f"{4 * count} for {nx} x {ny} x {nz} x {channels} float32 values")
     flat = np.frombuffer(data, "<f4", count, _VOL_HEADER.size)
-    values = np.ascontiguousarray(flat.reshape(nz, ny, nx).transpose(2, 1, 0))
+    values = np.ascontiguousarray(flat.reshape(nz, ny, nx, channels).transpose(2, 1, 0, 3))
+    if channels == 1:
+        values = values[..., 0]
     lo, hi = np.array(box[:3], np.float64), np.array(box[3:], np.float64)
     if not (np.all(np.isfinite(box)) and np.all(lo < hi)):
         raise _err(key, f"{path.name}: its box must have min < max on every axis "
@@ -280,4 +285,24 @@ def load_density(path: Path, key: str, name: str | None = None,
                    f"{values[ijk]!r})")
     if np.any(np.abs(values) > np.finfo(np.float32).max):
         raise _err(key, f"density in {path.name} is beyond float32's range")
+    if values.ndim == 4:
+        values, colour = _density_and_colour(values, key, path)
+        return GridFile(values.astype(np.float32), got.bounds, colour)
     return GridFile(values.astype(np.float32), got.bounds)
+
+
+def _density_and_colour(values: np.ndarray, key: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A three-channel grid that is a density times a colour (what a Mitsuba scene with
+    extinction differing between r, g and b holds): the density (the brightest channel)
+    and each channel over it. Channels that are not proportional are an error."""
+    means = values.reshape(-1, values.shape[-1]).mean(axis=0)
+    top = int(np.argmax(means))
+    if not means[top] > 0:
+        return values[..., top], np.ones(values.shape[-1])
+    density = values[..., top]
+    colour = means / means[top]
+    if not np.allclose(values, density[..., None] * colour, rtol=1e-5,
+                       atol=1e-6 * float(np.abs(density).max())):
+        raise _err(key, f"{path.name}: its {values.shape[-1]} channels are not one density "
+                   "times a colour; a density grid has one channel")
+    return density, colour

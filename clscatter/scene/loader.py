@@ -548,6 +548,8 @@ def _density_volume(t: _Table, base_dir: Path, sigma_s: np.ndarray,
             and np.all(np.abs(np.concatenate([lo, hi])) <= FLOAT32_MAX)):
         raise _err(t.k("density"), f"the file places the grid in an empty or unbounded box "
                    f"(min {_fmt_vec(lo)}, max {_fmt_vec(hi)}); give bounds")
+    if dens.colour is not None:          # a three-channel .vol: density x colour
+        sigma_s, sigma_a = sigma_s * dens.colour, sigma_a * dens.colour
     shapes_ = [dens.values.shape] + ([grid.shape] if grid is not None else [])
     return Volume(ior=ior, sigma_s=sigma_s, sigma_a=sigma_a,
                   resolution=int(max(max(s) for s in shapes_)), grid=grid,
