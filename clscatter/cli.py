@@ -3,7 +3,8 @@
     clscatter                                   render the built-in demo scene
     clscatter render [SCENE] -o OUT [-o OUT2] [--method M] [--set key=value ...]
                      [--stats FILE.json] [--device SPEC] [--exposure EV]
-    clscatter relight [SCENE] -o DIR [--frames N] [--orbit light|camera] [--format png]
+    clscatter relight [SCENE] -o DIR [--frames N] [--orbit light|camera | --keyframes K.toml]
+                      [--format png]
     clscatter check [SCENE] [--method M] [--set key=value ...] [--max-memory SIZE]
     clscatter serve [SCENE] [--port P] [--host H] [--method M] [--set key=value ...]
     clscatter diff A B [--heatmap FILE.png] [--json]
@@ -69,6 +70,9 @@ def _build_parser() -> argparse.ArgumentParser:
     a.add_argument("--frames", type=int, default=24, help="number of frames (default 24)")
     a.add_argument("--orbit", default="light", choices=("light", "camera"),
                    help="what turns once around the scene (default: light)")
+    a.add_argument("--keyframes", default=None, metavar="FILE.toml",
+                   help="instead of an orbit: scene keys given at keyframes, interpolated "
+                        "between them (objects moving, animated grids; docs/scene_format.md)")
     a.add_argument("--format", default="png", choices=("png", "exr", "npy", "pfm"),
                    help="frame file format (default png)")
     a.add_argument("--method", default=None, help="override render.method")
@@ -294,7 +298,7 @@ def _final(stats, rendered: dict) -> dict:
     return final
 
 
-MAX_FRAMES = 100_000     # relight refuses more (the frames' overrides are built up front)
+from .keyframes import MAX_FRAMES  # noqa: E402  relight refuses more (frames built up front)
 
 
 def _cmd_relight(args: argparse.Namespace) -> int:
@@ -316,10 +320,20 @@ def _cmd_relight(args: argparse.Namespace) -> int:
     if args.frames > MAX_FRAMES:
         raise ClscatterError(f"--frames: at most {MAX_FRAMES:,} (got {args.frames:,})")
     scene = load_scene(spec, args.overrides)
-    _check_frames_fit(out, args.frames, scene.camera.width * scene.camera.height, args.format)
-    frames = orbit(scene, args.frames, args.orbit)
-    path = orbit_path(scene, args.orbit)              # the axis and radii, for frames.json
-    for m in path.movers:
+    if args.keyframes is not None:
+        from .keyframes import load as load_keyframes
+        frames = load_keyframes(args.keyframes)
+        for sets in (frames[0], frames[-1]):          # every key checked before any frame
+            load_scene(spec, [*args.overrides, *sets])
+        path = None
+        movement = f"keyframes {Path(args.keyframes).name}"
+    else:
+        frames = orbit(scene, args.frames, args.orbit)
+        path = orbit_path(scene, args.orbit)          # the axis and radii, for frames.json
+        movement = f"{args.orbit} orbit" + (f", radius {path.radius:.3g}"
+                                            if path.radius is not None else "")
+    _check_frames_fit(out, len(frames), scene.camera.width * scene.camera.height, args.format)
+    for m in (path.movers if path is not None else []):
         if m.widened:
             _note(f"{m.key} is close to the orbit's axis: it orbits at "
                   + (f"radius {m.radius:.3g} (its height kept)" if m.radius is not None
@@ -355,12 +369,14 @@ def _cmd_relight(args: argparse.Namespace) -> int:
                         **{k: res.stats[k] for k in ("voxel_stages_run", "voxel_stage_seconds")
                            if k in res.stats}})
                     bar.update(1)
-        record.update(scene=spec, orbit=args.orbit, count=len(frames), files=names,
-                      **path.record())
+        if path is not None:
+            record.update(orbit=args.orbit, **path.record())
+        else:
+            record.update(keyframes=str(args.keyframes), overrides=frames)
+        record.update(scene=spec, count=len(frames), files=names)
         write_json(stage / "frames.json", record)
     total = sum(f["seconds"] for f in record["frames"])
-    radius = f", radius {path.radius:.3g}" if path.radius is not None else ""
-    print(f"{spec}: {len(frames)} frames ({args.orbit} orbit{radius}) in {total:.2f} s -> {out}/")
+    print(f"{spec}: {len(frames)} frames ({movement}) in {total:.2f} s -> {out}/")
     return 0
 
 
