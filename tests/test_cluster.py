@@ -44,7 +44,7 @@ def test_caustic_scene_equals_single_process(cluster, engine):
     """auto on a glass ball: direct, surface caustics on sample sets, the progressive LSG
     caustic pass split into one task per pass (its lighting rays spread over the workers)."""
     sets = SMALL + ["render.lsg.light_rays=20000", "render.lsg.passes=3",
-                    "render.lsg.time_budget=0", "render.raymap.photons=5000"]
+                    "render.lsg.time_budget=0", "render.time_budget=0", "render.raymap.photons=5000"]
     res = cluster.render("builtin:caustic_sphere", sets, units=3, show_progress=False)
     ref = render(load_scene("builtin:caustic_sphere", sets), engine=engine, show_progress=False)
     assert res.stats["cluster_units"] == {"sample_sets": 3, "progressive_passes": 3}
