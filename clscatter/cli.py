@@ -447,9 +447,10 @@ def _predicted_time(device, e) -> str:
     """``; about N s on this device`` from earlier renders' measured rates
     (:mod:`clscatter.pipeline.calibration`), or a word on why there is none."""
     from .pipeline.calibration import MIN_WORK, predict
-    if device is None or e.work < MIN_WORK:
+    name = getattr(device, "name", None)
+    if not isinstance(name, str) or e.work < MIN_WORK:
         return ""
-    seconds = predict(device.name.strip(), e.stage, e.work)
+    seconds = predict(name.strip(), e.stage, e.work)
     if seconds is None:
         return "; time not yet calibrated on this device (a render calibrates it)"
     return f"; about {seconds:.2g} s on this device (before any time budget)"
