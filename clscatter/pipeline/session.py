@@ -158,7 +158,8 @@ class RenderSession:
     def render(self, show_progress: bool = True, cancel: Callable[[], bool] | None = None,
                on_note: Callable[[str], None] | None = None, preview: bool = False,
                stats: Stats | None = None, samples: tuple[int, int] | None = None,
-               only: Sequence[int] | None = None, pass_params: dict | None = None):
+               only: Sequence[int] | None = None, pass_params: dict | None = None,
+               default_budget: float | None = None):
         """Render the current scene, re-running only what changed since the last render.
 
         ``preview`` renders at a quarter of the resolution with one sample per pixel (the
@@ -169,6 +170,8 @@ class RenderSession:
         (see :func:`~clscatter.transport.view_paths.trace_view_paths`). ``only`` runs just those passes
         of the plan (by index) and ``pass_params`` (``{index: {param: value}}``) overrides their
         parameters: how a cluster splits a render into tasks (:mod:`clscatter.cluster`).
+        ``default_budget`` replaces the default time budget where the scene sets none
+        (the relighting page's full frames, which refinement follows).
         """
         started = time.perf_counter()
         scene = _preview_scene(self.scene) if preview else self.scene
@@ -255,7 +258,8 @@ class RenderSession:
                                          stop_if_asked, ran, reused, preview, only,
                                          pass_params or {}, clock, on_note,
                                          _time_budget(scene, req, started, stats,
-                                                      preview or only is not None), cancel))
+                                                      preview or only is not None,
+                                                      default_budget), cancel))
         finally:
             engine.trim_pool()      # keep what this render freed for the next one
 
@@ -429,10 +433,15 @@ class _Budget:
     deadline: float | None
 
 
-def _time_budget(scene: Scene, req, started: float, stats: Stats, exempt: bool) -> _Budget:
-    """The render's :class:`_Budget` (:func:`budget.time_budget`), recorded in the stats.
-    ``exempt`` (a preview, or a cluster's task: fixed work) sets no deadline."""
-    seconds, source = budget.time_budget(scene, req.requested)
+def _time_budget(scene: Scene, req, started: float, stats: Stats, exempt: bool,
+                 default: float | None = None) -> _Budget:
+    """The render's :class:`_Budget` (:func:`budget.time_budget`; ``default`` where the
+    scene sets none), recorded in the stats. ``exempt`` (a preview, or a cluster's task:
+    fixed work) sets no deadline."""
+    if default is not None and scene.render.time_budget is None:
+        seconds, source = float(default), "the caller's default"
+    else:
+        seconds, source = budget.time_budget(scene, req.requested)
     stats.set(time_budget=seconds, time_budget_source=source,
               target_error=scene.render.target_error)
     deadline = started + seconds if seconds > 0 and not exempt else None

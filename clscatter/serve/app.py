@@ -14,7 +14,8 @@ Why this shape:
 * Progressive frames: a change first renders a preview (the session's reduced resolution,
   1 spp), then, unless the page asked for the preview alone (it does while the user drags),
   the full render at the scene's own settings. That full image is exactly what
-  ``clscatter render`` of the saved TOML gives (tested), and what Save downloads. Where
+  ``clscatter render`` of the saved TOML gives (tested), and what Save downloads; where
+  the scene sets no ``render.time_budget`` it renders within :data:`FULL_SECONDS`. Where
   the plan has progressive passes (``lsg``), refinement rounds follow: fresh passes of
   those methods alone, a couple of seconds each, streamed as ``refine`` frames of the
   converging mean, until a newer change arrives (polled between passes, so stale work
@@ -335,7 +336,8 @@ class PageWorker:
                     if self._stale(generation):
                         raise Cancelled("superseded before it started")
                     result = self.session.render(show_progress=False, preview=level == "preview",
-                                                 cancel=lambda: self._stale(generation))
+                                                 cancel=lambda: self._stale(generation),
+                                                 default_budget=FULL_SECONDS)
             except Cancelled:
                 self.cancels += 1
                 if not self.box.closed:
@@ -417,6 +419,8 @@ class PageWorker:
         return True
 
 
+#: a full frame's time budget where the scene sets none (refinement rounds follow it)
+FULL_SECONDS = 4.0
 #: refinement rounds after a full frame, and the seconds of progressive passes in each
 REFINE_ROUNDS = 8
 REFINE_SECONDS = 2.0
