@@ -319,7 +319,7 @@ def _cmd_relight(args: argparse.Namespace) -> int:
         raise ClscatterError(f"{args.output}: parent folder {out.resolve().parent} does not exist")
     if args.frames > MAX_FRAMES:
         raise ClscatterError(f"--frames: at most {MAX_FRAMES:,} (got {args.frames:,})")
-    scene = load_scene(spec, args.overrides)
+    scene = load_scene(spec, args.overrides, on_note=_note)
     if args.keyframes is not None:
         from .keyframes import load as load_keyframes
         frames = load_keyframes(args.keyframes)
