@@ -47,7 +47,18 @@ def scene_relative(ps: PreparedScene) -> float:
 class SurfaceDensityMethod(Method):
     """Surface caustics by density estimation over lighting rays that reached diffuse
     surfaces after at least one specular bounce. A subclass gives ``NAME`` (also the
-    estimator's name) and :meth:`settings`."""
+    estimator's name) and :meth:`settings`.
+
+    *Gather radius and progressive passes* (``clscatter.estimators.surface_passes``). With
+    ``radius = 0`` (automatic) the first pass's radius at a hit is the distance of its
+    ``k``-th nearest ray or photon (at most ``max_radius``), in the normalised frame
+    (independent of the scene's scale); ``passes = 1`` is that estimate alone. Pass i > 1
+    traces fresh rays and gathers all within ``s_i B(x)``, ``B = max(R_1, pixel footprint
+    / 16)``, ``s_(i+1)^2 = s_i^2 (i + ppm_alpha) / (i + 1)`` (progressive photon mapping,
+    2-D kernel); the image is the mean of the passes, which converges. Passes stop at
+    ``passes``, at the deadline (this pass's share of ``render.time_budget``, or
+    ``time_budget``) or at ``render.target_error``; their own images give the render's
+    error estimate."""
 
     TERMS = frozenset({"surface_caustics"})
     PREVIEW_SCALE = {"photons": 0.125, "passes": 0.0, "time_budget": 0.0}

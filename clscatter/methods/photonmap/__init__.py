@@ -28,16 +28,9 @@ class PhotonMapMethod(SurfaceDensityMethod):
     covers area without photons and the estimate darkens (boundary bias): ``raymap``
     removes that at 2-5x the cost.
 
-    *Gather radius and progressive passes* (``clscatter.estimators.surface_passes``). With
-    ``radius = 0`` (automatic) the first pass's radius at a hit is the distance of its
-    ``k``-th nearest photon (at most ``max_radius``), in the normalised frame (independent of
-    the scene's scale); ``passes = 1`` is that estimate alone. Pass i > 1 traces fresh
-    photons and gathers all within ``s_i B(x)``, ``B = max(R_1, pixel footprint / 16)``,
-    ``s_(i+1)^2 = s_i^2 (i + ppm_alpha) / (i + 1)`` (progressive photon mapping, 2-D
-    kernel); the image is the mean of the passes, which converges. Passes stop at
-    ``passes``, at the deadline (this pass's share of ``render.time_budget``, or
-    ``time_budget``) or at ``render.target_error``; their own images give the render's
-    error estimate.
+    *Gather radius and progressive passes*: as every surface density estimator's
+    (:class:`~clscatter.methods.surface_density.SurfaceDensityMethod`; automatic per-hit
+    radii, progressive passes that shrink them, under the render's budget and error target).
 
     Chosen explicitly it renders the whole picture (the planner runs the ``medium`` method
     beside it); ``auto`` prefers ``raymap`` for surface caustics.
