@@ -11,6 +11,7 @@ import copy
 from pathlib import Path
 
 import numpy as np
+import pytest
 from test_lsg import _as_dict, _gather, _medium, _random_set, reference_gather
 
 from clscatter.device import structs
@@ -255,3 +256,74 @@ def test_interior_can_be_switched_off_and_raymarch_leaves_it_out(engine):
     rm = render(_scene(d), engine=engine, show_progress=False, on_note=notes.append)
     assert rm.image.max() == 0
     assert sum("interior_sigma_s" in n for n in notes) == 1, notes
+
+
+def _ball_quadrature(cam: dict, light_pos, intensity: float, radius: float, ss: float,
+                     sa: float, g: float, sub: int = 4, steps: int = 256) -> np.ndarray:
+    """Single scattering inside a ball of fog (centred at the origin, index 1, clear air
+    around it) lit by a point light, per pixel (the mean over sub x sub positions in it),
+    by midpoint quadrature along each camera ray's chord: sigma_s p I / d^2
+    exp(-kappa (s + l)), s the depth into the ball, l the light's path inside it."""
+    w, h = cam["resolution"]
+    o = np.asarray(cam["origin"], float)
+    fwd = np.asarray(cam["target"], float) - o
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, fwd)
+    tx = np.tan(np.radians(cam["fov"]) / 2)
+    ty = tx * h / w
+    ju = (np.arange(sub) + 0.5) / sub
+    px = (np.arange(w)[:, None] + ju[None, :]).reshape(-1)
+    py = (np.arange(h)[:, None] + ju[None, :]).reshape(-1)
+    X, Y = np.meshgrid(px, py)                                  # (h*sub, w*sub)
+    d = (fwd[None, None] + ((2 * X / w - 1) * tx)[..., None] * right
+         + ((1 - 2 * Y / h) * ty)[..., None] * up)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    b = d @ o
+    disc = b * b - (o @ o - radius ** 2)
+    hit = disc > 0
+    t0 = np.where(hit, -b - np.sqrt(np.maximum(disc, 0)), 0.0)
+    t1 = np.where(hit, -b + np.sqrt(np.maximum(disc, 0)), 0.0)
+    kappa = ss + sa
+    L = np.zeros(X.shape)
+    lp = np.asarray(light_pos, float)
+    for i in range(steps):
+        t = t0 + (t1 - t0) * (i + 0.5) / steps
+        x = o + d * t[..., None]
+        to_l = lp - x
+        dist = np.linalg.norm(to_l, axis=-1)
+        u = to_l / dist[..., None]                              # towards the light
+        bl = np.einsum("...k,...k->...", x, u)
+        inside_l = -bl + np.sqrt(np.maximum(bl * bl - (np.einsum("...k,...k->...", x, x)
+                                                        - radius ** 2), 0))
+        cos = np.einsum("...k,...k->...", -u, -d)               # light travel . towards eye
+        phase = (1 - g * g) / (4 * np.pi * (1 + g * g - 2 * g * cos) ** 1.5)
+        L += ss * phase * intensity / dist ** 2 * np.exp(-kappa * ((t - t0) + inside_l)) \
+            * (t1 - t0) / steps
+    L = np.where(hit, L, 0.0)
+    return L.reshape(h, sub, w, sub).mean(axis=(1, 3))
+
+
+def test_index_one_glass_ball_of_fog_against_quadrature(engine):
+    """A glass ball of index 1 holding fog, in clear air, under a point light: lsg's image
+    (light gathered inside the ball only) against a NumPy quadrature of the same single
+    scattering: the totals within 4% (measured -0.7% and -2.3%: a rim within the gather
+    radius of the surface gathers less) and the lit pixels within 10% on average (measured
+    1.8% and 3.9%), for an optically thin (kappa r = 0.3) and a thick (kappa r = 3) ball."""
+    cam = {"origin": [0.0, 0.3, 4.0], "target": [0.0, 0.0, 0.0], "fov": 36.0,
+           "resolution": [32, 24], "spp": 4}
+    for ss, sa in ((0.25, 0.05), (2.5, 0.5)):
+        d = {"camera": cam, "lights": [{"type": "point", "position": [0.4, 3.0, 0.5],
+                                        "intensity": 10.0}],
+             "materials": {"glass": {"type": "dielectric", "ior": 1.0, "interior_sigma_s": ss,
+                                     "interior_sigma_a": sa, "interior_g": 0.3}},
+             "objects": [{"shape": "sphere", "center": [0.0, 0.0, 0.0], "radius": 1.0,
+                          "subdivisions": 6, "material": "glass"}],
+             "render": {"method": "lsg", "time_budget": 0.0,
+                        "lsg": {"light_rays": 200_000, "radius": 0.004, "passes": 2}}}
+        img = render(_scene(d), engine=engine, show_progress=False).medium.mean(axis=-1)
+        ref = _ball_quadrature(cam, [0.4, 3.0, 0.5], 10.0, 1.0, ss, sa, 0.3)
+        assert img.sum() == pytest.approx(ref.sum(), rel=0.04), (ss, img.sum(), ref.sum())
+        lit = ref > 0.3 * ref.max()
+        assert float(np.mean(np.abs(img[lit] / ref[lit] - 1))) < 0.10
