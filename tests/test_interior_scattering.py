@@ -327,3 +327,34 @@ def test_index_one_glass_ball_of_fog_against_quadrature(engine):
         assert img.sum() == pytest.approx(ref.sum(), rel=0.04), (ss, img.sum(), ref.sum())
         lit = ref > 0.3 * ref.max()
         assert float(np.mean(np.abs(img[lit] / ref[lit] - 1))) < 0.10
+
+
+def test_light_through_glass_conserves_energy_with_absorption_only(engine):
+    """A directional light (irradiance E) on a glass ball (radius r), no medium: the flux
+    of every lighting ray that met the ball, where its branches end, against closed forms:
+    with index 1 and interior absorption kappa, E pi r^2 times the mean of exp(-kappa c)
+    over the ball's chords c, (2 / r^2)(1 - e^(-2 kappa r)(1 + 2 kappa r)) / (4 kappa^2);
+    with index 1.5 and no absorption, E pi r^2 (Fresnel splits lose nothing). Within 1%
+    (measured 0.03% and 0.2%: the tessellated ball and max_depth)."""
+    r, e, kappa = 0.5, 2.0, 1.5
+
+    def met_ball(ior: float, sigma_a: float) -> float:
+        d = {"camera": {"origin": [0, 0, 4], "target": [0, 0, 0], "resolution": [8, 8]},
+             "lights": [{"type": "directional", "direction": [0.0, -1.0, 0.0],
+                         "irradiance": e}],
+             "materials": {"glass": {"type": "dielectric", "ior": ior,
+                                     "interior_sigma_a": sigma_a}},
+             "objects": [{"shape": "sphere", "center": [0, 0, 0], "radius": r,
+                          "subdivisions": 7, "material": "glass"}],
+             "render": {"max_depth": 32}}
+        ps = prepare_scene(_scene(d), engine)
+        try:
+            assert ps.frame.scale == 1.0          # flux in world units
+            pieces = trace_light_paths(ps, 200_000, None, False, pieces=True).segments
+        finally:
+            ps.release()
+        return float(pieces["flux"][pieces["depth"] >= 1, 0].astype(np.float64).sum())
+
+    chords = (2 / r ** 2) * (1 - np.exp(-2 * kappa * r) * (1 + 2 * kappa * r)) / (4 * kappa ** 2)
+    assert met_ball(1.0, kappa) == pytest.approx(e * np.pi * r * r * chords, rel=0.01)
+    assert met_ball(1.5, 0.0) == pytest.approx(e * np.pi * r * r, rel=0.01)
