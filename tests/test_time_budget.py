@@ -267,3 +267,18 @@ def test_calibration_learns_seconds_per_unit_of_work(tmp_path, monkeypatch, caps
     out = capsys.readouterr().out
     line = next(ln for ln in out.splitlines() if ln.startswith("estimate raymarch"))
     assert "s on this device" in line
+
+
+def test_an_untracked_pass_is_timed_but_left_out_of_the_estimate():
+    """A pass added without an image (another estimator, e.g. the k-nearest opening pass of
+    the surface methods) counts in the passes' times, not in the halves."""
+    rng = np.random.default_rng(5)
+    images = [1.0 + rng.normal(0.0, 0.1, (6, 6, 3)) for _ in range(6)]
+    a, b = Progression(max_passes=10), Progression(max_passes=10)
+    b.add(None, 1.0)
+    for img in images:
+        a.add(img, 1.0)
+        b.add(img, 1.0)
+    assert len(b.seconds) == 7 and len(a.seconds) == 6
+    assert b.error == pytest.approx(a.error, rel=1e-12)
+    np.testing.assert_allclose(b.mean(), a.mean(), rtol=1e-12)

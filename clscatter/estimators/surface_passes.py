@@ -86,8 +86,9 @@ def progressive_surface_caustics(ps, estimator: str, rays: int, settings: Densit
                                  sample_range: tuple[int, int] | None = None) -> SurfacePasses:
     """The surface caustics (as :func:`~.ray_density.surface_caustics`) refined by passes
     while ``prog`` (a :class:`~clscatter.transport.progressive.Progression`) says so;
-    each pass's own image goes to ``prog.add`` with its radius (the median base radius
-    times ``s_i``). ``radius``: explicit first radius (normalised; 0: automatic);
+    each later pass's own image goes to ``prog.add`` with its radius (the median base
+    radius times ``s_i``; the first, k-nearest, pass is another estimator and stays out of
+    the error estimate). ``radius``: explicit first radius (normalised; 0: automatic);
     ``seed``: selects independent sets of rays (pass i uses ``seed_offset = i + (seed <<
     16)``). The first pass with ``seed`` 0 is exactly ``surface_caustics``."""
     cam = ps.scene.camera
@@ -125,6 +126,7 @@ def _run_passes(ps, dev, hits, estimator: str, rays: int, settings: DensitySetti
         with stats.stage(f"{estimator}_trace"):
             pieces = caustic_pieces(ps, rays, stats, show_progress, seed_offset=i + (seed << 16))
         stats.add(f"{estimator}_rays_stored", int(len(pieces)))
+        opening = base is None          # the k-nearest pass: another estimator than the rest
         if len(pieces) == 0:
             own = np.zeros_like(out.image)
         elif base is None:
@@ -135,7 +137,10 @@ def _run_passes(ps, dev, hits, estimator: str, rays: int, settings: DensitySetti
                              radii=(base * s).astype(np.float32))
         out.seconds.append(prog.clock() - t0)
         scales.append(s)
-        prog.add(own, out.seconds[-1], radius=None if base is None else s * max(out.radius, 1e-30))
+        # the error estimate compares passes of one estimator: the k-nearest opening pass
+        # (a different kernel and radius rule) is left out of it
+        prog.add(None if opening else own, out.seconds[-1],
+                 radius=None if base is None else s * max(out.radius, 1e-30))
         total = own.astype(np.float64) if total is None else total + own
         i += 1
     n = max(len(out.seconds), 1)

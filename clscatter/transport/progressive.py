@@ -147,11 +147,12 @@ class Progression:
 
     def add(self, image: np.ndarray | None, seconds: float, radius: float | None = None) -> None:
         """One pass's own image (its estimate alone, not the running mean; None: not
-        tracked, no error estimate), its time and its gather radius (None: no blur)."""
-        half = len(self.seconds) % 2
+        tracked: it times the passes but stays out of the error estimate), its time and its
+        gather radius (None: no blur). The tracked passes alternate between the halves."""
         self.seconds.append(float(seconds))
         if image is None:
             return
+        half = len(self._blur) % 2
         img = np.asarray(image, np.float64)
         self._sums[half] = img.copy() if self._sums[half] is None else self._sums[half] + img
         self._counts[half] += 1
