@@ -43,7 +43,7 @@ from clscatter.scene import scene_from_dict  # noqa: E402
 from clscatter.scene.builtin import BUILTIN  # noqa: E402
 
 OUT = REPO / "bench_out" / "surface_equal_time"
-TABLE_TOP = 0.8          # the table's height; its edge is the line x = 0, z in [-1.5, 1.5]
+TABLE_TOP = 0.45         # near the ball's focus; the edge is the line x = 0, z in [-1.5, 1.5]
 
 
 def scenes(size: tuple[int, int]) -> dict[str, dict]:
