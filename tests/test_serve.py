@@ -515,3 +515,23 @@ def test_progressive_passes_refine_after_the_full_frame():
                 p.close()
     finally:
         app_mod.REFINE_ROUNDS = rounds
+
+
+def test_a_converted_mitsuba_scene_logs_its_notes(tmp_path, caplog):
+    """The page's session on a Mitsuba scene: what the conversion dropped is in the
+    server's log, one warning a note (as the command line prints it)."""
+    import logging
+
+    from clscatter.scene.mitsuba_out import write_xml
+    from clscatter.scene.builtin import BUILTIN
+    from clscatter.serve.app import open_session
+
+    xml = tmp_path / "scene.xml"
+    write_xml(BUILTIN["occluder"](), xml)
+    text = xml.read_text().replace("</scene>", '<shape type="cylinder" id="pillar"/>\n</scene>')
+    xml.write_text(text)
+    with caplog.at_level(logging.WARNING, logger="clscatter.serve"):
+        session = open_session(str(xml), [], None)
+        session.close()
+    notes = [r.getMessage() for r in caplog.records if r.name == "clscatter.serve"]
+    assert notes == ['note: shape "cylinder" (pillar): not a shape clscatter reads; dropped']

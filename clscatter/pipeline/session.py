@@ -92,9 +92,11 @@ class RenderSession:
 
     # ---- sources and changes ---------------------------------------------------------------
     @classmethod
-    def from_source(cls, spec: str | Path, overrides: Sequence[str] = (), **kw) -> "RenderSession":
-        """A session on ``spec`` (TOML path or ``builtin:NAME``) with ``--set`` overrides."""
-        data, base_dir = scene_source(spec)
+    def from_source(cls, spec: str | Path, overrides: Sequence[str] = (),
+                    on_note: Callable[[str], None] | None = None, **kw) -> "RenderSession":
+        """A session on ``spec`` (TOML or Mitsuba XML path, or ``builtin:NAME``) with
+        ``--set`` overrides; ``on_note`` hears what converting the scene approximated."""
+        data, base_dir = scene_source(spec, on_note)
         return cls.from_data(data, base_dir, str(spec), overrides, **kw)
 
     @classmethod

@@ -120,10 +120,12 @@ def override_key(text: str) -> str:
 # ---------------------------------------------------------------------------- sessions
 
 def open_session(spec: str, overrides: Sequence[str], device: str | None):
-    """A :class:`~clscatter.pipeline.session.RenderSession` on ``spec`` with ``--set`` overrides."""
+    """A :class:`~clscatter.pipeline.session.RenderSession` on ``spec`` with ``--set``
+    overrides; what converting a Mitsuba scene approximated goes to the server's log."""
     from ..pipeline.session import RenderSession
 
-    return RenderSession.from_source(spec, list(overrides), device=device)
+    return RenderSession.from_source(spec, list(overrides), device=device,
+                                     on_note=lambda line: LOG.warning("note: %s", line))
 
 
 def applicable_methods(scene) -> list[str]:
