@@ -49,19 +49,6 @@ def _lerp(a: Any, b: Any, t: float) -> Any:
     return float(a) + (float(b) - float(a)) * t
 
 
-def _toml_value(v: Any) -> str:
-    """``v`` as a TOML value for a ``--set`` override."""
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(v) if isinstance(v, int) else repr(float(v))     # shortest exact form
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, list):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise ClscatterError(f"keyframes: a value of type {type(v).__name__} cannot be set")
-
-
 def parse(data: dict, source: str = "keyframes") -> list[tuple[int, dict[str, Any]]]:
     """The keyframes of ``data`` (a keyframe file's TOML), sorted by frame, checked: one
     ``[[key]]`` array, each with a distinct integer ``frame`` in [0, MAX_FRAMES) and at
@@ -90,10 +77,11 @@ def parse(data: dict, source: str = "keyframes") -> list[tuple[int, dict[str, An
 
 def frames(keyframes: list[tuple[int, dict[str, Any]]]) -> list[list[str]]:
     """Every frame's overrides (``key=value`` strings) from sorted ``keyframes``."""
+    from .scene.builtin.toml_writer import toml_value   # the command line starts without it
     count = keyframes[-1][0] + 1
     names = sorted({name for _, values in keyframes for name in values})
     tracks = {name: [(f, v[name]) for f, v in keyframes if name in v] for name in names}
-    return [[f"{name}={_toml_value(_at(tracks[name], f))}" for name in names]
+    return [[f"{name}={toml_value(_at(tracks[name], f))}" for name in names]
             for f in range(count)]
 
 

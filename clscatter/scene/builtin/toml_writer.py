@@ -10,7 +10,8 @@ from typing import Any
 _INLINE_KEYS = frozenset({"bounds", "transform", "material"})
 
 
-def _value(v: Any) -> str:
+def toml_value(v: Any) -> str:
+    """``v`` as a TOML value (what a scene file or a ``--set`` override holds)."""
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, int):
@@ -24,9 +25,9 @@ def _value(v: Any) -> str:
     if isinstance(v, str):
         return json.dumps(v)   # a JSON string is a valid TOML basic string
     if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_value(x) for x in v) + "]"
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
     if isinstance(v, dict):
-        return "{ " + ", ".join(f"{_key(k)} = {_value(x)}" for k, x in v.items()) + " }"
+        return "{ " + ", ".join(f"{_key(k)} = {toml_value(x)}" for k, x in v.items()) + " }"
     raise TypeError(f"cannot write {type(v).__name__} as TOML")
 
 
@@ -45,7 +46,7 @@ def _emit(table: dict, path: list[str], out: list[str]) -> None:
 
     for k, v in table.items():
         if not is_header(k, v):
-            out.append(f"{_key(k)} = {_value(v)}")
+            out.append(f"{_key(k)} = {toml_value(v)}")
     for k, v in table.items():
         if not is_header(k, v):
             continue
@@ -60,7 +61,7 @@ def _emit(table: dict, path: list[str], out: list[str]) -> None:
             out.extend(["", f"[[{name}]]"])
             # everything inside an array element is written inline: simple and unambiguous
             for ik, iv in item.items():
-                out.append(f"{_key(ik)} = {_value(iv)}")
+                out.append(f"{_key(ik)} = {toml_value(iv)}")
 
 
 def to_toml(data: dict) -> str:
