@@ -281,6 +281,7 @@ class RenderSession:
         medium = np.zeros((cam.height, cam.width, 3), np.float32)
         errors = None                                  # (variance, squared bias) images
         parts: dict[int, np.ndarray] = {}              # each pass's own surface + medium
+        counts: dict[int, int] = {}                    # progressive passes each ran (or 1)
         order = [k for k, p in enumerate(run.req.passes) if run.only is None or k in run.only]
         order.sort(key=lambda k: _budget_order(get_method(run.req.passes[k].method)))
         progressive_left = sum(1 for k in order if get_method(run.req.passes[k].method).PROGRESSIVE)
@@ -320,6 +321,7 @@ class RenderSession:
             if out.medium is not None:
                 medium = medium + out.medium
             parts[k] = sum(x for x in (out.surface, out.medium) if x is not None)
+            counts[k] = max(sum(len(p.seconds) for p in ctx.progressions), 1)
         surface = base() + added
         with stats.stage("compose"):
             image = _finite(surface + medium, stats, run.on_note)
@@ -328,6 +330,7 @@ class RenderSession:
         result = self._result(run, image, surface, medium)
         result.parts = {k: np.asarray(v, np.float32) for k, v in parts.items()
                         if isinstance(v, np.ndarray)}
+        result.part_passes = {k: counts[k] for k in result.parts}
         return result
 
     def _result(self, run: "_Run", image: np.ndarray, surface: np.ndarray,
@@ -399,6 +402,7 @@ class RenderResult:
     surface: np.ndarray          # the surface part alone (direct light + surface caustics)
     medium: np.ndarray           # the medium part alone
     parts: dict = field(default_factory=dict)  # plan index -> that pass's own radiance
+    part_passes: dict = field(default_factory=dict)  # plan index -> its progressive passes
 
 
 @dataclass

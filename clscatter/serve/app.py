@@ -390,7 +390,7 @@ class PageWorker:
         split = [(k, m) for k, m in self.session.progressive_passes() if k in full.parts]
         if not split or REFINE_ROUNDS == 0:
             return True
-        done = {k: max(int(full.stats.get(f"{m}_passes") or 1), 1) for k, m in split}
+        done = {k: full.part_passes[k] for k, _ in split}
         sums = {k: full.parts[k].astype(np.float64) * done[k] for k, _ in split}
         fixed = full.image.astype(np.float64) - sum(full.parts[k] for k, _ in split)
         for _ in range(REFINE_ROUNDS):
@@ -407,8 +407,8 @@ class PageWorker:
             except Cancelled:
                 self.cancels += 1
                 return False
-            for k, m in split:
-                n = max(int(r.stats.get(f"{m}_passes") or 1), 1)
+            for k, _ in split:
+                n = r.part_passes[k]
                 sums[k] += r.parts[k].astype(np.float64) * n
                 done[k] += n
             if self._stale(generation):
