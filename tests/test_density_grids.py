@@ -33,10 +33,24 @@ from clscatter.errors import SceneError
 from clscatter.scene import grids
 from clscatter.scene.loader import scene_from_dict
 from reference_checks import assert_matches_reference
+from setup_installs import setup_installs_here
 
 REPO = Path(__file__).resolve().parents[1]
 HAVE_VDB = grids.openvdb() is not None
-needs_vdb = pytest.mark.skipif(not HAVE_VDB, reason="pyopenvdb (python3-openvdb) not installed")
+NO_VDB = "pyopenvdb is not importable (scripts/setup.sh installs python3-openvdb and links it)"
+
+
+@pytest.fixture
+def vdb_module():
+    """pyopenvdb must be there where the set-up installs it; elsewhere its absence skips."""
+    if not HAVE_VDB:
+        required = setup_installs_here()
+        if required:
+            pytest.fail(f"{NO_VDB}; it is required here ({required})", pytrace=False)
+        pytest.skip(NO_VDB)
+
+
+needs_vdb = pytest.mark.usefixtures("vdb_module")
 
 
 def _scene(volumes, **extra) -> dict:
