@@ -17,7 +17,10 @@ stages from ``--stats``, the passes LSG ran and their sizes, ``error_estimate`` 
 blur parts) and the relMSE against the reference. Writes bench_out/budget/bench_budget.json
 (and a copy in docs/bench/budget.json unless ``--no-copy``) and prints a markdown table.
 
-    .venv/bin/python tools/bench_budget.py [--scene S.toml] [--budgets 5 20] [--no-copy]
+    .venv/bin/python tools/bench_budget.py [--scene S.toml] [--budgets 5 20] [--out DIR]
+        [--name NAME] [--no-copy]
+
+The device is the engine's choice (``$CLSCATTER_DEVICE`` picks one) and is recorded.
 """
 from __future__ import annotations
 
@@ -75,7 +78,7 @@ def row(name: str, budget: float | None, r: dict, ref: np.ndarray) -> dict:
     s = r["stats"]
     held = budget is None or r["wall_seconds"] <= 1.2 * budget
     return {"run": name, "budget_seconds": budget, "wall_seconds": round(r["wall_seconds"], 3),
-            "budget_held": held, "method": s["method"],
+            "budget_held": held, "method": s["method"], "device": s.get("device"),
             "stages": {k: round(v, 3) for k, v in s["stages"].items() if v >= 0.01},
             "lsg_passes": s.get("lsg_passes"), "lsg_pass_rays": s.get("lsg_pass_rays"),
             "lsg_stopped_by": s.get("lsg_stopped_by"),
@@ -92,7 +95,12 @@ def main() -> None:
     ap.add_argument("--reference-rays", type=int, default=200_000)
     ap.add_argument("--reference-passes", type=int, default=8)
     ap.add_argument("--no-copy", action="store_true")
+    ap.add_argument("--out", type=Path, default=None, help="results folder (default bench_out/budget)")
+    ap.add_argument("--name", default="budget", help="docs/bench/NAME.json to copy the results to")
     args = ap.parse_args()
+    global OUT
+    if args.out is not None:
+        OUT = args.out.resolve()
     OUT.mkdir(parents=True, exist_ok=True)
     scene = Path(args.scene).resolve()
     ref = reference(scene, args.reference_rays, args.reference_passes)
@@ -102,13 +110,13 @@ def main() -> None:
                         run(scene, f"auto_{b:g}", ["--time-budget", str(b)]), ref))
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
                             capture_output=True, text=True).stdout.strip()
-    record = {"scene": scene.name, "commit": commit, "machine": platform.processor() or
+    record = {"scene": scene.name, "commit": commit, "device": rows[0]["device"], "machine": platform.processor() or
               platform.machine(), "cpu_count": __import__("os").cpu_count(),
               "reference": {"lsg_light_rays": args.reference_rays,
                             "lsg_passes": args.reference_passes}, "rows": rows}
     (OUT / "bench_budget.json").write_text(json.dumps(record, indent=1))
     if not args.no_copy:
-        shutil.copy(OUT / "bench_budget.json", ROOT / "docs" / "bench" / "budget.json")
+        shutil.copy(OUT / "bench_budget.json", ROOT / "docs" / "bench" / f"{args.name}.json")
     print("| run | whole process s | budget held | LSG passes (rays each) | error estimate "
           "(noise + blur) | relMSE vs reference |")
     print("|---|---|---|---|---|---|")

@@ -28,11 +28,18 @@ host working sets the methods report), the process's max RSS, and relMSE
 ``--quick`` (128 x 128, 1 spp, 100k lighting rays; about 3 minutes on 2 cores, references included)
 is a smoke run of the same layout; the full mode (512 x 512, 4 spp, the scene's 1 M rays,
 references with 8 passes of 4 M rays, VPM up to 16 M photons, up to 1.1 M triangles) takes
-hours on a 2-core CPU. Writes bench_out/paper_scale/bench_paper_scale.json and .png, copies
-them to docs/bench/paper_scale.{json,png} unless ``--no-copy``, and prints markdown tables
-for docs/benchmarks.md.
+hours on a 2-core CPU. ``--parts`` runs some of the parts (table, rays, pixels,
+triangles); the JSON is rewritten after each, so a run cut off keeps what it finished.
+The device is the engine's choice (``$CLSCATTER_DEVICE`` picks one) and is recorded.
+``--reference-seconds S`` runs the lsg row first and gives the references as many passes
+as fit in about S seconds each (at least 2); ``--deadline`` skips VPM runs that would not
+fit in the run's time.
+Writes OUT/bench_paper_scale.json and .png (``--out``, default bench_out/paper_scale/),
+copies them to docs/bench/NAME.{json,png} (``--name``, default paper_scale) unless
+``--no-copy``, and prints markdown tables for docs/benchmarks.md.
 
-    .venv/bin/python tools/bench_paper_scale.py [--quick] [--no-copy]
+    .venv/bin/python tools/bench_paper_scale.py [--quick] [--parts table,rays] [--out DIR]
+        [--reference-seconds S] [--deadline S] [--name NAME] [--no-copy]
 """
 from __future__ import annotations
 
@@ -87,8 +94,10 @@ QUICK = {
     "triangles": [4_000, 17_000, None, "x4"],
 }
 
+# the parts of a run: Table 1 and the three growth sweeps of LSG
+PARTS = ("table", "rays", "pixels", "triangles")
 STAGES_LSG = ("light_paths", "lsg_auto_radius", "lsg_tree", "lsg_gather")
-KEEP = ("method", "render_seconds", "seconds_total", "peak_bytes", "estimated_peak_bytes",
+KEEP = ("method", "device", "render_seconds", "seconds_total", "peak_bytes", "estimated_peak_bytes",
         "triangles", "light_rays", "light_segments", "view_segments", "photons", "lsg_passes",
         "lsg_radius", "lsg_chunk_bytes_max", "chunks", "pair_tests", "valid_pairs",
         "lsg_cull_fraction", "photon_map_bytes", "photon_trace_seconds",
@@ -226,12 +235,14 @@ def plot(result: dict, path: Path) -> None:
     fig, ax = plt.subplots(1, 4, figsize=(20, 4.6))
     colours = {"lsg": "tab:blue", "vpm": "tab:red", "auto": "tab:green"}
     lsg = result["lsg_front"]
-    vpm = [r for r in result["table"] if r["method"] == "vpm"]
+    vpm = [r for r in result.get("table", []) if r["method"] == "vpm"]
     for panel, (cost, scale, label) in enumerate((("render_seconds", 1.0, "render seconds"),
                                                   ("peak_bytes", 2.0 ** -20, "peak_bytes (MiB)"))):
         a = ax[panel]
         for m, rows in (("lsg", lsg), ("vpm", vpm)):
             pts = [(r["relmse"], r[cost] * scale) for r in rows]
+            if not pts:
+                continue
             a.scatter(*zip(*pts), color=colours[m], s=16, alpha=0.6)
             fr = pareto(pts)
             a.plot(*zip(*fr), "-o", color=colours[m], ms=4, label=f"{m} (Pareto front)")
@@ -267,8 +278,27 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="128 x 128, 1 spp, 100k rays (minutes)")
     ap.add_argument("--no-copy", action="store_true", help="do not copy results to docs/bench/")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="folder for runs, references and results (default bench_out/paper_scale)")
+    ap.add_argument("--parts", default=",".join(PARTS),
+                    help="comma-separated parts to run, of " + ", ".join(PARTS) +
+                         " (the JSON is rewritten after each)")
+    ap.add_argument("--reference-seconds", type=float, default=0.0,
+                    help="size the references' passes to about this many seconds each, "
+                         "from the lsg row's time (0: the mode's passes)")
+    ap.add_argument("--deadline", type=float, default=None,
+                    help="seconds for the whole run: VPM runs that would not fit are skipped")
+    ap.add_argument("--name", default="paper_scale",
+                    help="docs/bench/NAME.{json,png} that the results are copied to")
     args = ap.parse_args(argv)
     cfg = QUICK if args.quick else FULL
+    parts = [x.strip() for x in args.parts.split(",") if x.strip()]
+    unknown = sorted(set(parts) - set(PARTS))
+    if unknown:
+        ap.error(f"--parts: unknown {', '.join(unknown)} (choose from {', '.join(PARTS)})")
+    global OUT
+    if args.out is not None:
+        OUT = args.out.resolve()
     OUT.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     base = write_scene(scene_dict(cfg), "paper_bunny")
@@ -281,90 +311,138 @@ def main(argv=None) -> dict:
               "load_average_start": os.getloadavg(), "max_memory": MAX_MEMORY,
               "light_rays": cfg["light_rays"]}
 
-    # ---- references ----
-    rl = cfg["ref_lsg"]
+    def save() -> None:                 # after every part: a cut-off run keeps what it did
+        result["seconds_total"] = time.perf_counter() - t_start
+        result["load_average_end"] = os.getloadavg()
+        (OUT / "bench_paper_scale.json").write_text(json.dumps(result, indent=1, default=float))
+
+    def left() -> float:
+        return math.inf if args.deadline is None else args.deadline - (time.perf_counter() - t_start)
+
+    # ---- the lsg row first where the references are sized to a time ----
+    rl = dict(cfg["ref_lsg"])
+    ra = dict(cfg["ref_auto"])
+    first = None
+    if args.reference_seconds:
+        first = run(base, "lsg", "lsg", [])
+        # a pass of the reference's rays, from the row's time and LSG's growth (rays^(5/6))
+        per_pass = first[0]["render_seconds"] * (rl["light_rays"] / cfg["light_rays"]) ** (5 / 6)
+        rl["passes"] = int(min(rl["passes"], max(2, args.reference_seconds // max(per_pass, 1e-3))))
+        ra["passes"] = rl["passes"]
+
+    # ---- references (the auto reference only for the table's auto row) ----
     ref_lsg, ref_lsg_rec = reference(base, "lsg", [f"render.lsg.light_rays={rl['light_rays']}",
                                                    f"render.lsg.passes={rl['passes']}"])
-    ra = cfg["ref_auto"]
-    ref_auto, ref_auto_rec = reference(base, "auto", [f"render.lsg.light_rays={ra['light_rays']}",
-                                                      f"render.raymap.photons={ra['raymap_photons']}",
-                                                      f"render.raymarch.steps={ra['raymarch_steps']}"])
     result["references"] = {"lsg": {"settings": rl, "render_seconds": ref_lsg_rec["render_seconds"],
-                                    "cached": ref_lsg_rec["cached"]},
-                            "auto": {"settings": ra, "render_seconds": ref_auto_rec["render_seconds"],
-                                     "cached": ref_auto_rec["cached"]}}
+                                    "cached": ref_lsg_rec["cached"]}}
+    save()
+
+    def lsg_row() -> dict:
+        rec, img = first if first is not None else run(base, "lsg", "lsg", [])
+        rec.update(relmse=relmse(img, ref_lsg), reference="lsg",
+                   setting=f"{cfg['light_rays']:,} lighting rays")
+        _log(rec, f", relMSE {rec['relmse']:.2e}")
+        result["device"] = rec.get("device")
+        return rec
 
     # ---- Table 1: auto, lsg, vpm ----
-    table = []
-    rec, img = run(base, "auto", "auto", [])
-    rec.update(relmse=relmse(img, ref_auto), reference="auto", setting=f"{cfg['light_rays']:,} lighting rays a pass")
-    table.append(rec)
-    _log(rec, f", relMSE {rec['relmse']:.2e}")
-    rec, img = run(base, "lsg", "lsg", [])
-    rec.update(relmse=relmse(img, ref_lsg), reference="lsg", setting=f"{cfg['light_rays']:,} lighting rays")
-    table.append(rec)
-    lsg_main = rec
-    _log(rec, f", relMSE {rec['relmse']:.2e}")
-    for p in cfg["vpm_photons"]:
-        rec, img = run(base, f"vpm_{p}", "vpm", [f"render.vpm.photons={p}"])
-        rec.update(relmse=relmse(img, ref_lsg), reference="lsg", setting=f"{p:,} photons")
-        table.append(rec)
+    lsg_main = None
+    if "table" in parts:
+        table = result["table"] = []
+        lsg_main = lsg_row()
+        table.append(lsg_main)
+        save()
+        last = None                      # (photons, seconds) of the last VPM run
+        for p in cfg["vpm_photons"]:
+            if last is not None and last[1] * p / last[0] > left():
+                print(f"vpm_{p}: skipped (about {last[1] * p / last[0]:.0f} s, "
+                      f"{left():.0f} s left)", flush=True)
+                result.setdefault("skipped", []).append(f"vpm_{p}")
+                continue
+            rec, img = run(base, f"vpm_{p}", "vpm", [f"render.vpm.photons={p}"])
+            rec.update(relmse=relmse(img, ref_lsg), reference="lsg", setting=f"{p:,} photons")
+            table.append(rec)
+            last = (p, rec["wall_seconds"])
+            _log(rec, f", relMSE {rec['relmse']:.2e}")
+            save()
+        sets = [f"render.lsg.light_rays={ra['light_rays']}",
+                f"render.raymap.photons={ra['raymap_photons']}",
+                f"render.raymarch.steps={ra['raymarch_steps']}"]
+        if "passes" in ra:
+            sets.append(f"render.lsg.passes={ra['passes']}")
+        ref_auto, ref_auto_rec = reference(base, "auto", sets)
+        result["references"]["auto"] = {"settings": ra,
+                                        "render_seconds": ref_auto_rec["render_seconds"],
+                                        "cached": ref_auto_rec["cached"]}
+        rec, img = run(base, "auto", "auto", [])
+        rec.update(relmse=relmse(img, ref_auto), reference="auto",
+                   setting=f"{cfg['light_rays']:,} lighting rays a pass")
+        table.insert(0, rec)
         _log(rec, f", relMSE {rec['relmse']:.2e}")
-    result["table"] = table
+        save()
+    if lsg_main is None and set(parts) & {"rays", "triangles"}:
+        lsg_main = lsg_row()
 
     # ---- growth of LSG ----
-    sweeps = {}
-    rows = []
-    for r in cfg["rays"]:
-        if r == cfg["light_rays"]:
-            rec = dict(lsg_main)
-        else:
-            rec, img = run(base, f"lsg_rays_{r}", "lsg", [f"render.lsg.light_rays={r}"])
-            rec["relmse"] = relmse(img, ref_lsg)
-            _log(rec, f", relMSE {rec['relmse']:.2e}")
-        rec["x"] = r
-        rows.append(rec)
-    sweeps["lighting rays"] = {"runs": rows}
-    result["lsg_front"] = [{k: r[k] for k in ("relmse", "render_seconds", "peak_bytes", "x")}
-                           for r in rows]
-    rows = []
-    for pw, ph in cfg["pixels"]:
-        rec, _ = run(write_scene(scene_dict(cfg, size=(pw, ph)), f"paper_bunny_{pw}x{ph}"),
-                     f"lsg_pixels_{pw}x{ph}", "lsg", [])
-        rec["x"] = pw * ph * cfg["spp"]
-        rows.append(rec)
-        _log(rec)
-    sweeps["pixels (camera samples)"] = {"runs": rows}
-    rows = []
-    for t in cfg["triangles"]:
-        mesh, how = bunny_variant(t)
-        scene = base if t is None else write_scene(scene_dict(cfg, mesh=mesh), f"paper_bunny_tri_{t}")
-        rec, _ = (dict(lsg_main), None) if t is None else run(scene, f"lsg_tri_{t}", "lsg", [])
-        rec["x"] = rec["triangles"]
-        rec["mesh"] = how
-        rows.append(rec)
-        _log(rec, f", {rec['triangles']} triangles ({how})")
-    sweeps["triangles"] = {"runs": rows}
-    for sw in sweeps.values():
-        xs = [r["x"] for r in sw["runs"]]
+    sweeps = result["sweeps"] = {}
+    result["lsg_front"] = [{k: lsg_main[k] for k in ("relmse", "render_seconds", "peak_bytes")}
+                           | {"x": cfg["light_rays"]}] if lsg_main else []
+
+    def finish(name: str, rows: list) -> None:
+        xs = [r["x"] for r in rows]
+        sw = {"runs": rows}
         for cost in ("render_seconds", "lsg_seconds", "peak_bytes"):
-            sw["slope_" + cost] = slope(xs, [max(r[cost], 1e-9) for r in sw["runs"]])
+            sw["slope_" + cost] = slope(xs, [max(r[cost], 1e-9) for r in rows])
         sw["runs"] = [{k: r.get(k) for k in ("x", "tag", "wall_seconds", "render_seconds",
                                              "lsg_seconds", "peak_bytes", "triangles",
                                              "light_rays", "view_segments", "relmse", "mesh",
-                                             "stages")} for r in sw["runs"]]
-    result["sweeps"] = sweeps
+                                             "stages")} for r in rows]
+        sweeps[name] = sw
+        save()
 
-    derive(result)
-    result["load_average_end"] = os.getloadavg()
-    result["seconds_total"] = time.perf_counter() - t_start
+    if "rays" in parts:
+        rows = []
+        for r in cfg["rays"]:
+            if r == cfg["light_rays"]:
+                rec = dict(lsg_main)
+            else:
+                rec, img = run(base, f"lsg_rays_{r}", "lsg", [f"render.lsg.light_rays={r}"])
+                rec["relmse"] = relmse(img, ref_lsg)
+                _log(rec, f", relMSE {rec['relmse']:.2e}")
+            rec["x"] = r
+            rows.append(rec)
+        result["lsg_front"] = [{k: r[k] for k in ("relmse", "render_seconds", "peak_bytes", "x")}
+                               for r in rows]
+        finish("lighting rays", rows)
+    if "pixels" in parts:
+        rows = []
+        for pw, ph in cfg["pixels"]:
+            rec, _ = run(write_scene(scene_dict(cfg, size=(pw, ph)), f"paper_bunny_{pw}x{ph}"),
+                         f"lsg_pixels_{pw}x{ph}", "lsg", [])
+            rec["x"] = pw * ph * cfg["spp"]
+            rows.append(rec)
+            _log(rec)
+        finish("pixels (camera samples)", rows)
+    if "triangles" in parts:
+        rows = []
+        for t in cfg["triangles"]:
+            mesh, how = bunny_variant(t)
+            scene = base if t is None else write_scene(scene_dict(cfg, mesh=mesh), f"paper_bunny_tri_{t}")
+            rec, _ = (dict(lsg_main), None) if t is None else run(scene, f"lsg_tri_{t}", "lsg", [])
+            rec["x"] = rec["triangles"]
+            rec["mesh"] = how
+            rows.append(rec)
+            _log(rec, f", {rec['triangles']} triangles ({how})")
+        finish("triangles", rows)
 
-    (OUT / "bench_paper_scale.json").write_text(json.dumps(result, indent=1, default=float))
+    if "table" in parts:
+        derive(result)
+    save()
     plot(result, OUT / "bench_paper_scale.png")
     if not args.no_copy:
         DOCS.mkdir(parents=True, exist_ok=True)
-        shutil.copy(OUT / "bench_paper_scale.json", DOCS / "paper_scale.json")
-        shutil.copy(OUT / "bench_paper_scale.png", DOCS / "paper_scale.png")
+        shutil.copy(OUT / "bench_paper_scale.json", DOCS / f"{args.name}.json")
+        shutil.copy(OUT / "bench_paper_scale.png", DOCS / f"{args.name}.png")
     summary(result)
     return result
 
@@ -397,15 +475,16 @@ def derive(result: dict) -> None:
 def summary(result: dict) -> None:
     mib = 2.0 ** -20
     print(f"\npaper_bunny {result['size']}, {result['spp']} spp, commit {result['commit']}, "
+          f"device {result.get('device')}, "
           f"--max-memory {result['max_memory']}, --time-budget 0; total {result['seconds_total']:.0f} s\n")
     print("| method | setting | whole process s | render s | peak_bytes (MiB) | relMSE (reference) |")
     print("|---|---|---|---|---|---|")
-    for r in result["table"]:
+    for r in result.get("table", []):
         print(f"| `{r['method_requested']}` ({r['method']}) | {r['setting']} | {r['wall_seconds']:.1f} | "
               f"{r['render_seconds']:.1f} | {r['peak_bytes'] * mib:.0f} | {r['relmse']:.2e} "
               f"(converged `{r['reference']}`) |")
-    eq = result["equal_error"]
-    for cost, unit in (("render_seconds", "time"), ("peak_bytes", "peak memory")):
+    eq = result.get("equal_error")
+    for cost, unit in (("render_seconds", "time"), ("peak_bytes", "peak memory")) if eq else ():
         if eq[f"ratio_{cost}"] is None:
             print(f"\nVPM / LSG {unit} at LSG's relMSE {eq['relmse']:.2e}: not reached "
                   f"(VPM's least relMSE {eq['vpm_least_relmse']:.2e})")
