@@ -174,7 +174,9 @@ def bunny_variant(target) -> tuple[Path, str]:
 
 
 # ---- one render in a fresh process -------------------------------------------------------------
-def run(scene: Path, tag: str, method: str, sets: list[str]) -> dict:
+def run(scene: Path, tag: str, method: str, sets: list[str]) -> tuple:
+    """(record, image) of one render in a fresh process; (None, the error line) when the
+    render was refused for going beyond ``--max-memory``."""
     img, st = OUT / "runs" / f"{tag}.npy", OUT / "runs" / f"{tag}.json"
     img.parent.mkdir(parents=True, exist_ok=True)
     cmd = [PY, "-m", "clscatter", "render", str(scene), "--method", method, "-o", str(img),
@@ -190,6 +192,8 @@ def run(scene: Path, tag: str, method: str, sets: list[str]) -> dict:
     proc.returncode = os.waitstatus_to_exitcode(status)
     rss = usage.ru_maxrss * 1024
     err = log.read_text()
+    if proc.returncode == 2 and "--max-memory" in err:
+        return None, err.strip().splitlines()[-1]       # refused: over the memory bound
     if proc.returncode != 0:
         raise SystemExit(f"{tag}: exit {proc.returncode}: {err.strip()}")
     stats = json.loads(st.read_text())
@@ -360,6 +364,11 @@ def main(argv=None) -> dict:
                 result.setdefault("skipped", []).append(f"vpm_{p}")
                 continue
             rec, img = run(base, f"vpm_{p}", "vpm", [f"render.vpm.photons={p}"])
+            if rec is None:                  # beyond --max-memory: refused before it began
+                print(f"vpm_{p}: refused: {img}", flush=True)
+                result.setdefault("refused", []).append({"run": f"vpm_{p}", "message": img})
+                save()
+                continue
             rec.update(relmse=relmse(img, ref_lsg), reference="lsg", setting=f"{p:,} photons")
             table.append(rec)
             last = (p, rec["wall_seconds"])
