@@ -514,6 +514,7 @@ def test_leaf_point_counts_match_a_numpy_walk_of_the_tree(engine):
     w = np.concatenate([mv, u], axis=1)                                  # (V, 6)
     thr = (r / fr.scale * (1 + 1e-4) + 1e-5 * (np.abs(mv).sum(1) + prep.max_m1 + 1.0)
            + 1e-6 / fr.scale)
+    length = np.linalg.norm(d, axis=1)
     near = np.ones((len(views), 1), bool)
     for level in range(tree.levels + 1):
         first = (8 ** level - 1) // 7
@@ -521,12 +522,25 @@ def test_leaf_point_counts_match_a_numpy_walk_of_the_tree(engine):
         x = w[:, None, :] * nd["lo"][None].astype(np.float64)
         y = w[:, None, :] * nd["hi"][None].astype(np.float64)
         lo_s, hi_s = np.minimum(x, y).sum(-1), np.maximum(x, y).sum(-1)
-        near = np.repeat(near, 8 if level else 1, axis=1) & (lo_s <= thr[:, None]) & (hi_s >= -thr[:, None])
+        # the segment-to-box test: the view segment's slab interval against the node's 3-D
+        # box grown by r and the kernel's rounding allowance (lsg.cl: seg_near_box)
+        bx = prep.boxes[first:first + 8 ** level].astype(np.float64)            # (K, 2, 4)
+        blo, bhi = bx[None, :, 0, :3], bx[None, :, 1, :3]
+        e = r * 1.0001 + 1e-5 * (1 + np.abs(blo) + np.abs(bhi))
+        blo, bhi = blo - e, bhi + e
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ta = (blo - a[:, None]) / u[:, None]
+            tb = (bhi - a[:, None]) / u[:, None]
+        t0 = np.maximum(np.nanmax(np.minimum(ta, tb), axis=2, initial=-np.inf), 0.0)
+        t1 = np.minimum(np.nanmin(np.maximum(ta, tb), axis=2, initial=np.inf), length[:, None])
+        box = t0 <= t1 + 1e-5 * (1 + length[:, None])
+        near = (np.repeat(near, 8 if level else 1, axis=1) & (lo_s <= thr[:, None])
+                & (hi_s >= -thr[:, None]) & box)
     sizes = tree.leaf_ranges[:, 1] - tree.leaf_ranges[:, 0]
     expected = int((near * sizes[None]).sum())
     assert res.leaf_points == pytest.approx(expected, rel=5e-3)
-    # random lines fill the 6-D box: the hierarchy alone culls little here (measured 41%),
-    # the per-point plane test the rest (exact tests: 8.5% of all pairs)
+    # random lines fill the 6-D box: the hierarchy alone culls little here, the per-point
+    # plane test the rest (exact tests: 8.5% of all pairs)
     assert res.pair_tests <= res.leaf_points < 0.8 * res_all.leaf_points
 
 

@@ -2,8 +2,11 @@
  *
  * lsg_gather: one work-item per view segment. The view line is the 6-D hyperplane
  * w = (m_v, u_v) (moment in the Plücker frame); a stackless depth-first walk of the
- * perfect 8-ary tree (clscatter/methods/lsg/linetree.py) visits every node whose box meets the
- * slab |P . w| <= r' (|P . w| = d sin theta <= d, so nothing within r is culled), tests
+ * perfect 8-ary tree (clscatter/estimators/line_tree.py) visits every node whose box meets the
+ * slab |P . w| <= r' (|P . w| = d sin theta <= d, so nothing within r is culled) and whose
+ * segments' 3-D box the view segment passes within r of (the Plücker test bounds the
+ * distance between the infinite lines only; the box test culls segments that lie
+ * elsewhere along them), tests
  * each point of a visited leaf against the same slab, then the surviving pairs with the
  * exact segment-to-segment distance, and adds the cylinder-kernel estimate of lsg.h for
  * every pair closer than r.
@@ -79,7 +82,29 @@ int node_near(__global const LineNode *nd, const float *w, float thr) {
     return lo <= thr && hi >= -thr;
 }
 
-__kernel void lsg_gather(__global const LineNode *nodes, __global const int2 *leaf_ranges,
+/* Does the view segment pass within r of the 3-D box [lo, hi]? A slab test of the segment
+ * against the box grown by r (the set of points within r of the box lies inside it) and by
+ * a rounding allowance: it never culls a pair closer than r. An empty box (lo > hi) fails. */
+int seg_near_box(const ViewQuery *q, float4 lo, float4 hi, float r) {
+    float t0 = 0.0f, t1 = q->len;
+    float a[3] = {q->a.x, q->a.y, q->a.z}, u[3] = {q->u.x, q->u.y, q->u.z};
+    float l[3] = {lo.x, lo.y, lo.z}, h[3] = {hi.x, hi.y, hi.z};
+    for (int i = 0; i < 3; ++i) {
+        float e = r * 1.0001f + 1e-5f * (1.0f + fabs(l[i]) + fabs(h[i]));
+        float bl = l[i] - e, bh = h[i] + e;
+        if (fabs(u[i]) < 1e-20f) {
+            if (a[i] < bl || a[i] > bh) return 0;
+        } else {
+            float ta = (bl - a[i]) / u[i], tb = (bh - a[i]) / u[i];
+            t0 = fmax(t0, fmin(ta, tb));
+            t1 = fmin(t1, fmax(ta, tb));
+        }
+    }
+    return t0 <= t1 + 1e-5f * (1.0f + q->len);
+}
+
+__kernel void lsg_gather(__global const LineNode *nodes, __global const float4 *boxes,
+                         __global const int2 *leaf_ranges,
                          int first_leaf, __global const LsgLine *lines,
                          __global const float8 *points,
                          __global const int *line_ids, int num_lines, float max_m1,
@@ -111,7 +136,8 @@ __kernel void lsg_gather(__global const LineNode *nodes, __global const int2 *le
             /* stackless depth-first walk: children 8g+1..8g+8, parent (g-1)/8 */
             int gnode = 0;
             while (1) {
-                if (node_near(&nodes[gnode], w, thr)) {
+                if (node_near(&nodes[gnode], w, thr)
+                    && seg_near_box(&q, boxes[2 * gnode], boxes[2 * gnode + 1], radius)) {
                     if (gnode < first_leaf) {
                         gnode = 8 * gnode + 1;        /* descend to the first child */
                         continue;

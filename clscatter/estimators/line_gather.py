@@ -21,6 +21,7 @@ from .line_tree import (
     PluckerFrame,
     build_linetree,
     canonical_signs,
+    node_boxes,
     plucker,
 )
 
@@ -51,6 +52,7 @@ class PreparedLines:
     points: np.ndarray         # (N, 8) float32 Plücker points (u, m, 0, 0) in tree order
     ids: np.ndarray            # int32: index of each line in the input segment array
     tree: LineTree
+    boxes: np.ndarray          # (nodes, 2, 4) float32: each node's 3-D box of its segments
     frame: PluckerFrame
     max_m1: float              # largest |m|_1 (for the kernel's rounding allowance)
     nbytes: int                # host working set of the preparation (peak estimate)
@@ -141,10 +143,13 @@ def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa, leaf
     points = np.zeros((len(o), 8), np.float32)
     points[:, :6] = pts[o]
     max_m1 = float(np.abs(pts[:, 3:]).sum(axis=1).max()) if len(pts) else 0.0
+    ends = a[o] + length[o, None] * u[o]
+    boxes = node_boxes(tree, np.minimum(a[o], ends), np.maximum(a[o], ends))
     n = len(segs)
     nbytes = int(segs.nbytes + 80 * n + 96 * len(o) + 56 * len(o) + lines.nbytes + points.nbytes
-                 + tree.nbytes)
-    return PreparedLines(lines, points, ids[o].astype(np.int32), tree, frame, max_m1, nbytes)
+                 + tree.nbytes + boxes.nbytes)
+    return PreparedLines(lines, points, ids[o].astype(np.int32), tree, boxes, frame, max_m1,
+                         nbytes)
 
 
 @dataclass
@@ -229,9 +234,11 @@ class Gatherer:
             points_buf = eng.to_device(prep.points)
             ids_buf = eng.to_device(prep.ids)
             nodes_buf = eng.to_device(prep.tree.nodes)
+            boxes_buf = eng.to_device(prep.boxes)
             ranges_buf = eng.to_device(prep.tree.leaf_ranges)
             dev_bytes = (prep.lines.nbytes + prep.points.nbytes + prep.ids.nbytes
-                         + prep.tree.nodes.nbytes + prep.tree.leaf_ranges.nbytes)
+                         + prep.tree.nodes.nbytes + prep.boxes.nbytes
+                         + prep.tree.leaf_ranges.nbytes)
             # the host arrays that stay alive beside the new device buffers
             eng.note_host(prep.nbytes - prep.lines.nbytes - prep.points.nbytes)
             eng.cl.enqueue_fill_buffer(eng.queue, self.pair_count, np.zeros(1, np.int32), 0, 4)
@@ -242,7 +249,8 @@ class Gatherer:
                 with progress(self.n, "lsg gather", self.show_progress) as bar:
                     for start in range(0, self.n, self.per_launch):
                         m = min(self.per_launch, self.n - start)
-                        eng.call("lsg", "lsg_gather", m, nodes=nodes_buf, leaf_ranges=ranges_buf,
+                        eng.call("lsg", "lsg_gather", m, nodes=nodes_buf, boxes=boxes_buf,
+                                 leaf_ranges=ranges_buf,
                                  first_leaf=prep.tree.first_leaf, lines=lines_buf,
                                  points=points_buf, line_ids=ids_buf, num_lines=len(prep.lines),
                                  max_m1=prep.max_m1, views=self.views_buf, view_offset=start,
@@ -262,7 +270,7 @@ class Gatherer:
                 if got > self.record:
                     raise RuntimeError(f"{got} valid pairs exceed record_pairs={self.record}")
                 pairs = eng.read(self.pairs_buf, (got, 2), np.int32)
-            eng.free(lines_buf, points_buf, ids_buf, nodes_buf, ranges_buf)
+            eng.free(lines_buf, points_buf, ids_buf, nodes_buf, boxes_buf, ranges_buf)
         return ChunkResult(tests, valid, len(prep.lines), int(prep.nbytes + dev_bytes),
                            t_build.seconds, t_gather.seconds, pairs, leaf)
 

@@ -176,6 +176,31 @@ def build_linetree(points, leaf_size: int = 4) -> LineTree:
     return LineTree(nodes, ranges, order, levels)
 
 
+def node_boxes(tree: LineTree, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """3-D bounding boxes of every node's segments, ``(nodes, 2, 4)`` float32 (lo, hi;
+    w unused), breadth-first like ``tree.nodes``: ``lo``/``hi`` (N, 3) are each segment's
+    own box in tree order. The boxes are rounded outwards to float32, so every segment the
+    kernel reads lies inside its nodes' boxes; an empty node's box is empty (lo > hi)."""
+    n = len(lo)
+    total = len(tree.nodes)
+    out = np.zeros((total, 2, 4), np.float32)
+    out[:, 0, :3], out[:, 1, :3] = 1e30, -1e30
+    if n == 0:
+        return out
+    for lvl in range(tree.levels + 1):
+        parts = 8 ** lvl
+        starts = _ranges(n, parts)
+        off = (parts - 1) // 7
+        nonempty = np.diff(np.append(starts, n)) > 0
+        rows = off + np.flatnonzero(nonempty)
+        s = starts[nonempty]
+        out[rows, 0, :3] = np.nextafter(np.minimum.reduceat(lo, s, axis=0).astype(np.float32),
+                                        np.float32(-np.inf))
+        out[rows, 1, :3] = np.nextafter(np.maximum.reduceat(hi, s, axis=0).astype(np.float32),
+                                        np.float32(np.inf))
+    return out
+
+
 def box_plane_range(lo, hi, w) -> tuple[np.ndarray, np.ndarray]:
     """Exact range ``[min, max]`` of ``P . w`` over the 6-D boxes ``[lo, hi]`` (float64;
     broadcasts): the node test of the gather kernel, for tests and analysis."""
