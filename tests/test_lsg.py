@@ -497,7 +497,7 @@ def test_leaf_point_counts_match_a_numpy_walk_of_the_tree(engine):
     rng = np.random.default_rng(5)
     lights, views = _random_set("random", rng, nl=3000, nv=200)
     r = 0.03
-    gat = Gatherer(engine, views, _medium(), r)
+    gat = Gatherer(engine, views, _medium(), r, leaf_size=4)     # a deep tree: 3 levels
     try:
         res = gat.add(lights)
         res_all = gat.add(lights, bruteforce=True)
@@ -505,7 +505,8 @@ def test_leaf_point_counts_match_a_numpy_walk_of_the_tree(engine):
     finally:
         gat.release()
     assert res_all.leaf_points == len(lights) * len(views)
-    prep = prepare_lines(lights, lo, hi, r, np.asarray(_medium()).reshape(1)["kappa"][0])
+    prep = prepare_lines(lights, lo, hi, r, np.asarray(_medium()).reshape(1)["kappa"][0],
+                         leaf_size=4)
     fr, tree = prep.frame, prep.tree
     a = views["a"][:, :3].astype(np.float64)
     d = views["b"][:, :3].astype(np.float64) - a

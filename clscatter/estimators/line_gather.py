@@ -43,6 +43,11 @@ structs.register_struct("lsg.h", "LsgLine", LSG_LINE)
 # measured working set of every chunk is reported as lsg_chunk_bytes_max.
 BYTES_PER_SEGMENT = 512
 
+# Least points per leaf of the line tree (at most 8x). The gather's cost is mostly the
+# walk over internal nodes, so leaves of tens of points are faster than leaves of a few
+# (docs/benchmarks.md, "Where the time goes").
+LEAF_SIZE = 16
+
 
 @dataclass
 class PreparedLines:
@@ -120,7 +125,8 @@ def continue_across_faces(segs: np.ndarray, medium: np.ndarray, radius: float) -
     return out
 
 
-def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa, leaf_size: int = 4,
+def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
+                  leaf_size: int = LEAF_SIZE,
                   frame: PluckerFrame | None = None) -> PreparedLines:
     """Clip lighting segments to the view segments' box grown by ``radius`` (no pair closer
     than r lies outside it), form canonical Plücker points and build the 8-ary tree."""
@@ -188,7 +194,7 @@ class Gatherer:
     """
 
     def __init__(self, engine: Engine, views: np.ndarray, medium: np.ndarray, radius: float,
-                 min_sin: float = 1e-6, leaf_size: int = 4, per_launch: int = 65536,
+                 min_sin: float = 1e-6, leaf_size: int = LEAF_SIZE, per_launch: int = 65536,
                  record_pairs: int = 0, show_progress: bool = False, clip: bool = True,
                  frame: PluckerFrame | None = None, views_buf=None, region: int = 0):
         self.eng = engine

@@ -9,7 +9,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...device import structs
-from ...estimators.line_gather import BYTES_PER_SEGMENT, Gatherer, RegionGatherer, region_media
+from ...estimators.line_gather import (
+    BYTES_PER_SEGMENT,
+    LEAF_SIZE,
+    Gatherer,
+    RegionGatherer,
+    region_media,
+)
 from ...io.stats import Stats, progress
 from ...transport.context import PassContext
 from ...transport.emission import targeted_fraction
@@ -183,7 +189,7 @@ class LineSpaceGathering(Method):
         Param("light_seed", 0, "selects an independent set of lighting rays (view paths unchanged)",
               lo=0),
         Param("max_bytes", 1 << 30, "working-set bound for one chunk of rays", lo=1),
-        Param("leaf_size", 4, "least points per tree leaf (at most 8x)", lo=1),
+        Param("leaf_size", LEAF_SIZE, "least points per tree leaf (at most 8x)", lo=1),
         Param("min_sin", 1e-6, "sin(theta) below this counts as parallel", lo=0, hi=1, hi_open=True),
         Param("segments_per_launch", 65536, "view segments per kernel launch (progress)", lo=1),
         Param("min_light_depth", 0, "gather only lighting segments with at least this many "
