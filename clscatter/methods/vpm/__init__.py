@@ -191,6 +191,11 @@ def knn_points(engine, pmap: DevicePhotonMap, points: np.ndarray, wo: np.ndarray
     return count, idx, est
 
 
+# lighting segments a photon ray leaves, as the memory estimate assumes (1.16 measured on
+# the glass bunny of builtin:paper_bunny; more where light bounces inside glass often)
+SEGMENTS_PER_RAY = 1.25
+
+
 @register
 class VolumetricPhotonMapping(Method):
     """``vpm``: volumetric photon mapping (Jensen & Christensen 1998), k-nearest-neighbour
@@ -241,8 +246,10 @@ class VolumetricPhotonMapping(Method):
     *Cost.* Gather time is proportional to the number of march samples (view segments x
     length in the medium / ``dx``) times the kNN cost (~log photons + a few x ``knn``);
     samples farther than ``max_radius`` from every photon are skipped. Memory: the photon
-    map (~26 bytes per photon with the tree); the peak is while building it: ~72 bytes per
-    photon (the photons included) plus the lighting segments (64 bytes each).
+    map (~26 bytes per photon with the tree); the peak is while depositing the photons: the
+    lighting segments (64 bytes each, :data:`SEGMENTS_PER_RAY` a ray in the estimate) with
+    ~180 bytes of per-segment arrays beside the photons, or while building the tree
+    (~72 bytes per photon), the larger.
 
     Statistics: ``photons`` (stored), ``light_rays``, ``light_segments``,
     ``gather_steps`` (kNN queries), ``knn_boxes_tested``, ``knn_photons_tested``,
@@ -282,7 +289,12 @@ class VolumetricPhotonMapping(Method):
         photons = float(params["photons"])
         segs = 2.0 * camera_samples(scene)
         steps = segs / params["dx"]                # an upper bound: every segment spans the scene
-        return [Estimate("vpm", "render.vpm.photons", photons * (72 + 64 / params["photons_per_ray"]),
+        # the peak is the deposition's (the lighting segments, 64 bytes, with ~180 bytes of
+        # per-segment arrays, beside the photons) or the tree build's, the larger
+        light_segs = SEGMENTS_PER_RAY * photons / params["photons_per_ray"]
+        peak = max(light_segs * (64 + 180) + photons * PHOTON.itemsize,
+                   photons * (PHOTON.itemsize + BUILD_BYTES_PER_PHOTON))
+        return [Estimate("vpm", "render.vpm.photons", peak,
                          steps * params["knn"] * 4, "photon distance tests (upper bound)")]
 
     def targeted(self) -> bool:
