@@ -331,22 +331,46 @@ def test_surfaces_reflecting_more_than_they_receive_are_noted(tmp_path, capsys):
     assert "materials.shiny.reflectance: 2 > 1" in err
 
 
-@pytest.mark.parametrize("far, noted", [(1e3, False), (1e7, True)])
-def test_a_scene_too_wide_for_float32_is_noted(far, noted, tmp_path):
-    """An object far off widens the normalised frame until float32 cannot resolve what the
-    camera sees: noted from 1e5 times the view distance on, naming the object."""
-    from clscatter.pipeline.render import scene_notes
-    from clscatter.scene import load_scene
-    scene = load_scene(_scene_file(tmp_path, BASE_TOML + f'''
+_SPHERE_AT = '''
 [[objects]]
 shape = "sphere"
-center = [{far}, 0.0, 0.0]
+center = {}
 radius = 0.4
 material = {{ type = "diffuse" }}
-'''))
+'''
+_VAST_FLOOR = '''
+[[objects]]
+shape = "quad"
+origin = [-1e7, 0.0, -1e7]
+edge_u = [2e7, 0.0, 0.0]
+edge_v = [0.0, 0.0, 2e7]
+material = { type = "diffuse" }
+'''
+_SUN = '''
+[[lights]]
+type = "directional"
+direction = [0.0, -1.0, 0.0]
+irradiance = 1.0
+'''
+
+
+@pytest.mark.parametrize("extra, noted", [
+    (_SPHERE_AT.format([1e3, 0.0, 0.0]), None),
+    (_SPHERE_AT.format([1e7, 0.0, 0.0]), None),      # far: the device frame leaves it out
+    (_VAST_FLOOR, "objects[1] is furthest off"),      # near, and 4e6 x the view distance
+    (_SUN + _SPHERE_AT.format([0.0, 1e7, 0.0]), "objects[1] is far off but in the way of lights[1]"),
+])
+def test_a_scene_too_wide_for_float32_is_noted(extra, noted, tmp_path):
+    """Where float32 may not resolve what the camera sees, a note names the object: a near
+    object reaching 1e5 times the view distance off widens the normalised frame, and a far
+    one in a directional light's way into the scene moves that light's ray starts out.
+    An object far off elsewhere (1e7) is out of the frame and not noted."""
+    from clscatter.pipeline.render import scene_notes
+    from clscatter.scene import load_scene
+    scene = load_scene(_scene_file(tmp_path, BASE_TOML + extra))
     got = [n for n in scene_notes(scene) if "float32" in n]
-    assert (got != []) == noted
-    assert all("objects[1] is furthest off" in n for n in got)
+    assert len(got) == (noted is not None), got
+    assert all(noted in n for n in got)
 
 
 # Runs the command line with one line on stderr once the first ray-marching launch has

@@ -67,7 +67,8 @@ def _norm(v):
 def test_view_segments_inside_glass_match_snell_fresnel_and_extinction(engine):
     """Every view segment inside the glass box (ior 1.5) runs from a face to a face; those
     of the camera's first entry (depth 1) have the refracted direction of the camera ray
-    (Snell, float64) and weight (1 - F) / spp; an internal reflection (depth 2) starts
+    (Snell, float64) and weight (1 - F) / (spp n^2) (radiance leaving glass of index n
+    into air is divided by n^2); an internal reflection (depth 2) starts
     where its parent ends, with the parent's weight times exp(-kappa len) times the
     internal Fresnel reflectance, kappa = interior sigma_a + sigma_s. The shared view
     segments (the medium's) stay empty: there is no medium."""
@@ -102,7 +103,7 @@ def test_view_segments_inside_glass_match_snell_fresnel_and_extinction(engine):
     want = tangential / 1.5 - np.sqrt(1 - np.sum((tangential / 1.5) ** 2, 1))[:, None] * na[first]
     np.testing.assert_allclose(d[first], want, atol=2e-5)
     spp = 4
-    w_want = (1 - _fresnel(cos_i, 1 / 1.5)) / spp
+    w_want = (1 - _fresnel(cos_i, 1 / 1.5)) / (spp * 1.5 ** 2)
     # the cosine from float32 end points: F is steep at grazing entry (measured 1.8e-4)
     np.testing.assert_allclose(segs["weight"][first, :3], np.repeat(w_want[:, None], 3, 1),
                                rtol=5e-4)

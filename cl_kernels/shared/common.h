@@ -4,9 +4,10 @@
  * tests/test_structs.py builds a kernel that reports sizeof/offsetof and compares.
  * Only float4/int fields are used (float3 is 16 bytes in OpenCL and a trap for hosts).
  *
- * Coordinates on the device are always the *normalised* frame (scene centred at the
- * origin, longest side ~1; see clscatter/scene/frame.py), so fixed epsilons are
- * meaningful and float32 keeps ~1e-7 relative precision everywhere.
+ * Coordinates on the device are always the *normalised* frame (the scene's bounding box
+ * centred at the origin, longest side 1; see clscatter/scene/normalised.py), so fixed
+ * epsilons are meaningful and float32 keeps ~1e-7 relative precision everywhere. Far
+ * objects lie outside that box at large coordinates (surface_offset).
  */
 #ifndef CLSCATTER_COMMON_H
 #define CLSCATTER_COMMON_H
@@ -15,6 +16,14 @@
 #define INV_4PI_F 0.07957747154594767f
 #define RAY_EPS 2e-5f          /* offset along the normal when leaving a surface (normalised units) */
 #define T_INF 1e30f
+
+/* How far along the normal a ray leaving a surface at p starts: RAY_EPS, or, where p
+ * lies far out (objects far from the camera keep their large normalised coordinates:
+ * clscatter/scene/model.py, FAR_FACTOR), 1e-6 of its largest coordinate (~8 float32 steps
+ * of it, more than the rounding of a hit point there). RAY_EPS up to |p| = 20. */
+float surface_offset(float4 p) {
+    return fmax(RAY_EPS, 1e-6f * fmax(fabs(p.x), fmax(fabs(p.y), fabs(p.z))));
+}
 
 /* ---- Materials ---- */
 #define MAT_DIFFUSE 0

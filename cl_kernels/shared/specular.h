@@ -5,9 +5,10 @@
  * Fresnel-weighted reflected and refracted children (no Russian roulette), so images
  * of glass are noise-free and energy bookkeeping is exact. A branch's weight `thr` is
  * a throughput for view paths and a flux for light paths; both only ever get multiplied.
- * Radiance scaling by eta^2 at refraction is omitted: sources and the medium lie outside
- * all objects, so every path that matters enters and leaves each object and the factors
- * cancel. */
+ * Radiance scaling by eta^2 at refraction is omitted from the branches: sources, the
+ * camera and the medium lie outside all objects, so a path that enters an object and
+ * leaves it again crosses twice and the factors cancel. The one path that does not is a
+ * view path that sees light scattered inside glass: interior_radiance_scale. */
 #ifndef CLSCATTER_SPECULAR_H
 #define CLSCATTER_SPECULAR_H
 #include "common.h"
@@ -65,7 +66,7 @@ int specular_children(__global const Material *mat, int mi, const Branch *br,
     if (dot3(refl_d, f->gf) <= 0.0f)   /* shading normal bent it below the surface */
         refl_d = normalize3(br->d - 2.0f * dot3(br->d, f->gf) * f->gf);
     Branch r;
-    r.o = f->p + f->gf * RAY_EPS;
+    r.o = f->p + f->gf * surface_offset(f->p);
     r.d = refl_d;
     r.depth = br->depth + 1;
     r.inside = br->inside;
@@ -83,7 +84,7 @@ int specular_children(__global const Material *mat, int mi, const Branch *br,
     r.thr = br->thr * F;
     Branch t;
     t.thr = br->thr * (1.0f - F);
-    t.o = f->p - f->gf * RAY_EPS;
+    t.o = f->p - f->gf * surface_offset(f->p);
     t.d = normalize3(eta * br->d + (eta * cos_i - cos_t) * f->nf);
     t.depth = br->depth + 1;
     t.inside = f->front ? mi : -1;
@@ -139,6 +140,14 @@ float4 interior_kappa(__global const Material *mat) {
 int scatters_inside(__global const Material *mat) {
     float4 s = mat->interior_sigma_s;
     return mat->type == MAT_DIELECTRIC && fmax(s.x, fmax(s.y, s.z)) > 0.0f;
+}
+
+/* What radiance inside a dielectric of index n is worth at the camera, which is in air:
+ * radiance / n^2 is invariant along a ray across an interface, so light scattered inside
+ * and leaving towards the camera arrives divided by n^2 (the Fresnel transmittance of the
+ * crossing is in the view branch's throughput already; Fresnel is the same both ways). */
+float interior_radiance_scale(__global const Material *mat) {
+    return 1.0f / (mat->ior * mat->ior);
 }
 
 /* The region tag of a path piece (common.h, SEGMENT_FIELDS: the w lane of a): 0 in the

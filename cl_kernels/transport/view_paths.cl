@@ -25,8 +25,9 @@
 #define MIN_THROUGHPUT 1e-4f
 /* which pieces trace_view appends (bits): 1 the pieces in the scene medium (the shared
  * view segments), 2 the pieces inside dielectrics whose interior scatters (specular.h,
- * interior_piece; tagged with the material in a.w, weight = throughput at a, i.e. the
- * interior extinction from a on is the estimator's, as the medium's is) */
+ * interior_piece; tagged with the material in a.w, weight = throughput at a times
+ * 1 / ior^2 (interior_radiance_scale: radiance leaving glass into air), i.e. the interior
+ * extinction from a on is the estimator's, as the medium's is) */
 #ifndef SEGMENT_REGIONS
 #define SEGMENT_REGIONS 1
 #endif
@@ -106,7 +107,7 @@ float4 direct_irradiance(__global const BVHNode *nodes, __global const float4 *t
                          int num_lights, __global const Medium *medium, float4 p, float4 n,
                          float4 gn) {
     float4 sum = (float4)(0.0f);
-    float4 origin = p + gn * RAY_EPS;
+    float4 origin = p + gn * surface_offset(p);
     for (int i = 0; i < num_lights; ++i) {
         float4 wi;
         float dist;
@@ -193,8 +194,11 @@ __kernel void trace_view(__global const BVHNode *nodes, __global const float4 *t
             append_view_segment(segs, max_segs, seg_count, a, b, &br, pixel, s);
 #endif
 #if SEGMENT_REGIONS & 2
-        if (want_segs && interior_piece(materials, &br, found, t_hit, &a, &b))
-            append_view_segment(segs, max_segs, seg_count, a, b, &br, pixel, s);
+        if (want_segs && interior_piece(materials, &br, found, t_hit, &a, &b)) {
+            Branch seen = br;      /* the radiance inside, as the camera in air sees it */
+            seen.thr *= interior_radiance_scale(&materials[br.inside]);
+            append_view_segment(segs, max_segs, seg_count, a, b, &seen, pixel, s);
+        }
 #endif
         if (found) br.thr *= branch_attenuation(medium, materials, &br, t_hit);
         if (!found) {

@@ -326,11 +326,16 @@ def worth_it(grid: TileGrid | None) -> bool:
 SCENE_TILES = 128     # tiles along each side of a light grid
 
 
-def light_grid(bvh: BVH, lights: np.ndarray) -> TileGrid | None:
+def light_grid(bvh: BVH, lights: np.ndarray,
+               box: tuple[np.ndarray, np.ndarray] | None = None) -> TileGrid | None:
     """The grid for the shadow rays of one light; its record's ``light`` is that light's
     index. The scene's first directional light gets an orthographic grid (rays from
-    surface points towards the light are parallel) over the projection of the scene's
-    bounding box, so every surface point falls in a tile. Without one, the first spot
+    surface points towards the light are parallel) over the projection of ``box`` (the
+    scene's bounding box in the normalised frame, far objects left out; None: the BVH's
+    box), so every surface point near the camera falls in a tile; the grid lists every
+    triangle, far ones included, whose projection meets it, and points outside it ask the
+    BVH. Keeping far objects out of the rectangle keeps the grid's plane coordinates, taken
+    from its centre, as precise as the near geometry needs. Without one, the first spot
     light of at most 60 degrees gets a perspective grid from its position over its cone,
     else the first point (or wider spot) light a cube of six (:class:`CubeGrid`); their
     shadow rays all end at the light (``grid_any_toward``). None without lights, or where
@@ -341,7 +346,7 @@ def light_grid(bvh: BVH, lights: np.ndarray) -> TileGrid | None:
         return None
     if structs.LIGHT_DIRECTIONAL in kinds:
         li = kinds.index(structs.LIGHT_DIRECTIONAL)
-        grid = _parallel_grid(bvh, -np.asarray(lights[li]["direction"][:3], np.float64))
+        grid = _parallel_grid(bvh, -np.asarray(lights[li]["direction"][:3], np.float64), box)
     else:
         cone = [i for i, k in enumerate(kinds) if k == structs.LIGHT_SPOT
                 and float(lights[i]["cos_cutoff"]) >= SPOT_GRID_COS]
@@ -368,12 +373,14 @@ def light_grid(bvh: BVH, lights: np.ndarray) -> TileGrid | None:
 SPOT_GRID_COS = 0.5 - 1e-6   # spot cones up to 60 degrees get a light grid (one face)
 
 
-def _parallel_grid(bvh: BVH, d: np.ndarray) -> TileGrid | None:
-    """Orthographic grid along unit-ised ``d`` over the BVH's box."""
+def _parallel_grid(bvh: BVH, d: np.ndarray,
+                   box: tuple[np.ndarray, np.ndarray] | None = None) -> TileGrid | None:
+    """Orthographic grid along unit-ised ``d`` over ``box`` (None: the BVH's box)."""
     d = d / np.linalg.norm(d)
     s1, s2 = perpendicular_axes(d)
-    lo = np.asarray(bvh.nodes[0]["bmin"], np.float64)
-    hi = np.asarray(bvh.nodes[0]["bmax"], np.float64)
+    if box is None:
+        box = (bvh.nodes[0]["bmin"], bvh.nodes[0]["bmax"])
+    lo, hi = (np.asarray(b, np.float64) for b in box)
     centre = 0.5 * (lo + hi)
     corners = box_corners(lo, hi) - centre
     c1, c2 = corners @ s1, corners @ s2

@@ -81,21 +81,31 @@ SPAN_NOTE = 1e5     # a scene this many times wider than the camera's view dista
 
 
 def _range_notes(scene: Scene) -> list[str]:
-    """A note when the scene's bounding box is :data:`SPAN_NOTE` times or more the
-    camera's distance to its target: the device works in float32 in a frame scaled to
-    the box, so what the camera sees is then resolved to a few float32 steps (an object
-    far off made images wrong from about 1e6 times on), naming the object
-    furthest from the target."""
+    """Notes where the device's float32 may still not resolve what the camera sees. Far
+    objects and volumes (:meth:`Scene.far_items`) leave the normalised frame as it is, so
+    what is left is: the scene's bounding box (the near objects) spanning
+    :data:`SPAN_NOTE` times or more the camera's distance to its target (one object
+    reaching from near the camera to far off, such as a vast ground plane), naming the
+    near object furthest from the target; and a far object in a directional light's beam
+    into the near region (:meth:`Scene.far_in_beam`), as that light's lighting rays and
+    shadow maps then start beyond it."""
+    notes = []
     bb = scene.bbox()
-    if bb is None:
-        return []
-    span = float(np.max(bb[1] - bb[0]))
     target = np.asarray(scene.camera.target, np.float64)
     view = float(np.linalg.norm(np.asarray(scene.camera.origin, np.float64) - target))
-    if span < SPAN_NOTE * view or not scene.objects:
-        return []
-    far = max(scene.objects, key=lambda o: float(np.max(np.linalg.norm(o.vertices - target,
-                                                                       axis=1))))
-    return [f"the scene spans {span:.3g} units, {span / view:.1e} times the camera's distance "
-            f"to its target: the device's float32 may not resolve what the camera sees "
-            f"({far.key} is furthest off)"]
+    span = float(np.max(bb[1] - bb[0])) if bb is not None else 0.0
+    near = [o for o in scene.objects if len(o.vertices) and bb is not None  # the box holds
+            and np.all(o.vertices >= bb[0]) and np.all(o.vertices <= bb[1])]  # no far one
+    if span >= SPAN_NOTE * view and near:
+        wide = max(near, key=lambda o: float(np.max(np.linalg.norm(o.vertices - target,
+                                                                    axis=1))))
+        notes.append(f"the scene spans {span:.3g} units, {span / view:.1e} times the camera's "
+                     f"distance to its target: the device's float32 may not resolve what the "
+                     f"camera sees ({wide.key} is furthest off)")
+    for i, light in enumerate(scene.lights):
+        if light.type == "directional":
+            notes += [f"{key} is far off but in the way of lights[{i}] into the scene: that "
+                      "light's lighting rays and shadow maps start beyond it, where float32 "
+                      "resolves the scene less finely" for key, _, _ in
+                      scene.far_in_beam(light.direction)]
+    return notes

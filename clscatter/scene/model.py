@@ -12,7 +12,15 @@ from typing import Any
 
 import numpy as np
 
+from ..geometry import box_corners, perpendicular_axes
+
 RGB = np.ndarray  # shape (3,), float64
+
+#: An object or volume is *far* when its bounding box lies more than this many times the
+#: near region's longest side away from that region (``Scene._near_mask``): far geometry
+#: is rendered, but the scene's bounding box (the device frame, relative radii) leaves it
+#: out, so float32 keeps resolving what is near the camera.
+FAR_FACTOR = 1e3
 
 
 @dataclass
@@ -161,18 +169,98 @@ class Scene:
         coefficients 0, is no medium)."""
         return self.medium is not None and bool(np.any(self.medium.kappa > 0))
 
-    def bbox(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """Bounding box of all objects and volumes (the contract's 'scene bounding box')."""
-        pts = [o.vertices for o in self.objects if len(o.vertices)]
+    def _item_boxes(self) -> tuple[list[str], np.ndarray, np.ndarray]:
+        """Keys and bounding boxes (lo, hi: (n, 3)) of the objects, then the volumes, that
+        have geometry (a mesh with vertices, or a grid's box)."""
+        keys, boxes = [], []
+        for o in self.objects:
+            if len(o.vertices):
+                keys.append(o.key)
+                boxes.append((o.vertices.min(axis=0), o.vertices.max(axis=0)))
         for v in self.volumes:
             if v.mesh is not None and len(v.mesh.vertices):
-                pts.append(v.mesh.vertices)
+                keys.append(v.key)
+                boxes.append((v.mesh.vertices.min(axis=0), v.mesh.vertices.max(axis=0)))
             elif v.grid_bounds is not None:
-                pts.append(np.array(v.grid_bounds))
-        if not pts:
+                keys.append(v.key)
+                gb = np.asarray(v.grid_bounds, np.float64)
+                boxes.append((gb.min(axis=0), gb.max(axis=0)))
+        lo = np.array([b[0] for b in boxes], np.float64).reshape(-1, 3)
+        hi = np.array([b[1] for b in boxes], np.float64).reshape(-1, 3)
+        return keys, lo, hi
+
+    def _near_mask(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Which of the boxes ``lo``, ``hi`` (:meth:`_item_boxes`) are near (bool, same
+        order); see :data:`FAR_FACTOR`.
+
+        The near region starts as the box around the camera's origin, the positions of the
+        point and spot lights and a bounded medium's box. Repeatedly the item whose box is
+        nearest to the region (Euclidean distance between the boxes, 0 when they meet)
+        joins it and widens it, unless its distance is more than :data:`FAR_FACTOR` times
+        the region's longest side; that item and every one still left are far. The first
+        item to join always joins (a region of the camera alone has no size)."""
+        near = np.zeros(len(lo), bool)
+        anchors = [np.asarray(self.camera.origin, np.float64)]
+        anchors += [np.asarray(l.position, np.float64) for l in self.lights
+                    if l.position is not None]
+        m = self.medium
+        if m is not None and m.bounds is not None:
+            anchors += [np.asarray(b, np.float64) for b in m.bounds]
+        a = np.array(anchors)
+        rlo, rhi = a.min(axis=0), a.max(axis=0)
+        while not near.all():
+            gap = np.maximum(0.0, np.maximum(lo - rhi, rlo - hi))
+            dist = np.where(near, -np.inf, np.linalg.norm(gap, axis=1))
+            reach = FAR_FACTOR * float(np.max(rhi - rlo))
+            if near.any() and np.all(dist <= reach):
+                near[:] = True      # all within reach now, so at every later step too
+                break
+            i = int(np.argmin(np.where(near, np.inf, dist)))
+            if near.any() and not dist[i] <= reach:
+                break
+            near[i] = True
+            rlo, rhi = np.minimum(rlo, lo[i]), np.maximum(rhi, hi[i])
+        return near
+
+    def far_items(self) -> list[tuple[str, np.ndarray, np.ndarray]]:
+        """Key (``objects[3]``, ``volumes[0]``) and bounding box (lo, hi) of every far
+        object and volume: those the scene's bounding box leaves out (:meth:`bbox`)."""
+        keys, lo, hi = self._item_boxes()
+        near = self._near_mask(lo, hi)
+        return [(k, lo[i], hi[i]) for i, k in enumerate(keys) if not near[i]]
+
+    def far_in_beam(self, direction) -> list[tuple[str, np.ndarray, np.ndarray]]:
+        """The far items (:meth:`far_items`) that may shadow the near region from a
+        directional light travelling along ``direction``: their box reaches upstream of
+        the region's downstream end and its projection along the light overlaps the
+        region's (the region: :meth:`bbox` and a bounded medium's box)."""
+        far = self.far_items()
+        boxes = [b for b in (self.bbox(), self.medium.bounds if self.medium else None)
+                 if b is not None]
+        if not far or not boxes:
+            return []
+        d = np.asarray(direction, np.float64)
+        d = d / np.linalg.norm(d)
+        axes = np.stack([*perpendicular_axes(d), d])
+        near = np.concatenate([box_corners(*b) for b in boxes]) @ axes.T
+        out = []
+        for key, lo, hi in far:
+            c = box_corners(lo, hi) @ axes.T
+            if (np.all(c[:, :2].min(axis=0) <= near[:, :2].max(axis=0))
+                    and np.all(c[:, :2].max(axis=0) >= near[:, :2].min(axis=0))
+                    and c[:, 2].min() <= near[:, 2].max()):
+                out.append((key, lo, hi))
+        return out
+
+    def bbox(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The scene's bounding box (docs/scene_format.md): the box of the objects and
+        volumes that are not far (:data:`FAR_FACTOR`); None without objects or volumes.
+        The normalised device frame, relative radii and step sizes all derive from it."""
+        _, lo, hi = self._item_boxes()
+        if not len(lo):
             return None
-        allp = np.concatenate(pts)
-        return allp.min(axis=0), allp.max(axis=0)
+        near = self._near_mask(lo, hi)
+        return lo[near].min(axis=0), hi[near].max(axis=0)
 
     def scene_extent(self) -> float:
         """Longest side of :meth:`bbox` (1.0 when the scene has no geometry); relative radii

@@ -1,7 +1,10 @@
 """The normalised device frame, and the flat arrays the kernels read.
 
 Kernels work in float32, so the host first moves the scene into a *normalised frame*:
-centred on the scene and scaled so its longest side is 1 (``x' = (x - centre) / scale``).
+centred on the scene's bounding box and scaled so its longest side is 1
+(``x' = (x - centre) / scale``). That box leaves far objects out (``Scene.bbox``): they
+stay at their large normalised coordinates, where float32 still places them to ~1e-7 of
+their distance, while what is near the camera keeps its precision.
 A scene translated by 1e4 or scaled by 1e-3 then looks the same to the device, and
 fixed epsilons (``RAY_EPS`` in common.h) keep their meaning. Radiance is invariant under
 the change of units when coefficients and intensities change with it:
@@ -58,7 +61,8 @@ class Frame:
 
     @staticmethod
     def for_scene(scene: Scene) -> "Frame":
-        """Centre and scale from the geometry (else medium bounds, else lights and camera)."""
+        """Centre and scale from the scene's bounding box (:meth:`Scene.bbox`: the objects
+        and volumes that are not far), else the medium's bounds, else lights and camera."""
         bb = scene.bbox()
         if bb is None and scene.medium is not None and scene.medium.bounds is not None:
             bb = scene.medium.bounds

@@ -32,8 +32,9 @@ Point and spot lights: a mixture of cones
     A spot ray outside the spot cone carries nothing and is not traced.
 
 Directional lights: the objects' projected footprint
-    The start rectangle (facing the light, upstream of the whole scene, as in
-    :func:`clscatter.transport.light_paths.emission`) is shrunk to the bounding rectangle of the
+    The start rectangle (facing the light, as in :func:`emission`: across the beam that
+    meets the medium's box and the near triangles, upstream of them and of any far object
+    in that beam) is shrunk to the bounding rectangle of the
     spheres' projections onto it; every ray that can hit a specular object starts in it.
     Start points are uniform, so the flux per ray is ``E * area / N`` as before.
 
@@ -62,19 +63,27 @@ class Emission:
     rect: np.ndarray           # (3, 4) float32: origin, u, v (directional lights only)
 
 
-def _region(ps) -> tuple[np.ndarray, np.ndarray]:
-    """Box (normalised frame) that lighting rays must cover: medium bounds and geometry."""
+def _region(ps, d: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
+    """What the rays of a directional light travelling along unit ``d`` must cover
+    (normalised frame): the box of the medium's bounds and the near triangles
+    (:meth:`~clscatter.transport.prepared.PreparedScene.near_box`), and the least axial
+    coordinate ``x.d`` they must start before: that box's, or a far object's upstream in
+    its beam (:meth:`~clscatter.scene.model.Scene.far_in_beam`), whose shadow then falls
+    into the box (rays starting that far off place it to float32 steps of that distance)."""
     boxes = []
     if ps.medium["bounded"]:
         boxes.append((ps.medium["bmin"][:3], ps.medium["bmax"][:3]))
-    root = ps.bvh.nodes[0]
-    if np.all(root["bmin"] <= root["bmax"]):
-        boxes.append((root["bmin"], root["bmax"]))
+    near = ps.near_box()
+    if near is not None:
+        boxes.append(near)
     if not boxes:
-        return np.full(3, -1.0), np.full(3, 1.0)
+        boxes.append((np.full(3, -1.0), np.full(3, 1.0)))
     lo = np.min([b[0] for b in boxes], axis=0).astype(np.float64)
     hi = np.max([b[1] for b in boxes], axis=0).astype(np.float64)
-    return lo, hi
+    far = [box_corners(ps.frame.point(a), ps.frame.point(b))
+           for _, a, b in ps.scene.far_in_beam(d)]
+    start = np.concatenate([box_corners(lo, hi)] + far) @ d
+    return (lo, hi), start
 
 
 def emission(ps, index: int) -> Emission:
@@ -89,9 +98,9 @@ def emission(ps, index: int) -> Emission:
     d = L["direction"][:3].astype(np.float64)
     d /= np.linalg.norm(d)
     e1, e2 = perpendicular_axes(d)
-    lo, hi = _region(ps)
+    (lo, hi), cd = _region(ps, d)
     corners = box_corners(lo, hi)
-    c1, c2, cd = corners @ e1, corners @ e2, corners @ d
+    c1, c2 = corners @ e1, corners @ e2
     pad = 1e-3 * float(np.max(hi - lo))
     origin = (c1.min() - pad) * e1 + (c2.min() - pad) * e2 + (cd.min() - pad) * d
     u = (c1.max() - c1.min() + 2 * pad) * e1

@@ -66,6 +66,14 @@ class PreparedScene:
     def has_medium(self) -> bool:
         return bool(self.medium["present"])
 
+    def near_box(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The box of the triangles near the camera, normalised frame: the BVH's root box
+        limited to the scene's bounding box (:meth:`Scene.bbox`, which leaves far objects
+        out), float32 values as float64 arrays; None when no triangle lies in it. Without
+        far objects this is the BVH's root box exactly. What lighting rays, shadow maps and
+        light grids must cover; far triangles stay in the BVH for every ray."""
+        return near_box(self.bvh, self.frame, self.scene)
+
     def call(self, program: str, kernel: str, global_size: int | Sequence[int],
              defines: dict[str, object] | None = None, **args) -> None:
         """:meth:`Engine.call` with the scene filled in: every kernel parameter named like
@@ -86,6 +94,17 @@ class PreparedScene:
             self.dev = None
 
 
+def near_box(bvh: BVH, frame: Frame, scene: Scene) -> tuple[np.ndarray, np.ndarray] | None:
+    """:meth:`PreparedScene.near_box` of a scene's BVH, frame and scene."""
+    root = bvh.nodes[0]
+    lo, hi = np.asarray(root["bmin"], np.float64), np.asarray(root["bmax"], np.float64)
+    bb = scene.bbox()
+    if bb is not None:
+        lo = np.maximum(lo, frame.point(bb[0]).astype(np.float32))
+        hi = np.minimum(hi, frame.point(bb[1]).astype(np.float32))
+    return (lo, hi) if np.all(lo <= hi) else None
+
+
 def prepare_scene(scene: Scene, engine: Engine, stats: Stats | None = None) -> PreparedScene:
     """Normalise, flatten and upload ``scene``; build its BVH."""
     stats = stats or Stats()
@@ -104,7 +123,7 @@ def prepare_scene(scene: Scene, engine: Engine, stats: Stats | None = None) -> P
         lights = light_structs(scene.lights, frame)
         lights_dev = lights if len(lights) else np.zeros(1, structs.LIGHT)
     with stats.stage("scene_grids"):
-        grids = {"light_grid": tile_grid.light_grid(bvh, lights),
+        grids = {"light_grid": _light_grid(bvh, lights, frame, scene),
                  "camera_grid": tile_grid.camera_grid(bvh, camera)}
     with stats.stage("upload"):
         dev = SceneBuffers(
@@ -153,14 +172,22 @@ def refresh(ps: PreparedScene, scene: Scene, stats: Stats | None = None) -> list
             ps.dev.materials = eng.to_device(materials)
             ps.materials = materials
             changed.append("materials")
+    ps.scene = scene
     for name in changed:
         _refresh_grid(ps, name, stats)
-    ps.scene = scene
     return changed
 
 
-_GRID_OF = {"lights": ("light_grid", tile_grid.light_grid),
-            "camera": ("camera_grid", tile_grid.camera_grid)}
+def _light_grid(bvh: BVH, lights: np.ndarray, frame: Frame, scene: Scene):
+    """The scene's light grid (:func:`tile_grid.light_grid`) over its near triangles; none
+    when every triangle is far (shadow rays then use the BVH)."""
+    box = near_box(bvh, frame, scene)
+    return None if box is None else tile_grid.light_grid(bvh, lights, box)
+
+
+_GRID_OF = {"lights": ("light_grid", lambda ps: _light_grid(ps.bvh, ps.lights, ps.frame,
+                                                            ps.scene)),
+            "camera": ("camera_grid", lambda ps: tile_grid.camera_grid(ps.bvh, ps.camera))}
 
 
 def _refresh_grid(ps: PreparedScene, changed: str, stats: Stats) -> None:
@@ -169,7 +196,7 @@ def _refresh_grid(ps: PreparedScene, changed: str, stats: Stats) -> None:
         return
     field, build = _GRID_OF[changed]
     with stats.stage("scene_grids"):
-        grid = build(ps.bvh, getattr(ps, changed))
+        grid = build(ps)
     ps.engine.free(getattr(ps.dev, field))
     setattr(ps.dev, field, tile_grid.upload(ps.engine, grid))
 

@@ -23,12 +23,18 @@ from .geometry import EPI_FACE, Axis, CameraGeom, medium_box
 T_INF = 1e30
 
 
-def _scene_corners(ps: PreparedScene) -> np.ndarray:
-    """Corners of the objects' bounding box and of the medium box (normalised frame)."""
+def _scene_corners(ps: PreparedScene, light_dir: np.ndarray | None = None) -> np.ndarray:
+    """Corners of the near triangles' box (:meth:`PreparedScene.near_box`: far objects
+    left out) and of the medium box (normalised frame); with ``light_dir`` (a directional
+    light's unit travel direction) also of the far objects that may shadow them from it
+    (:meth:`~clscatter.scene.model.Scene.far_in_beam`)."""
     pts = []
-    if len(ps.bvh.nodes) and int(ps.bvh.n_valid) > 0:
-        root = ps.bvh.nodes[0]
-        pts.append((np.asarray(root["bmin"], np.float64), np.asarray(root["bmax"], np.float64)))
+    near = ps.near_box()
+    if near is not None:
+        pts.append(near)
+    if light_dir is not None:
+        pts += [(ps.frame.point(lo), ps.frame.point(hi))
+                for _, lo, hi in ps.scene.far_in_beam(light_dir)]
     box = medium_box(ps.medium)
     if box is not None:
         pts.append(box)
@@ -115,8 +121,8 @@ def setup_shadow_map(frame: np.ndarray, axis: Axis, ps: PreparedScene, res: int)
         frame["sm_rect"] = faces[0]["rect"]
         return faces
     box = medium_box(ps.medium)
-    corners = _scene_corners(ps)
-    box_c = corners if box is None else box_corners(*box)
+    corners = _scene_corners(ps, -np.asarray(axis.u, np.float64))
+    box_c = _scene_corners(ps) if box is None else box_corners(*box)
     rel = box_c - axis.eye
     c1, c2 = rel @ axis.b1, rel @ axis.b2
     pad1 = 0.5 * (c1.max() - c1.min()) / res + 1e-6
