@@ -232,3 +232,34 @@ def test_warm_rerenders_of_each_method_equal_fresh_renders(engine, method):
             assert not np.allclose(warm.image, previous, rtol=1e-3, atol=0), \
                 f"{method}: {change} changed nothing in the image"
             previous = warm.image
+
+
+def test_preview_and_full_frames_keep_both_sets_of_view_paths(engine):
+    """Switching from a full frame to a preview and back (the page during and after a drag)
+    traces each camera's paths once: the full frame after the previews reuses the paths
+    kept for it (re-shaded when the light moved meanwhile) and equals a fresh render."""
+    spec = "builtin:glass"
+    sets = ["camera.resolution=[32,24]", "camera.spp=2", "render.time_budget=0"]
+    with RenderSession.from_source(spec, sets, engine=engine) as s:
+        full = s.render(show_progress=False)
+        pre = s.render(show_progress=False, preview=True)
+        assert "view_paths" in pre.stats["stages_run"]
+        again = s.render(show_progress=False)
+        assert "view_paths" not in again.stats["stages_run"]
+        assert "view_paths_kept" in again.stats["reused"]
+        np.testing.assert_allclose(again.image, full.image, rtol=1e-6, atol=0)
+        s.set(["lights[0].position=[0.8,3.0,0.5]"])
+        pre2 = s.render(show_progress=False, preview=True)      # the preview's paths, re-shaded
+        assert "view_paths" not in pre2.stats["stages_run"]
+        assert "shade_hits" in pre2.stats["stages_run"]
+        moved = s.render(show_progress=False)                   # the full frame's, re-shaded
+        assert "view_paths" not in moved.stats["stages_run"]
+        assert "shade_hits" in moved.stats["stages_run"]
+        fresh = render(load_scene(spec, sets + ["lights[0].position=[0.8,3.0,0.5]"]),
+                       engine=engine, show_progress=False)
+        assert not np.allclose(fresh.image, full.image, rtol=1e-3, atol=0)
+        np.testing.assert_allclose(moved.image, fresh.image, rtol=1e-5, atol=1e-7)
+        s.set(["materials.floor.albedo=0.8"])                   # weights change: both dropped
+        after = s.render(show_progress=False)
+        assert "view_paths" in after.stats["stages_run"]
+        assert s._spare is None

@@ -12,7 +12,9 @@ a volume's coefficients       passes (the voxel pipeline from its material stage
 materials                     the material buffer, view paths, passes
 lights                        the light buffer, the surface shading (re-shading the recorded
                               diffuse hits, no camera path traced), passes
-camera                        the camera buffer, view paths, passes
+camera                        the camera buffer, view paths, passes (switching back to the
+                              camera before, as from a preview to a full frame, reuses the
+                              view paths kept for it: re-shaded if the lights moved)
 medium                        the medium buffer, view paths (segment weights), passes
 render.max_depth / seed       view paths, passes
 method or its parameters      passes only
@@ -82,6 +84,9 @@ class RenderSession:
         self._geometry: tuple | None = None
         self._paths: ViewPaths | None = None
         self._paths_key: tuple | None = None
+        self._paths_camera: bytes = b""      # the camera and lights they were traced and
+        self._paths_lights: bytes = b""      # shaded for
+        self._spare: tuple | None = None     # (key, camera, lights, ViewPaths): see _keep_as_spare
         self._pending: list[str] = []       # buffers re-uploaded since the last render
         self._caches: dict[str, PassCache] = {}   # each method's slot (PassContext.cache)
         self._data: dict | None = None
@@ -216,6 +221,8 @@ class RenderSession:
             reused.append("bvh")
             ran += [f"upload_{c}" for c in changed]
             self._pending += changed
+            if set(changed) - {"camera", "lights"}:
+                self._release_spare()          # its segments' weights changed too
         else:
             self.release()
             self._ps = prepare_scene(scene, engine, stats)
@@ -227,6 +234,8 @@ class RenderSession:
 
         # ---- view paths ----
         key = (_view_key(scene), samples)
+        if self._paths is not None and set(self._pending) == {"camera"} | (set(self._pending) & {"lights"}):
+            self._swap_spare(ps, key, stats, ran, reused)
         relight = (self._paths is not None and key == self._paths_key
                    and self._paths.hits is not None
                    and set(self._pending) == {"lights"})
@@ -235,15 +244,21 @@ class RenderSession:
             # surface is re-shaded at the recorded diffuse hits
             with stats.stage("shade_hits"):
                 self._paths.surface = shade_hits(ps, self._paths.hits)
+            self._paths_lights = ps.lights.tobytes()
             self._pending = []
             ran.append("shade_hits")
             reused.append("view_paths")
             stats.set(view_segments=int(len(self._paths)))
         elif self._paths is None or self._pending or key != self._paths_key:
-            self._release_paths()
+            if ("camera" in self._pending and set(self._pending) <= {"camera", "lights"}
+                    and self._paths is not None):
+                self._keep_as_spare()          # another camera (a preview): keep these
+            else:
+                self._release_paths()
             self._paths = trace_view_paths(ps, stats, show_progress, sample_range=samples,
                                            keep_hits=self.keep_hits)
             self._paths_key = key
+            self._paths_camera, self._paths_lights = ps.camera.tobytes(), ps.lights.tobytes()
             self._pending = []
             ran.append("view_paths")
             calibration.record(engine.device.name.strip(), "view_paths",
@@ -387,6 +402,40 @@ class RenderSession:
         if self._paths is not None:
             self._paths.release()
         self._paths = None
+        self._release_spare()
+
+    # ---- a second set of view paths: switching between preview and full frames ----
+    # The view paths of the camera before the last camera change are kept aside (with the
+    # camera and lights they were traced and shaded for), so that switching back to that
+    # camera (the page's full frame after a drag's previews) reuses them: re-shaded if the
+    # lights changed meanwhile, dropped by any change that alters segment weights.
+    def _keep_as_spare(self) -> None:
+        self._release_spare()
+        if self._paths is not None and self._paths.hits is not None:
+            self._spare = (self._paths_key, self._paths_camera, self._paths_lights, self._paths)
+        elif self._paths is not None:
+            self._paths.release()
+        self._paths = None
+
+    def _release_spare(self) -> None:
+        if self._spare is not None:
+            self._spare[3].release()
+        self._spare = None
+
+    def _swap_spare(self, ps: PreparedScene, key: tuple, stats: Stats, ran: list,
+                    reused: list) -> None:
+        """Make the kept view paths current when they were traced for this camera, and
+        keep the current ones aside in their place."""
+        if self._spare is None:
+            return
+        s_key, s_camera, s_lights, s_paths = self._spare
+        if s_key != key or s_camera != ps.camera.tobytes():
+            return
+        self._spare = (self._paths_key, self._paths_camera, self._paths_lights, self._paths)
+        self._paths, self._paths_key, self._paths_camera = s_paths, s_key, s_camera
+        self._paths_lights = s_lights
+        self._pending = ["lights"] if s_lights != ps.lights.tobytes() else []
+        reused.append("view_paths_kept")
 
     def __enter__(self) -> "RenderSession":
         return self
