@@ -21,8 +21,10 @@ def test_index_one_volume_matches_raymarch(engine):
     the voxel image (photons inside the grid, raymarch outside with the grid occluding,
     gathered exiting photons beyond) equals raymarch's: total medium radiance within 1.5%,
     mean absolute pixel difference below 6% of the mean (photon noise and the blur of the
-    coarse outer grid that carries the light which crossed the grid), surfaces identical."""
-    d = _scene("volume_sphere", resolution=48, photons=1 << 15)
+    coarse outer grid that carries the light which crossed the grid), surfaces identical
+    with the straight direct light on them (``surface_photons`` false; the photons' light
+    on surfaces against it: tests/test_voxel_surfaces.py)."""
+    d = _scene("volume_sphere", resolution=48, photons=1 << 15, surface_photons=False)
     d["volumes"][0]["ior"] = 1.0
     s = scene_from_dict(d)
     v = render(s, method="voxel", engine=engine, show_progress=False)
@@ -53,15 +55,16 @@ def _caustic(img):
 
 def test_glass_sphere_voxel_vs_lsg(engine):
     """A clear glass ball (ior 1.5) under a point light in fog: voxel (the ball voxelised,
-    ray equation, Fresnel transmittance where paths cross its smoothed boundary) against
-    lsg (Snell refraction, Fresnel splitting). The whole medium image agrees within 4% in
-    total (voxel drops the light the ball's surface reflects, which lsg follows); the
-    focused caustic below the ball is where lsg has it (centroid within 0.05 pixel) and
-    brighter in this narrow window, by 34% at 48^3 and 12% at 96^3 (55% and 34% before
-    the Fresnel loss, docs/voxel.md): its boundary, blurred over +-4 voxels, focuses the
-    light more tightly than lsg's estimate here, an error that shrinks with the voxel size.
-    Bounds: totals within 4%, centroid within 0.05 pixel, excess 0-25% at 96^3 and
-    smaller than at 48^3."""
+    refracted by Snell's law with the Fresnel transmittance at its sharp boundary, where
+    the blurred coverage is 1/2) against lsg (Snell refraction, Fresnel splitting). The
+    whole medium image agrees within 5% in total (measured 0.963 at 48^3, 0.960 at 96^3:
+    voxel drops the light the ball's surface reflects, which lsg follows); the focused
+    caustic below the ball is where lsg has it (centroid within 0.05 pixel). In this
+    narrow window the caustic's energy above the background is 0.785 (48^3) and 0.887
+    (96^3) of lsg's, whose own estimate there is 8% above an independent reference
+    (raymarch's direct light plus the exact caustic of tests/caustic_tracer.py: voxel
+    about 0.85 and 0.96 of it). Bounds: totals within 5%, centroid within 0.05 pixel, the
+    window's energy 0.8-1.05 of lsg's at 96^3 and closer to it than at 48^3."""
     d = VOLUME_SCENES["volume_glass"]()
     d["camera"].update(resolution=[120, 90], spp=1, origin=[0.0, 1.0, 4.0], target=[0.0, 1.0, 0.0])
     s = scene_from_dict(d)
@@ -76,12 +79,10 @@ def test_glass_sphere_voxel_vs_lsg(engine):
         total = med.sum() / ref.sum()
         print(f"{res}^3: total {total:.4f}, caustic energy {e / e_ref:.3f} of lsg's, "
               f"centroid column {y:.2f} vs {y_ref:.2f}")
-        # measured: totals 0.990 / 0.975, centroid within 0.01 pixel
-        assert abs(total - 1) < 0.04
+        assert abs(total - 1) < 0.05
         assert abs(y - y_ref) < 0.05
         errs.append(e / e_ref - 1)
-    # measured: +34% (48^3), +12% (96^3) in this window
-    assert 0.0 <= errs[1] < 0.25 and abs(errs[1]) < abs(errs[0])
+    assert -0.2 < errs[1] < 0.05 and abs(errs[1]) < abs(errs[0])
 
 
 def test_relighter_runs_only_changed_stages(engine):

@@ -11,6 +11,8 @@
  *   vox_inside, vox_coverage     inside test at voxel centres, 4^3 coverage near the surface
  *   vox_blur                     separable convolution (Gaussian 9 taps; 3-tap smoothing)
  *   vox_gradient                 central differences of n
+ *   vox_interior_gradient        grad n without the volumes' boundary jumps (sharp
+ *                                boundaries: vox_cut, vox_refract, vox_cross)
  *   oct_reduce, oct_levels       min/max pyramid, dense octree level grid, step limits
  *   photon_emit, photon_march    photons where light enters the grid; adaptive marching
  *                                with line-segment deposition (3-D DDA, float CAS atomics)
@@ -20,16 +22,33 @@
 #include "voxel.h"
 #include "density.h"
 
-/* Surfaces lit through density grids: in a scene with density volumes the straight
- * tracers get density.h's medium buffer (its Medium record first, so everything else reads
- * it as before), and their shadow rays are attenuated through the grids (smoke's shadows);
- * with the plain Medium record (no MEDIUM_DENSITY bit) they are the engine's. */
-float4 voxel_shadow(__global const BVHNode *nodes, __global const float4 *tris,
-                    __global const int *light_grid, int li, __global const Medium *m,
-                    float4 x, float4 wi, float dist, float tmin) {
+/* The straight tracers' shadow rays. Their medium buffer has two records at least: the
+ * scene's Medium first (so everything else reads it as before), then a void record
+ * (present 0). Where photons light the surfaces that record is the grid's occluder
+ * (bounded 1, bmin / bmax the grid box): a shadow ray that crosses the box gets nothing,
+ * for the light that crosses the grid reaches surfaces as photons (photon_surface; not
+ * twice). Else, in a scene with density volumes the buffer is density.h's (its record 1
+ * the void one) and shadow rays are attenuated through the grids; with the plain Medium
+ * record (no MEDIUM_DENSITY bit) they are the engine's. */
+int vox_occluded(__global const Medium *m, float4 x, float4 wi, float dist, float tmin) {
+    __global const Medium *o = m + 1;
+    if (o->present != 0 || o->bounded != 1) return 0;
+    float t0, t1;
+    return ray_box(x, safe_inv_dir(wi), o->bmin, o->bmax, tmin, dist < T_INF ? dist : T_INF,
+                   &t0, &t1);
+}
+float4 voxel_unoccluded(__global const BVHNode *nodes, __global const float4 *tris,
+                        __global const int *light_grid, int li, __global const Medium *m,
+                        float4 x, float4 wi, float dist, float tmin) {
     if (m->present & MEDIUM_DENSITY)
         return density_light_transmission(nodes, tris, light_grid, li, m, x, wi, dist, tmin);
     return light_transmission(nodes, tris, light_grid, li, m, x, wi, dist, tmin);
+}
+float4 voxel_shadow(__global const BVHNode *nodes, __global const float4 *tris,
+                    __global const int *light_grid, int li, __global const Medium *m,
+                    float4 x, float4 wi, float dist, float tmin) {
+    if (vox_occluded(m, x, wi, dist, tmin)) return (float4)(0.0f);
+    return voxel_unoccluded(nodes, tris, light_grid, li, m, x, wi, dist, tmin);
 }
 #define light_transmission(nodes, tris, light_grid, li, m, x, wi, dist, tmin) \
     voxel_shadow(nodes, tris, light_grid, li, m, x, wi, dist, tmin)
@@ -256,77 +275,217 @@ int4 voxel_of(float4 x, float4 lo, int4 dims, float inv_h) {
                   clamp((int)floor(p.z), 0, dims.z - 1), 0);
 }
 
-/* ------------------------------------------------ Fresnel at smoothed boundaries -- */
+/* ----------------------------------------------- sharp boundaries: Snell and Fresnel -- */
 
-/* Transmittance of a sharp dielectric interface from index n1 to n2 at incidence cosine
- * cos_i (unpolarised: 1 minus the mean of the s and p reflectances, specular.h's
- * fresnel_dielectric); 0 under total internal reflection. 1 when the indices differ by
- * less than VOX_DN_MIN (no interface: such a step reflects below 2e-7 at normal
- * incidence). */
-#define VOX_DN_MIN 1e-3f
-float vox_fresnel_t(float n1, float n2, float cos_i) {
-    if (fabs(n1 - n2) < VOX_DN_MIN) return 1.0f;
-    float ct;
-    return 1.0f - fresnel_dielectric(clamp(cos_i, 0.0f, 1.0f), n1 / n2, &ct);
+/* A voxelised volume's index rises from the outside's to the inside's over a band of
+ * voxels (its blurred coverage w, about +-4 voxels wide). The ray equation through such a
+ * band bends a path as Snell's law does only where the band is flat on the path's scale:
+ * across a curved band a grazing path is bent less (a ball's rim rays by several degrees
+ * at bands of 1/10 to 1/30 of its radius, converging slowly with the band's width), and a
+ * continuous index reflects nothing. So a volume's boundary is made sharp again: it lies
+ * where w = 1/2, paths cross it by Snell's law with the Fresnel transmittance of the
+ * sharp interface, and inside and outside it they follow the ray equation with the
+ * boundary's jump taken out of grad n (vox_interior_gradient). The boundary grid holds
+ * per voxel (w, n_lo, n_hi, 0): the blurred weight of the volume weighing most there and
+ * the indices on its outer (w -> 0) and inner (w -> 1) sides (voxelise.boundary_sides;
+ * equal where no volume is near: nothing to cross); trilinear like every field. A path's
+ * side (0 outside, 1 inside; -1 not known yet) is its state between steps. */
+#define VOX_DN_MIN 1e-3f   /* index steps below this are no interfaces (R < 2e-7) */
+
+/* grad n without the boundaries' jumps, in place: grad[v] -= (n_hi - n_lo) grad w, grad w by
+ * the central differences of vox_gradient (one-sided on the grid's faces) of boundary.x.
+ * The step n_hi - n_lo is the voxel's own, or where the voxel lies outside every volume
+ * (w = 0, no step recorded) that of its neighbour on the axis, so that a constant-index
+ * volume leaves exactly 0 (the gradient of n there is the step times grad w); inside a
+ * graded volume what remains is w grad n_v. */
+__kernel void vox_interior_gradient(__global float4 *grad, __global const float4 *boundary,
+                                    int4 dims, float h) {
+    int idx = get_global_id(0);
+    if (idx >= dims.x * dims.y * dims.z) return;
+    int i = idx / (dims.y * dims.z), j = (idx / dims.z) % dims.y, k = idx % dims.z;
+    int lo[3] = {max(i - 1, 0), max(j - 1, 0), max(k - 1, 0)};
+    int hi[3] = {min(i + 1, dims.x - 1), min(j + 1, dims.y - 1), min(k + 1, dims.z - 1)};
+    float4 b = boundary[idx];
+    float sub[3] = {0.0f, 0.0f, 0.0f};
+    for (int a = 0; a < 3; ++a) {
+        if (hi[a] == lo[a]) continue;
+        int pa[3] = {i, j, k}, pb[3] = {i, j, k};
+        pa[a] = lo[a];
+        pb[a] = hi[a];
+        float4 ba = boundary[(pa[0] * dims.y + pa[1]) * dims.z + pa[2]];
+        float4 bb = boundary[(pb[0] * dims.y + pb[1]) * dims.z + pb[2]];
+        float dn = b.z - b.y;
+        if (b.x <= 0.0f) dn = ba.x > 0.0f ? ba.z - ba.y : bb.z - bb.y;
+        if (fabs(dn) < VOX_DN_MIN) continue;
+        sub[a] = dn * (bb.x - ba.x) / ((hi[a] - lo[a]) * h);
+    }
+    float4 g = grad[idx];
+    g.x -= sub[0];
+    g.y -= sub[1];
+    g.z -= sub[2];
+    grad[idx] = g;
 }
 
-/* Crossing a smoothed boundary. A voxelised volume's index rises from the outside's to
- * the inside's over a band of voxels (its blurred coverage w), and the ray equation bends
- * paths through the band as Snell's law would at the sharp boundary, which lies where
- * w = 1/2. The boundary grid holds per voxel (w, n_lo, n_hi, 0): the blurred weight of
- * the volume with the largest weight there and the indices on its outer (w -> 0) and
- * inner (w -> 1) sides (equal where no volume is near: nothing to cross); trilinear like
- * every field. A path's crossing state is w at its previous step start (-1: none yet).
- * When w passes 1/2 between two step starts the path has crossed the boundary from
- * n1 to n2 (n_lo -> n_hi going in, n_hi -> n_lo going out), and keeps the transmittance
- * of the sharp interface, vox_fresnel_t(n1, n2, cos_i), once. The incidence comes from
- * the ray equation's invariant across a layered index: the component of v (= n x unit
- * direction) across grad n, k = |v x g| / |g| = n sin(theta), is the same on both sides,
- * so sin(theta_i) = k / n1. A path with k >= min(n1, n2) cannot exist on the lower-index
- * side: it is one that the band turns back (the continuous version of total internal
- * reflection; it crosses 1/2 out and back in, or not at all) and it keeps everything, as
- * total internal reflection does. Returns the factor for the path's flux / throughput. */
-float vox_crossing(float *w_prev, float4 side, float4 v, float4 g) {
-    float T = 1.0f;
-    float w = side.x;
-    if (*w_prev >= 0.0f && (*w_prev < 0.5f) != (w < 0.5f)) {
-        int entering = w >= 0.5f;
-        float n1 = entering ? side.y : side.z, n2 = entering ? side.z : side.y;
-        float gl = length3(g);
-        float k = gl > 0.0f ? length3(cross(v, g)) / gl : 0.0f;
-        if (k < fmin(n1, n2)) {
-            float s = k / n1;
-            T = vox_fresnel_t(n1, n2, sqrt(fmax(0.0f, 1.0f - s * s)));
-        }
+/* Boundary record (w, n_lo, n_hi) at x, trilinear. */
+float4 vox_side_at(__global const float4 *boundary, int4 dims, float4 x, float4 lo, float inv_h) {
+    Tri t = tri_setup(x, lo, dims, inv_h);
+    return tri_f4(boundary, dims, &t);
+}
+
+/* grad w at voxel (i, j, k) (w = boundary.x), isotropic: along each axis the central
+ * difference (one-sided on the grid's faces), smoothed across the other two axes with the
+ * weights (1, 4, 1) / 6 (edges clamped). Its leading error, h^2 / 6 times the gradient of
+ * the Laplacian, has no preferred direction: across a ball's curved band (the Laplacian of
+ * a radial profile is radial) it does not tilt the normal, which a plain central
+ * difference does (its error h^2 / 6 d3w/dx3 tilts it away from the grid's axes: about a
+ * degree at a ball's rim, 64^3). */
+float4 vox_w_gradient_at(__global const float4 *b, int4 d, int i, int j, int k, float inv_h) {
+    const float c[3] = {1.0f / 6.0f, 4.0f / 6.0f, 1.0f / 6.0f};
+    int at[3] = {i, j, k}, n[3] = {d.x, d.y, d.z};
+    float g[3] = {0.0f, 0.0f, 0.0f};
+    for (int a = 0; a < 3; ++a) {
+        int a1 = (a + 1) % 3, a2 = (a + 2) % 3;
+        int lo = max(at[a] - 1, 0), hi = min(at[a] + 1, n[a] - 1);
+        if (hi == lo) continue;
+        for (int p = -1; p <= 1; ++p)
+            for (int q = -1; q <= 1; ++q) {
+                int u[3], v[3];
+                u[a] = hi; v[a] = lo;
+                u[a1] = v[a1] = clamp(at[a1] + p, 0, n[a1] - 1);
+                u[a2] = v[a2] = clamp(at[a2] + q, 0, n[a2] - 1);
+                g[a] += c[p + 1] * c[q + 1] * (b[(u[0] * d.y + u[1]) * d.z + u[2]].x -
+                                               b[(v[0] * d.y + v[1]) * d.z + v[2]].x);
+            }
+        g[a] *= inv_h / (hi - lo);
     }
-    *w_prev = w;
+    return (float4)(g[0], g[1], g[2], 0.0f);
+}
+
+/* Unit normal of the boundary at x, pointing inwards (towards larger w): vox_w_gradient_at
+ * at the voxel centres, trilinear between them (as the marchers read grad n), so that it
+ * turns continuously along the boundary; 0 where w is flat. */
+float4 vox_boundary_normal(__global const float4 *boundary, int4 dims, float4 x, float4 lo,
+                           float h) {
+    float inv_h = 1.0f / h;
+    Tri t = tri_setup(x, lo, dims, inv_h);
+    float4 g = (float4)(0.0f);
+    for (int c = 0; c < 8; ++c) {
+        int i = (c & 1) ? t.i1 : t.i0, j = (c & 2) ? t.j1 : t.j0, k = (c & 4) ? t.k1 : t.k0;
+        float wgt = ((c & 1) ? t.fx : 1.0f - t.fx) * ((c & 2) ? t.fy : 1.0f - t.fy) *
+                    ((c & 4) ? t.fz : 1.0f - t.fz);
+        g += wgt * vox_w_gradient_at(boundary, dims, i, j, k, inv_h);
+    }
+    g.w = 0.0f;
+    float gl = length3(g);
+    return gl > 0.0f ? g / gl : (float4)(0.0f);
+}
+
+/* Where on a step from w0 (its start) to w1 (its end) a path on `side` crosses w = 1/2:
+ * the fraction of the step, w taken linear along it, clamped to [0, 1]; -1 when it does
+ * not cross: the end lies on the path's side, or w does not move away from that side
+ * along the step (a path just turned back, or just through, may start a hair beyond
+ * 1/2 by the linear estimate: it is going home, not crossing again), or the side is not
+ * known. So every crossing moves the path on, and a path cannot be caught at a boundary. */
+float vox_cut(float w0, float w1, float side) {
+    if (side < 0.0f) return -1.0f;
+    int inside = side > 0.5f;
+    if ((w1 >= 0.5f) == inside) return -1.0f;
+    if (inside ? !(w1 < w0) : !(w1 > w0)) return -1.0f;
+    return clamp((0.5f - w0) / (w1 - w0), 0.0f, 1.0f);
+}
+
+/* The crossing of vox_cut refined: w along the step x + s len dir is trilinear, not linear,
+ * so the fraction t (w(t) = 1/2 between w(0) = w0 and w(1) = w1) is refined by a few
+ * regula falsi steps on that bracket (one lookup each). t = 0 (a start past 1/2) stays. */
+#define VOX_CUT_STEPS 3
+float vox_cut_refine(__global const float4 *boundary, int4 dims, float4 x, float4 dir, float len,
+                     float w0, float w1, float t, float4 lo, float inv_h) {
+    if (!(t > 0.0f && t < 1.0f)) return t;
+    float a = 0.0f, b = 1.0f, wa = w0, wb = w1;
+    for (int it = 0; it < VOX_CUT_STEPS; ++it) {
+        float wt = vox_side_at(boundary, dims, x + (t * len) * dir, lo, inv_h).x;
+        if ((wt >= 0.5f) == (wa >= 0.5f)) { a = t; wa = wt; } else { b = t; wb = wt; }
+        if (wb == wa) break;
+        t = clamp(a + (0.5f - wa) / (wb - wa) * (b - a), a, b);
+    }
+    return t;
+}
+
+/* A path with velocity v (= n x its direction) meets the sharp boundary with unit normal
+ * nrm (either orientation) from index n1 to n2. It is refracted by Snell's law (the
+ * component of its direction along the boundary scaled by n1 / n2; |v| becomes n2), and
+ * the unpolarised Fresnel transmittance of the interface is returned (fresnel_dielectric
+ * of specular.h, as lsg and the straight tracers use); under total internal reflection it
+ * is mirrored (|v| stays n1) and keeps everything (*turned = 1); the reflected part of a
+ * transmitted path is dropped. Indices closer than VOX_DN_MIN, or no normal: no interface
+ * (v unchanged, 1). */
+float vox_refract(float4 *v, float4 nrm, float n1, float n2, int *turned) {
+    *turned = 0;
+    float vl = length3(*v);
+    if (fabs(n1 - n2) < VOX_DN_MIN || !(vl > 0.0f) || dot3(nrm, nrm) == 0.0f) return 1.0f;
+    float4 d = *v / vl;
+    d.w = 0.0f;
+    float c = dot3(d, nrm);
+    float4 m = c < 0.0f ? -nrm : nrm;     /* along the direction of travel */
+    c = fabs(c);
+    float eta = n1 / n2, cos_t;
+    float R = fresnel_dielectric(c, eta, &cos_t);
+    if (R >= 1.0f && cos_t == 0.0f) {     /* total internal reflection */
+        *turned = 1;
+        *v = n1 * normalize3(d - 2.0f * c * m);
+        return 1.0f;
+    }
+    *v = n2 * normalize3(eta * d + (cos_t - eta * c) * m);
+    return 1.0f - R;
+}
+
+/* One crossing of a path at x (already moved to w = 1/2): the indices on both sides and
+ * the normal from the boundary grid, then vox_refract; *side flips unless the path was
+ * turned back (*turned = 1: a total internal reflection, which the marchers count as a
+ * specular bounce: a voxelised sphere's normals are a little off, so a path entering
+ * near grazing may meet the far side just past the critical angle and circle inside;
+ * render.max_depth such bounces end it, as they end the engine's straight paths).
+ * Returns the factor for its flux (throughput). */
+float vox_cross(__global const float4 *boundary, int4 dims, float4 x, float4 lo, float h,
+                float4 *v, float *side, int *turned) {
+    float4 s = vox_side_at(boundary, dims, x, lo, 1.0f / h);
+    int entering = *side < 0.5f;
+    float n1 = entering ? s.y : s.z, n2 = entering ? s.z : s.y;
+    float T = vox_refract(v, vox_boundary_normal(boundary, dims, x, lo, h), n1, n2, turned);
+    if (!*turned) *side = entering ? 1.0f : 0.0f;
     return T;
 }
 
-/* Test hook: vox_crossing along given paths. Path p has `len` step starts; at step i its
- * sampled (w, n_lo, n_hi) is side[p * len + i], its v and grad n v[.], g[.]; out[p] is the
- * product of the factors (the flux the path keeps). */
-__kernel void vox_crossing_test(__global const float4 *side, __global const float4 *v,
-                                __global const float4 *g, int count, int len,
-                                __global float *out) {
-    int p = get_global_id(0);
-    if (p >= count) return;
-    float w_prev = -1.0f, T = 1.0f;
-    for (int i = 0; i < len; ++i) {
-        int k = p * len + i;
-        float4 vv = v[k], gg = g[k];
-        vv.w = 0.0f;
-        gg.w = 0.0f;
-        T *= vox_crossing(&w_prev, side[k], vv, gg);
-    }
-    out[p] = T;
-}
-
-/* Test hook: vox_fresnel_t for arrays (n1, n2, cos_i) in xyz of each float4. */
-__kernel void vox_fresnel_test(__global const float4 *cases, int count, __global float *out) {
+/* Test hook: vox_refract for arrays of (v, nrm, (n1, n2)): v_out, and (T, turned) in out. */
+__kernel void vox_refract_test(__global const float4 *v, __global const float4 *nrm,
+                               __global const float4 *idx, int count, __global float4 *v_out,
+                               __global float4 *out) {
     int i = get_global_id(0);
     if (i >= count) return;
-    out[i] = vox_fresnel_t(cases[i].x, cases[i].y, cases[i].z);
+    float4 vv = v[i], nn = nrm[i];
+    vv.w = 0.0f;
+    nn.w = 0.0f;
+    int turned;
+    float T = vox_refract(&vv, nn, idx[i].x, idx[i].y, &turned);
+    v_out[i] = vv;
+    out[i] = (float4)(T, (float)turned, 0.0f, 0.0f);
+}
+
+/* Test hook: vox_boundary_normal at points x[i] of a grid (lo, dims, h) of boundary records. */
+__kernel void vox_normal_test(__global const float4 *boundary, int4 dims, float4 lo, float h,
+                              __global const float4 *x, int count, __global float4 *out) {
+    int i = get_global_id(0);
+    if (i >= count) return;
+    float4 p = x[i];
+    p.w = 0.0f;
+    out[i] = vox_boundary_normal(boundary, dims, p, lo, h);
+}
+
+/* Test hook: vox_cut for arrays of (w0, w1, side). */
+__kernel void vox_cut_test(__global const float4 *cases, int count, __global float *out) {
+    int i = get_global_id(0);
+    if (i >= count) return;
+    out[i] = vox_cut(cases[i].x, cases[i].y, cases[i].z);
 }
 
 /* ----------------------------------------------------------------- deposition -- */
@@ -524,11 +683,17 @@ __kernel void photon_emit(__global const BVHNode *nodes, __global const float4 *
  * deposited voxel by voxel (deposit_segment), which also attenuates the flux. A photon
  * dies when it leaves the grid, hits a surface, or its flux falls below min_rel times its
  * starting flux. Live photons are counted in counters[0], steps taken in counters[1].
- * Where a photon crosses a volume's smoothed boundary (grid `boundary`, vox_crossing; its
- * crossing state kept in crossing[p] between launches, -1 at the start) its flux is
- * multiplied by the Fresnel transmittance of the crossing; the reflected part is dropped.
- * pos.w afterwards: 1 live, 0 ended (surface, faded out), -1 left through a grid face (the
- * straight light beyond the grid: photon_exits). 
+ * grad n here is the interior gradient (vox_interior_gradient): a step whose end lies across
+ * a volume's sharp boundary (w of the grid `boundary` passing 1/2: vox_cut) is cut where
+ * it crosses, and there the photon is refracted by Snell's law and keeps the Fresnel
+ * transmittance (vox_cross; the reflected part is dropped), or is turned back whole by
+ * total internal reflection (max_turns of them end it); its side of the boundaries and
+ * its turns so far are kept in crossing[p] between launches as side + 2 x turns (-1 at
+ * the start: side not known yet).
+ * pos.w afterwards: 1 live, 0 ended (faded out, or turned back max_turns times), -1 left
+ * through a grid face (the straight light beyond the grid: photon_exits, photon_surface),
+ * -2 met a surface: pos is then the start of the step that met it, vel its direction and
+ * flux what arrives there (photon_surface finds the surface again). 
  * adaptive = 0 gives the fixed-step marcher (s = ds_min everywhere). */
 __kernel void photon_march(__global float4 *pos, __global float4 *vel, __global float4 *flux,
                            int count, int steps, float4 glo, float4 ghi, int4 dims, float h,
@@ -537,7 +702,7 @@ __kernel void photon_march(__global float4 *pos, __global float4 *vel, __global 
                            __global const float *smax, int adaptive, float ds_min, float min_rel,
                            __global const BVHNode *nodes, __global const float4 *tris,
                            int test_surfaces, __global const float4 *boundary,
-                           __global float *crossing, volatile __global float *rad,
+                           __global float *crossing, int max_turns, volatile __global float *rad,
                            volatile __global float *dirs, volatile __global int *counters) {
     int p = get_global_id(0);
     if (p >= count) return;
@@ -545,7 +710,9 @@ __kernel void photon_march(__global float4 *pos, __global float4 *vel, __global 
     if (x.w != 1.0f) return;
     x.w = 0.0f;
     float4 v = vel[p], F = flux[p];
-    float xing = crossing[p];
+    float xs = crossing[p];
+    float side = xs < 0.0f ? -1.0f : fmod(xs, 2.0f);
+    int turns = xs < 0.0f ? 0 : (int)(0.5f * xs);
     float inv_h = 1.0f / h;
     int alive = 1, taken = 0;
     float state = 1.0f;
@@ -554,11 +721,12 @@ __kernel void photon_march(__global float4 *pos, __global float4 *vel, __global 
         Tri tr = tri_setup(x, glo, dims, inv_h);
         float n = tri_f(n_grid, dims, &tr);
         float4 g = tri_f4(grad, dims, &tr);
+        float w0 = tri_f4(boundary, dims, &tr).x;
+        if (side < 0.0f) side = w0 >= 0.5f ? 1.0f : 0.0f;
         float vl = length3(v);
         if (!(vl > 0.0f)) { alive = 0; break; }
         float4 dir = v / vl;
         dir.w = 0.0f;
-        F.xyz *= vox_crossing(&xing, tri_f4(boundary, dims, &tr), v, g);   /* Fresnel */
         float step = ds_min;
         if (adaptive) {
             int4 c = voxel_of(x, glo, dims, inv_h);
@@ -571,27 +739,37 @@ __kernel void photon_march(__global float4 *pos, __global float4 *vel, __global 
             float t_node = box_exit(x, dir, nlo, nhi) + 1e-3f * h;
             step = clamp(t_node, ds_min, fmax(smax[vi] * h, ds_min));
         }
-        float ds = step * n / vl;
         float len = fmin(step, box_exit(x, dir, glo, ghi));
         int stop = len < step;
         state = stop ? 2.0f : 1.0f;               /* 2: leaves through a grid face */
         if (test_surfaces) {
             Hit hit;
-            if (bvh_closest(nodes, tris, x, dir, 0.0f, len, &hit)) { len = hit.t; stop = 1; state = 0.0f; }
+            if (bvh_closest(nodes, tris, x, dir, 0.0f, len, &hit)) { len = hit.t; stop = 1; state = 3.0f; }
         }
+        /* a boundary on the way: the step ends where the path meets it */
+        float w1 = vox_side_at(boundary, dims, x + len * dir, glo, inv_h).x;
+        float cut = vox_cut_refine(boundary, dims, x, dir, len, w0, w1, vox_cut(w0, w1, side),
+                                   glo, inv_h);
+        if (cut >= 0.0f && cut < 1.0f) { len *= cut; stop = 0; state = 1.0f; }
         float4 T = deposit_segment(x, dir, len, F, glo, dims, h, kappa, rad, dirs, &pd);
         F *= T;
         F.w = flux[p].w;
+        if (state == 3.0f) { ++taken; break; }   /* at a surface: pos stays at the step's start */
         x += len * dir;
-        v += ds * g;
+        v += (len * n / vl) * g;                  /* ds = len n / |v| */
         v.w = 0.0f;
+        int turned = 0;
+        if (cut >= 0.0f && !stop) F.xyz *= vox_cross(boundary, dims, x, glo, h, &v, &side, &turned);
+        turns += turned;
         ++taken;
-        if (stop || fmax(F.x, fmax(F.y, F.z)) < min_rel * F.w) alive = 0;
+        if (stop || fmax(F.x, fmax(F.y, F.z)) < min_rel * F.w || turns >= max_turns) alive = 0;
         if (!stop && !alive) state = 0.0f;        /* faded out */
     }
     pending_flush(&pd, rad, dirs);
-    crossing[p] = xing;
-    pos[p] = (float4)(x.x, x.y, x.z, alive ? 1.0f : (state == 2.0f ? -1.0f : 0.0f));
+    crossing[p] = side < 0.0f ? -1.0f : side + 2.0f * turns;
+    if (state == 3.0f) alive = 0;
+    pos[p] = (float4)(x.x, x.y, x.z,
+                      alive ? 1.0f : (state == 2.0f ? -1.0f : (state == 3.0f ? -2.0f : 0.0f)));
     vel[p] = v;
     flux[p] = F;
     if (alive) atomic_inc(&counters[0]);
@@ -659,6 +837,90 @@ __kernel void photon_outer(__global const float4 *pos, __global const float4 *ve
     pending_flush(&pd, rad, dirs);
 }
 
+/* Photons on diffuse surfaces, as photon-map records (RayPiece, the photon map's input:
+ * clscatter/estimators/ray_density.py): a photon that met a surface in the grid (pos.w = -2:
+ * pos the start of that step) or left the grid (pos.w = -1: it goes on straight, the
+ * format's "Beyond" rule) is followed along vel to the first surface; where that surface
+ * is diffuse one record is appended: a = where the piece starts, b = the hit, the flux
+ * arriving (a photon beyond the grid attenuated by the scene medium on the way), end
+ * PIECE_DIFFUSE, ray = the photon's index. Mirrors and glass end it (no bounce).
+ * straight = 1: the states are photon_emit's (pos.w = 1 where the photon enters the grid)
+ * and every entering photon goes on straight through the grid as if it held nothing: the
+ * straight light through the grid that the grid's occluder takes from the view paths'
+ * shadow rays (the surface photon map's seam correction, pipeline.py). */
+__kernel void photon_surface(__global const float4 *pos, __global const float4 *vel,
+                             __global const float4 *flux, int count, int light_index,
+                             int straight, __global const BVHNode *nodes,
+                             __global const float4 *tris, __global const int *tri_mat,
+                             __global const Material *materials, __global const Medium *medium,
+                             __global RayPiece *pieces, int max_pieces,
+                             volatile __global int *piece_count) {
+    int p = get_global_id(0);
+    if (p >= count) return;
+    float4 x = pos[p];
+    if (straight ? x.w != 1.0f : (x.w != -1.0f && x.w != -2.0f)) return;
+    int beyond = x.w != -2.0f;
+    x.w = 0.0f;
+    float4 d = normalize3(vel[p]);
+    Hit hit;
+    if (!bvh_closest(nodes, tris, x, d, 0.0f, T_INF, &hit)) return;
+    if (materials[tri_mat[hit.tri]].type != MAT_DIFFUSE) return;
+    float4 F = flux[p];
+    if (beyond) F *= transmittance(medium->kappa, medium_path_length(medium, x, d, 0.0f, hit.t));
+    F.w = 0.0f;
+    if (!(fmax(F.x, fmax(F.y, F.z)) > 0.0f)) return;
+    int idx = atomic_inc(piece_count);
+    if (idx >= max_pieces) return;
+    RayPiece rp;
+    rp.a = x;
+    rp.b = x + hit.t * d;
+    rp.b.w = 0.0f;
+    rp.flux = F;
+    rp.light = light_index;
+    rp.depth = 0;
+    rp.ray = p;
+    rp.branch = 0;
+    rp.end = PIECE_DIFFUSE;
+    rp.pad0 = rp.pad1 = rp.pad2 = 0;
+    pieces[idx] = rp;
+}
+
+/* What the grid's occluder takes from diffuse hits, for the surface photon map's seam
+ * correction (pipeline.py, seam_correction). For hit i and light li: out[i].xyz = the
+ * irradiance the light sends straight to the hit (direct_irradiance's term of view_paths.cl:
+ * E cos, the shadow ray, the medium's transmittance from record 0 of `medium`) where its
+ * shadow ray crosses the grid box [glo, ghi], else 0; out[i].w = 1 where the shadow ray
+ * passes within `delta` of the box's surface (it meets the box grown by delta on every
+ * side but not the box shrunk by delta), else 0. */
+__kernel void voxel_seam(__global const DiffuseHit *hits, int n, __global const Light *lights,
+                         int light_index, __global const BVHNode *nodes,
+                         __global const float4 *tris, __global const int *light_grid,
+                         __global const Medium *medium, float4 glo, float4 ghi, float delta,
+                         __global float4 *out) {
+    int i = get_global_id(0);
+    if (i >= n) return;
+    DiffuseHit hh = hits[i];
+    float4 origin = hh.p + hh.g * surface_offset(hh.p);
+    float4 wi;
+    float dist, t0, t1;
+    float4 E = light_arrival(&lights[light_index], hh.p, &wi, &dist);
+    float tmax = dist < T_INF ? dist : T_INF;
+    float4 inv = safe_inv_dir(wi);
+    float4 dl = (float4)(delta, delta, delta, 0.0f);
+    float4 slo = glo + dl, shi = ghi - dl;
+    int grown = ray_box(origin, inv, glo - dl, ghi + dl, 0.0f, tmax, &t0, &t1);
+    int shrunk = slo.x < shi.x && slo.y < shi.y && slo.z < shi.z &&
+                 ray_box(origin, inv, slo, shi, 0.0f, tmax, &t0, &t1);
+    int through = ray_box(origin, inv, glo, ghi, 0.0f, tmax, &t0, &t1);
+    float c = dot3(hh.n, wi);
+    float4 r = (float4)(0.0f);
+    if (through && c > 0.0f && dot3(hh.g, wi) > 0.0f)
+        r = E * c * voxel_unoccluded(nodes, tris, light_grid, light_index, medium, origin, wi,
+                                     dist, 0.0f);
+    r.w = grown && !shrunk ? 1.0f : 0.0f;
+    out[i] = r;
+}
+
 /* Single scattering along view segments outside the grid from the outer grid's light
  * (the light that went through the volumes): midpoint rule at one outer voxel,
  * sigma_s p_HG(mean direction . towards camera) fluence exp(-kappa t), times the
@@ -702,9 +964,12 @@ __kernel void outer_view(__global const ViewSegment *segs, int count, __global c
  * outside, with its throughput) or at a surface (rays_out from the step's start with
  * flags |= VOX_SKIP_FIRST: the straight tracer takes the surface from there, the piece up
  * to it already integrated here). radiance[r] is the ray's in-scattered light (weighted
- * by its throughput). Where the ray crosses a volume's smoothed boundary its throughput
- * is multiplied by the Fresnel transmittance of the crossing (vox_crossing, as for
- * photons); the reflected branch is not followed. */
+ * by its throughput). grad n is the interior gradient: where the ray meets a volume's
+ * sharp boundary the step is cut there and the ray is refracted by Snell's law, its
+ * throughput multiplied by the Fresnel transmittance (vox_cut, vox_cross, as for photons;
+ * the reflected branch is not followed), or turned back by total internal reflection,
+ * which counts as a specular bounce in the ray's depth (the ray ends, dropped, at
+ * max_depth). */
 __kernel void voxel_view_march(__global const VoxRay *rays, int count, float4 glo, float4 ghi,
                                int4 dims, float h, __global const float *n_grid,
                                __global const float4 *grad, __global const float4 *sigma_s,
@@ -712,7 +977,8 @@ __kernel void voxel_view_march(__global const VoxRay *rays, int count, float4 gl
                                __global const float4 *dirs, float g_phase, int max_steps,
                                __global const BVHNode *nodes, __global const float4 *tris,
                                int test_surfaces, __global const float4 *boundary,
-                               __global float4 *radiance, __global VoxRay *rays_out) {
+                               int max_depth, __global float4 *radiance,
+                               __global VoxRay *rays_out) {
     int r = get_global_id(0);
     if (r >= count) return;
     VoxRay ray = rays[r];
@@ -725,16 +991,17 @@ __kernel void voxel_view_march(__global const VoxRay *rays, int count, float4 gl
     float4 L = (float4)(0.0f);
     int ended = 0;
     float4 dir = ray.d;
-    float xing = -1.0f;
+    float side = -1.0f;
     for (int s = 0; s < max_steps; ++s) {
         Tri tr = tri_setup(x, glo, dims, inv_h);
         float n = tri_f(n_grid, dims, &tr);
         float4 g = tri_f4(grad, dims, &tr);
+        float w0 = tri_f4(boundary, dims, &tr).x;
+        if (side < 0.0f) side = w0 >= 0.5f ? 1.0f : 0.0f;
         float vl = length3(v);
         if (!(vl > 0.0f)) break;
         dir = v / vl;
         dir.w = 0.0f;
-        thr *= vox_crossing(&xing, tri_f4(boundary, dims, &tr), v, g);   /* Fresnel */
         float len = fmin(h, box_exit(x, dir, glo, ghi));
         int leave = len < h;
         int surf = 0;
@@ -742,6 +1009,11 @@ __kernel void voxel_view_march(__global const VoxRay *rays, int count, float4 gl
             Hit hit;
             if (bvh_closest(nodes, tris, x, dir, 0.0f, len, &hit)) { len = hit.t; surf = 1; }
         }
+        /* a boundary on the way: the step ends where the ray meets it */
+        float w1 = vox_side_at(boundary, dims, x + len * dir, glo, inv_h).x;
+        float cut = vox_cut_refine(boundary, dims, x, dir, len, w0, w1, vox_cut(w0, w1, side),
+                                   glo, inv_h);
+        if (cut >= 0.0f && cut < 1.0f) { len *= cut; leave = 0; surf = 0; }
         float4 m = x + 0.5f * len * dir;
         Tri tm = tri_setup(m, glo, dims, inv_h);
         float4 ss = tri_f4(sigma_s, dims, &tm), kp = tri_f4(kappa, dims, &tm);
@@ -776,8 +1048,16 @@ __kernel void voxel_view_march(__global const VoxRay *rays, int count, float4 gl
             ended = 1;
             break;
         }
-        v += (h * n / vl) * g;
+        v += (len * n / vl) * g;
         v.w = 0.0f;
+        if (cut >= 0.0f) {
+            int turned;
+            thr *= vox_cross(boundary, dims, x, glo, h, &v, &side, &turned);
+            if (turned) {                       /* a specular bounce: the path's depth */
+                ray.flags += 1 << 4;
+                if ((ray.flags >> 4) >= max_depth) break;
+            }
+        }
     }
     if (!ended) thr = (float4)(0.0f);       /* ran out of steps: drop the remainder */
     thr.w = 0.0f;
@@ -805,7 +1085,9 @@ __kernel void vox_keep_flags(__global const VoxRay *rays, int count, float min_t
  * its next surface stops there: its medium piece and attenuation end at the box, and it
  * is appended to `stopped` for the viewing pass. The first branch may carry
  * VOX_SKIP_FIRST: its first piece was integrated by the viewing pass (no medium piece,
- * no attenuation, no stop). Returns the directly lit surface radiance. */
+ * no attenuation, no stop). Returns the directly lit surface radiance; with want_hits
+ * every diffuse hit is also appended to `hits` (append_diffuse_hit of view_paths.cl), where
+ * the surface photons' estimate is added. */
 float4 voxel_follow(Branch first, int first_flags, int pixel, int sample, int depth_limit,
                     __global const BVHNode *nodes, __global const float4 *tris,
                     __global const int *light_grid, __global const int *camera_grid,
@@ -814,7 +1096,8 @@ float4 voxel_follow(Branch first, int first_flags, int pixel, int sample, int de
                     int num_lights, __global const Medium *medium, float4 gmin, float4 gmax,
                     float min_weight, __global ViewSegment *segs, int max_segs,
                     volatile __global int *seg_count, __global VoxRay *stopped, int max_stopped,
-                    volatile __global int *stop_count) {
+                    volatile __global int *stop_count, int want_hits, __global DiffuseHit *hits,
+                    int max_hits, volatile __global int *hit_count) {
     Branch stack[PATH_STACK];
     stack[0] = first;
     int top = 1, next_id = first.id + 1;
@@ -854,9 +1137,13 @@ float4 voxel_follow(Branch first, int first_flags, int pixel, int sample, int de
         SurfaceFrame f;
         int mi;
         if (surface_hit(tris, normals, tri_mat, materials, &hit, &br, depth_limit, min_weight,
-                        stack, &top, &next_id, &f, &mi))
+                        stack, &top, &next_id, &f, &mi)) {
             radiance += br.thr * shade_diffuse(nodes, tris, light_grid, lights, num_lights,
                                                medium, f.p, f.nf, f.gf, materials[mi].color);
+            if (want_hits)      /* the photons' light is added there (surface photon map) */
+                append_diffuse_hit(hits, max_hits, hit_count, &f, materials[mi].color, &br,
+                                   pixel, sample);
+        }
     }
     return radiance;
 }
@@ -873,7 +1160,9 @@ __kernel void voxel_trace_camera(__global const BVHNode *nodes, __global const f
                                  __global VoxRay *stopped, int max_stopped,
                                  volatile __global int *stop_count,
                                  __global ViewSegment *segs, int max_segs,
-                                 volatile __global int *seg_count) {
+                                 volatile __global int *seg_count, int want_hits,
+                                 __global DiffuseHit *hits, int max_hits,
+                                 volatile __global int *hit_count) {
     int gid = get_global_id(0);
     if (gid >= num_samples) return;
     int s = sample_offset + gid, pixel;
@@ -883,7 +1172,7 @@ __kernel void voxel_trace_camera(__global const BVHNode *nodes, __global const f
                                 normals, tri_mat,
                                 materials, lights, num_lights, medium, gmin, gmax,
                                 MIN_THROUGHPUT * inv_spp, segs, max_segs, seg_count, stopped,
-                                max_stopped, stop_count);
+                                max_stopped, stop_count, want_hits, hits, max_hits, hit_count);
 }
 
 /* Continue the rays the viewing pass handed back (leaving the grid or meeting a surface).
@@ -899,7 +1188,9 @@ __kernel void voxel_trace_rays(__global const BVHNode *nodes, __global const flo
                                __global VoxRay *stopped, int max_stopped,
                                volatile __global int *stop_count,
                                __global ViewSegment *segs, int max_segs,
-                               volatile __global int *seg_count) {
+                               volatile __global int *seg_count, int want_hits,
+                               __global DiffuseHit *hits, int max_hits,
+                               volatile __global int *hit_count) {
     int gid = get_global_id(0);
     if (gid >= count) return;
     VoxRay r = rays[gid];
@@ -911,5 +1202,5 @@ __kernel void voxel_trace_rays(__global const BVHNode *nodes, __global const flo
                                 light_grid, camera_grid,
                                 normals, tri_mat, materials, lights, num_lights, medium, gmin,
                                 gmax, min_weight, segs, max_segs, seg_count, stopped, max_stopped,
-                                stop_count);
+                                stop_count, want_hits, hits, max_hits, hit_count);
 }

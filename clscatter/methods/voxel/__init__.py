@@ -51,7 +51,9 @@ class Voxel(Method):
     becomes a grid of ``resolution`` voxels along its longest side. Volumes are voxelised
     (inside test at voxel centres, 4^3 coverage where the 3x3x3 neighbourhood disagrees,
     9^3 Gaussian blur with sigma 1.5 voxels) into the index n, scattering and extinction
-    (mixed with the scene medium by the blurred weights) and grad n; an octree stored as a
+    (mixed with the scene medium by the blurred weights) and grad n without the volumes'
+    boundary jumps (the interior gradient: boundaries are crossed by Snell's law); an
+    octree stored as a
     dense level grid (min/max pyramid, tolerance ``eps``) and a step limit (``step_max``
     voxels where the node's index range lies between ``eps`` and ``eps2``) pace the
     photons. ``photons`` photons per light start where its light enters the grid
@@ -65,24 +67,32 @@ class Voxel(Method):
     The join: every piece of every view path lies inside the grid (all its light from the
     photons: direct light and light bent by volumes alike) or outside it (direct single
     scattering by ``raymarch``, shadow rays through the scene). Nothing is counted twice.
+    Surfaces (``surface_photons``): photons that reach a diffuse surface in the grid, or
+    beyond it going on straight, are stored as a photon map (hit point, incoming
+    direction, flux); every diffuse hit of the view paths gets its estimate from the
+    ``surface_k`` nearest (within ``surface_radius``; the estimator of ``photonmap``), and
+    the straight direct light only from the lights whose shadow ray misses the grid's box
+    (the rest is the photons'), so volumes cast shadows and caustics on the floor without
+    being counted twice. The seam along the outline of the grid's straight shadow is the
+    photon map's boundary bias (about one estimation radius wide).
+
     Approximations: outside the grid light is not bent (a caustic beyond the grid's faces
-    is cut there: grow ``margin`` to include it); photons end at any surface (no specular
-    bounces inside the grid, no surface caustics: surfaces are lit by the engine's direct
-    light); dielectric objects are voxelised as constant-index volumes
-    (``voxelise_dielectrics``), so glass is rendered by the ray equation, not by Snell's
-    law. Fresnel at the smoothed boundaries: a photon or view ray whose path crosses a
-    volume's boundary (where the volume's blurred weight passes 1/2) from index n1 to n2
-    keeps the unpolarised Fresnel transmittance of a sharp n1 -> n2 interface at its
-    angle of incidence (from the ray equation's invariant n sin theta across the band),
-    once per crossing; the reflected part is dropped (no reflected photons, no reflection
-    of the scene in a voxelised ball), and a path the band turns back (total internal
-    reflection) keeps everything.
+    is cut there: grow ``margin`` to include it); photons end at mirrors and glass (no
+    specular bounces of photons); dielectric objects are voxelised as constant-index volumes
+    (``voxelise_dielectrics``). Sharp boundaries: a volume's boundary lies where its
+    blurred weight is 1/2; a photon or view ray meeting it from index n1 to n2 is cut
+    there, refracted by Snell's law (the normal from the blurred weight's gradient) and
+    keeps the unpolarised Fresnel transmittance of the sharp interface (bending through
+    the smoothed band instead under-deviates a curved surface's grazing rays, by several
+    degrees at typical resolutions: docs/voxel.md); the reflected part is dropped (no
+    reflected photons, no reflection of the scene in a voxelised ball), and a path past
+    the critical angle is mirrored whole (total internal reflection; ``render.max_depth``
+    of them end it).
 
     Density volumes (heterogeneous media) are voxelised like grid volumes, their
-    coefficients the sampled density times ``sigma_s`` and ``sigma_a``; in a scene with
-    them the straight tracers' shadow rays are attenuated through the density grids
-    themselves (``density.h``, exact optical depths), so surfaces lie in the smoke's
-    shadow. Shadows of the other volumes on surfaces are not modelled.
+    coefficients the sampled density times ``sigma_s`` and ``sigma_a``; the surface photons
+    carry the smoke's shadow (without them the straight tracers' shadow rays are attenuated
+    through the density grids themselves, ``density.h``, exact optical depths).
 
     Usage: ``clscatter render scene.toml --method voxel --set render.voxel.resolution=128``;
     ``--stats`` reports the grid (``voxel_grid``: min, max, dims, voxel size in scene
@@ -118,6 +128,14 @@ class Voxel(Method):
         Param("exit_radius", 0.005, "gather radius for beyond = 'lsg', relative to the scene extent",
               lo=0.0, lo_open=True),
         Param("voxelise_dielectrics", True, "voxelise dielectric objects as constant-index volumes"),
+        Param("surface_photons", True, "diffuse surfaces get the light that crosses the grid from "
+              "the photons that reach them (a photon-map estimate at the view paths' diffuse "
+              "hits) and no straight direct light where their shadow ray crosses the grid: "
+              "volumes cast shadows and caustics on surfaces; false: the engine's straight "
+              "direct light everywhere (density grids' shadows only)"),
+        Param("surface_k", 64, "surface photons per estimate (the k nearest)", lo=2, hi=1024),
+        Param("surface_radius", 0.05, "largest surface estimation radius, relative to the "
+              "scene extent", lo=0.0, lo_open=True),
     )
     TERMS = frozenset({"direct", "volumes"})
     PREVIEW_SCALE = {"photons": 0.25}
@@ -138,17 +156,19 @@ class Voxel(Method):
     @classmethod
     def estimate(cls, scene, params):
         """Working set: the grid (its resolution cubed, an upper bound), the outer grid,
-        the photon states of one light (48 bytes each) and the view rays (2 x 64 bytes per
-        camera sample, an upper bound)."""
+        the photon states of one light (48 bytes each) with, for the surface photon map, two
+        records per photon and light (80 bytes each: marched and straight), and the view
+        rays (2 x 64 bytes per camera sample, an upper bound)."""
         if not scene.volumes and not any(o.material.type == "dielectric" for o in scene.objects):
             return []
         grid = float(params["resolution"]) ** 3
         outer = (float(params["outer_resolution"]) ** 3
                  if beyond_mode(params["beyond"], scene.medium) == "grid" else 0.0)
         photons = float(params["photons"]) * max(1, len(scene.lights))
+        on_surfaces = photons * 160.0 if params["surface_photons"] else 0.0
         return costs("voxel", {"render.voxel.resolution": grid * cls.BYTES_PER_VOXEL,
                                "render.voxel.outer_resolution": outer * 48,
-                               "render.voxel.photons": float(params["photons"]) * 48,
+                               "render.voxel.photons": float(params["photons"]) * 48 + on_surfaces,
                                "camera.resolution": camera_samples(scene) * 128.0},
                      {"render.voxel.photons": photons * 30},
                      "photon steps (order of magnitude)")
@@ -174,7 +194,9 @@ class Voxel(Method):
         vps = self._variant(ctx, scene) if scene is not ps.scene else ps
         pipe = self._pipeline(ctx, vps)
         dens = None
-        if scene.density_volumes():          # surfaces' shadow rays through the grids
+        if scene.density_volumes() and not self.params["surface_photons"]:
+            # surfaces' shadow rays through the grids (with surface photons the photons
+            # carry the grids' shadows)
             dens = ctx.cache["density"] = upload(vps, ctx.cache.get("density"))
         try:
             out = pipe.update(vps, stats, ctx.show_progress,
@@ -261,7 +283,8 @@ def stage_keys(ps, params: dict) -> tuple[str, str, str]:
         mat += [v.ior, v.sigma_s, v.sigma_a, getattr(v, "sigma_s_grid", None),
                 getattr(v, "sigma_a_grid", None), v.density]
     g, m = _digest(*geo), _digest(*mat)
-    light = _digest(g, m, ps.lights, ps.bvh.triangles, ps.scene.render.seed,
+    light = _digest(g, m, ps.lights, ps.bvh.triangles, ps.scene.render.seed, ps.scene.render.max_depth,
                     *(params[k] for k in ("photons", "adaptive", "step_min", "min_flux", "steps_per_launch",
-                                          "done_fraction", "smoothing", "beyond", "outer_resolution")))
+                                          "done_fraction", "smoothing", "beyond", "outer_resolution",
+                                          "surface_photons")))
     return g, _digest(g, m), light

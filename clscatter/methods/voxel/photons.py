@@ -36,7 +36,7 @@ from ...geometry import box_corners, perpendicular_axes
 from ...transport import primitives as prim
 from .grid import GridBox
 from .octree import Octree, build_octree
-from .voxelise import SMOOTH_TAPS, blur_buffers, gradient, medium_at_centres
+from .voxelise import SMOOTH_TAPS, blur_buffers, gradient, interior_gradient, medium_at_centres
 
 
 @dataclass
@@ -63,16 +63,21 @@ class Fields:
 def upload_fields(eng: Engine, box: GridBox, n: np.ndarray, sigma_s4: np.ndarray, kappa4: np.ndarray,
                   eps: float, eps2: float, limit: float, boundary: np.ndarray | None = None) -> Fields:
     """Upload n, sigma_s, kappa (host grids) and build grad n and the octree on the device.
-    ``boundary`` ((nx, ny, nz, 4), :func:`~.voxelise.boundary_sides`) says where paths
-    cross the volumes' smoothed boundaries and between which indices (they keep the
-    Fresnel transmittance there); None: no boundaries (no Fresnel loss anywhere)."""
+    ``boundary`` ((nx, ny, nz, 4), :func:`~.voxelise.boundary_sides`) says where the
+    volumes' sharp boundaries lie and between which indices: paths cross them by Snell's
+    law with the Fresnel transmittance, and ``grad`` is then the interior gradient
+    (:func:`~.voxelise.interior_gradient`: the boundaries' jumps taken out); None: no
+    boundaries (paths bend through every index change by the ray equation alone)."""
     n = np.ascontiguousarray(n, np.float32)
     nb = eng.to_device(n)
     b = (np.zeros((*box.dims, 4), np.float32) if boundary is None
          else np.ascontiguousarray(boundary, np.float32))
-    return Fields(box, nb, gradient(eng, box, nb), eng.to_device(np.ascontiguousarray(sigma_s4, np.float32)),
+    grad, bb = gradient(eng, box, nb), eng.to_device(b)
+    if boundary is not None:
+        interior_gradient(eng, box, grad, bb)
+    return Fields(box, nb, grad, eng.to_device(np.ascontiguousarray(sigma_s4, np.float32)),
                   eng.to_device(np.ascontiguousarray(kappa4, np.float32)),
-                  build_octree(eng, box, nb, eps, eps2, limit), n, eng.to_device(b))
+                  build_octree(eng, box, nb, eps, eps2, limit), n, bb)
 
 
 @dataclass
@@ -84,6 +89,8 @@ class Radiance:
     dirs: object
     counters: dict = field(default_factory=dict)
     exits: np.ndarray | None = None     # structs.LIGHT_SEGMENT: the light beyond the grid
+    surface: np.ndarray | None = None   # structs.RAY_PIECE: photons on diffuse surfaces
+    straight: np.ndarray | None = None  # structs.RAY_PIECE: the same photons gone on straight
     outer: GridBox | None = None        # the coarse grid that holds the light beyond the grid
     outer_rad: object = None
     outer_dirs: object = None
@@ -155,7 +162,8 @@ def emitter(light: np.ndarray, box: GridBox, photons: int) -> Emitter:
 @dataclass
 class MarchState:
     """Photon states on the device (pos.w = 1 while live; ``crossing``: a float per
-    photon, the boundary-crossing state of ``vox_crossing``, -1 at the start)."""
+    photon, its side of the volumes' boundaries (0 outside, 1 inside, -1 not known yet:
+    the start))."""
 
     pos: object
     vel: object
@@ -180,6 +188,7 @@ class MarchSettings:
     steps_per_launch: int = 16
     done_fraction: float = 0.999   # stop launching when this fraction has finished
     max_launches: int = 4096
+    max_turns: int = 16            # total internal reflections that end a photon (render.max_depth)
 
 
 def march(eng: Engine, fields: Fields, state: MarchState, rad, dirs, ms: MarchSettings,
@@ -205,7 +214,8 @@ def march(eng: Engine, fields: Fields, state: MarchState, rad, dirs, ms: MarchSe
                      smax=fields.octree.smax, adaptive=ms.adaptive,
                      ds_min=ms.ds_min * box.h, min_rel=ms.min_rel, nodes=nodes,
                      tris=tris, test_surfaces=test_surfaces, boundary=bnd,
-                     crossing=state.crossing, rad=rad, dirs=dirs, counters=counters)
+                     crossing=state.crossing, max_turns=ms.max_turns, rad=rad, dirs=dirs,
+                     counters=counters)
             c = eng.read(counters, 2, np.int32)
             live, steps, launches = int(c[0]), steps + int(c[1]), launches + 1
     finally:
@@ -216,7 +226,7 @@ def march(eng: Engine, fields: Fields, state: MarchState, rad, dirs, ms: MarchSe
 
 
 def no_crossings(eng: Engine, count: int):
-    """A device float per photon, -1: no step start yet (``vox_crossing``'s state)."""
+    """A device float per photon, -1: its side of the boundaries not known yet."""
     return eng.to_device(np.full(max(count, 1), -1.0, np.float32), True)
 
 
@@ -239,13 +249,15 @@ def smooth(eng: Engine, box: GridBox, buf) -> None:
         eng.free(tmp, taps)
 
 
-def exits_by_photon(eng: Engine, app: AppendBuffer, n: int, photons: int) -> np.ndarray:
-    """The ``n`` lighting segments one ``photon_exits`` launch appended to ``app`` (at most
-    one per photon, in no fixed order), bucket-sorted by photon index on the device
-    (``record_keys`` of view_paths.cl takes any record's int words), then read back:
-    lsg's line tree (``gather_exits``) is built from them on the host, so this read is
-    what that host structure needs; the order makes it reproducible."""
-    rec = structs.LIGHT_SEGMENT
+def exits_by_photon(eng: Engine, app: AppendBuffer, n: int, photons: int,
+                    rec: np.dtype = structs.LIGHT_SEGMENT) -> np.ndarray:
+    """The ``n`` records (``rec``, with a ``ray`` field: the photon) that one launch of
+    ``photon_exits`` (lighting segments) or ``photon_surface`` (photons on surfaces)
+    appended to ``app`` (at most one per photon, in no fixed order), bucket-sorted by
+    photon index on the device (``record_keys`` of view_paths.cl takes any record's int
+    words), then read back: lsg's line tree (``gather_exits``) and the surface photon map
+    are built from them on the host, so this read is what those host structures need; the
+    order makes it reproducible."""
     if n == 0:
         return np.zeros(0, rec)
     keys, unused = eng.empty(4 * n), eng.empty(4 * n)
@@ -262,11 +274,17 @@ def exits_by_photon(eng: Engine, app: AppendBuffer, n: int, photons: int) -> np.
 
 
 def light_pass(eng: Engine, fields: Fields, ps, photons: int, ms: MarchSettings,
-               test_surfaces: bool, smoothing: bool = True, outer: GridBox | None = None) -> Radiance:
+               test_surfaces: bool, smoothing: bool = True, outer: GridBox | None = None,
+               surface_photons: bool = False) -> Radiance:
     """Emit ``photons`` per light of the prepared scene ``ps``, march them, deposit,
     smooth. ``ps.dev`` supplies the scene BVH, lights and medium. Photons that leave the
     grid become lighting segments (``exits``, sorted by (light, photon)) and, with an
-    ``outer`` grid, are also deposited there as straight lines (``photon_outer``)."""
+    ``outer`` grid, are also deposited there as straight lines (``photon_outer``). With
+    ``surface_photons`` (and surfaces in the scene), those that reach a diffuse surface in
+    or beyond the grid are kept as photon-map records (``surface``, ``photon_surface``,
+    sorted by (light, photon)), and so are the same photons gone on straight from where
+    they entered the grid, as if it held nothing (``straight``: the surface estimate's
+    seam correction)."""
     box = fields.box
     rad, dirs = eng.zeros(16 * box.size), eng.zeros(16 * box.size)
     orad = odirs = okappa = None
@@ -280,7 +298,11 @@ def light_pass(eng: Engine, fields: Fields, ps, photons: int, ms: MarchSettings,
              "voxel_photon_steps": 0, "voxel_photons_unfinished": 0}
     seed = np.uint32((ps.scene.render.seed * 40503 + 7) & 0xFFFFFFFF)
     exits: list[np.ndarray] = []
+    on_surfaces: list[np.ndarray] = []
+    straights: list[np.ndarray] = []
+    surface_photons = surface_photons and test_surfaces
     app = AppendBuffer(eng, structs.LIGHT_SEGMENT, 1024)
+    app_s = AppendBuffer(eng, structs.RAY_PIECE, 1024) if surface_photons else None
     entering = eng.empty(4)
     for li in range(ps.num_lights):
         em = emitter(ps.lights[li], box, photons)
@@ -294,11 +316,15 @@ def light_pass(eng: Engine, fields: Fields, ps, photons: int, ms: MarchSettings,
                      glo=box.lo4(), ghi=box.hi4(), dims=box.dims4(), h=box.h, n_grid=fields.n,
                      pos=st.pos, vel=st.vel, flux=st.flux, entering=entering)
             alive = int(eng.read(entering, 1, np.int32)[0])
+            if surface_photons:
+                straights.append(surface_records(eng, ps, st, li, app_s, straight=True))
             c = march(eng, fields, st, rad, dirs, ms, (ps.dev.nodes, ps.dev.tris), test_surfaces)
             got = app.call_on_device("voxel", "photon_exits", N, pos=st.pos, vel=st.vel,
                                      flux=st.flux, count=N, light_index=li,
                                      **ps.scene_args("voxel", "photon_exits"))
             exits.append(exits_by_photon(eng, app, got, N))
+            if surface_photons:
+                on_surfaces.append(surface_records(eng, ps, st, li, app_s, straight=False))
             if outer is not None:
                 ps.call("voxel", "photon_outer", N, pos=st.pos, vel=st.vel, flux=st.flux, count=N,
                          olo=outer.lo4(), ohi=outer.hi4(), od=outer.dims4(), oh=outer.h,
@@ -311,9 +337,17 @@ def light_pass(eng: Engine, fields: Fields, ps, photons: int, ms: MarchSettings,
         total["voxel_photon_steps"] += c["steps"]
         total["voxel_photons_unfinished"] += c["live_at_end"]
     app.release()
+    if app_s is not None:
+        app_s.release()
     eng.free(entering)
     ex = np.concatenate(exits) if exits else np.zeros(0, structs.LIGHT_SEGMENT)
     total["voxel_photons_leaving"] = int(len(ex))
+    on_surface = straight = None
+    if surface_photons:
+        none = np.zeros(0, structs.RAY_PIECE)
+        on_surface = np.concatenate(on_surfaces) if on_surfaces else none
+        straight = np.concatenate(straights) if straights else none
+        total["voxel_surface_photons"] = int(len(on_surface))
     if smoothing:
         smooth(eng, box, rad)
         smooth(eng, box, dirs)
@@ -322,4 +356,16 @@ def light_pass(eng: Engine, fields: Fields, ps, photons: int, ms: MarchSettings,
         if smoothing:
             smooth(eng, outer, orad)
             smooth(eng, outer, odirs)
-    return Radiance(rad, dirs, total, ex, outer, orad, odirs)
+    return Radiance(rad, dirs, total, ex, on_surface, straight, outer, orad, odirs)
+
+
+def surface_records(eng: Engine, ps, st: MarchState, light: int, app: AppendBuffer,
+                    straight: bool) -> np.ndarray:
+    """``photon_surface`` over the photon states ``st`` of light ``light``: the photons
+    that reached a diffuse surface (after marching), or with ``straight`` (the states
+    ``photon_emit`` left) those that would have gone on straight through the grid, as
+    RAY_PIECE records sorted by photon."""
+    got = app.call_on_device("voxel", "photon_surface", st.count, pos=st.pos, vel=st.vel,
+                             flux=st.flux, count=st.count, light_index=light,
+                             straight=int(straight), **ps.scene_args("voxel", "photon_surface"))
+    return exits_by_photon(eng, app, got, st.count, structs.RAY_PIECE)

@@ -8,9 +8,11 @@ stage           computes                                     re-runs when
                 weights (``voxelise.py``)                    changes; grid parameters
 ``material``    n, sigma_s, kappa, grad n, octree, boundary  a volume's ior / sigma, the
                 sides (``voxelise.py``, ``octree.py``)       medium; eps parameters
-``lighting``    photons, marching, deposition, smoothing     a light; anything above
+``lighting``    photons, marching, deposition, smoothing;    a light; anything above
+                photons on diffuse surfaces
 ``view``        view paths through the grid; direct light    the camera; anything above
-                outside it (``view.py`` + ``raymarch``)
+                outside it (``view.py`` + ``raymarch``);
+                the surface photon map at the diffuse hits
 ==============  ===========================================  ============================
 """
 from __future__ import annotations
@@ -21,6 +23,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ...estimators.line_gather import Gatherer
+from ...estimators.ray_density import (
+    DensitySettings,
+    build_map,
+    estimate,
+    pass_image,
+    read_hits,
+)
+from ...estimators.segment_tree import TreeParams
+from ...io.stats import Stats
 from ...transport.view_paths import DeviceSegments, ViewPaths
 from .grid import GridBox, make_box, scene_box
 from .photons import Fields, MarchSettings, Radiance, light_pass, upload_fields
@@ -114,12 +125,13 @@ class Pipeline:
     def _lighting(self, ps) -> None:
         p = self.params
         ms = MarchSettings(adaptive=p["adaptive"], ds_min=p["step_min"], min_rel=p["min_flux"],
-                           steps_per_launch=p["steps_per_launch"], done_fraction=p["done_fraction"])
+                           steps_per_launch=p["steps_per_launch"], done_fraction=p["done_fraction"],
+                           max_turns=ps.scene.render.max_depth)
         outer = (outer_box(ps, self.box, p["outer_resolution"])
                  if self._beyond(ps) == "grid" else None)
         self.radiance = light_pass(ps.engine, self.fields, ps, p["photons"], ms,
                                    test_surfaces=len(ps.bvh.order) > 0, smoothing=p["smoothing"],
-                                   outer=outer)
+                                   outer=outer, surface_photons=p["surface_photons"])
 
     def update(self, ps, stats=None, show_progress: bool = True, medium=None) -> dict:
         """Run the stages whose results are missing, then the view; returns
@@ -138,12 +150,22 @@ class Pipeline:
         return res
 
     def _view(self, ps, stats, show_progress, medium=None) -> dict:
-        vr = view_pass(ps, self.fields, self.radiance, self.params["view_rounds"], show_progress,
-                       test_surfaces=len(ps.bvh.order) > 0, medium=medium)
+        p = self.params
+        on_surfaces = self.radiance.surface
+        vr = view_pass(ps, self.fields, self.radiance, p["view_rounds"], show_progress,
+                       test_surfaces=len(ps.bvh.order) > 0, medium=medium,
+                       surface_photons=on_surfaces is not None)
         cam = ps.scene.camera
         direct = np.zeros((cam.height, cam.width, 3), np.float32)
         beyond = np.zeros_like(direct)
+        photon_surface = np.zeros_like(direct)
         try:
+            if vr.hits is not None and vr.hits.count:
+                radius = p["surface_radius"] * ps.scene.scene_extent() / ps.frame.scale
+                photon_surface, work = surface_estimate(
+                    ps, self.fields.box, vr.hits, on_surfaces, self.radiance.straight,
+                    surface_settings(p["surface_k"], radius), show_progress)
+                vr.counters.update(work)
             if vr.segments.count and ps.num_lights and ps.has_medium:
                 direct = direct_outside(ps, self.fields.box, vr.segments,
                                         self.params["direct_steps"])
@@ -155,9 +177,90 @@ class Pipeline:
                     r = self.params["exit_radius"] * ps.scene.scene_extent() / ps.frame.scale
                     beyond = gather_exits(ps, vr.segments, ex, r, show_progress)
         finally:
-            vr.segments.release()
-        return {"surface": vr.surface, "medium": vr.inside + direct + beyond, "inside": vr.inside,
-                "direct_outside": direct, "beyond": beyond, "counters": vr.counters}
+            vr.release()
+        return {"surface": vr.surface + photon_surface, "medium": vr.inside + direct + beyond,
+                "inside": vr.inside, "direct_outside": direct, "beyond": beyond,
+                "surface_direct": vr.surface, "surface_photons": photon_surface,
+                "counters": vr.counters}
+
+
+def surface_settings(k: int, radius: float) -> DensitySettings:
+    """The surface photon map's settings: ``k`` nearest photons within ``radius``
+    (normalised), Epanechnikov weights, a static kd-tree over the photons' hit points (the
+    photon map's: ``photonmap``'s defaults, 16 photons a leaf)."""
+    return DensitySettings(k=int(k), kernel="epanechnikov", max_radius=float(radius), lazy=False,
+                           tree=TreeParams(c_min=16, r_min=0.0, d_max=40, alpha_deg=0.0))
+
+
+def surface_estimate(ps, box: GridBox, hits: DeviceSegments, photons: np.ndarray,
+                     straight: np.ndarray, settings: DensitySettings,
+                     show_progress: bool = False) -> tuple[np.ndarray, dict]:
+    """The light the photons bring to the view paths' diffuse ``hits`` (DIFFUSE_HIT records
+    on the device, sorted, with pixel offsets), summed into pixels: (H, W, 3) and counters.
+
+    Per light, the photon-map estimate E = sum w_i Phi_i / (pi R^2) over the ``settings.k``
+    nearest of its ``photons`` arriving from the front (R: the k-th distance, at most
+    ``settings.max_radius``; ``clscatter/estimators/ray_density.py``, the estimator of
+    ``photonmap``) at every hit, times the hit's weight (throughput x albedo / pi), on
+    the device. Then the seam: the hits' straight direct light lacks, per light, what
+    crosses the grid's box, and a density estimate blurs the edge of the photons' region
+    by its radius (light spilled outside, missing inside). Where the hit's shadow ray
+    passes within ``max_radius`` of the box's surface (:func:`seam_correction`) the light
+    the occluder took is added back and the same estimate of the ``straight`` photons
+    (the same photons gone on straight through the grid) taken off: where the grid
+    changes nothing there the two estimates are equal and the hit gets exactly the
+    straight direct light, and elsewhere the difference is the grid's effect, estimated.
+    The hits' positions and normals are read once for the host-built trees' queries."""
+    cam = ps.scene.camera
+    img = np.zeros((cam.height, cam.width, 3), np.float64)
+    host = read_hits(ps, hits)
+    st = Stats()
+    near_hits = 0
+    for li in range(ps.num_lights):
+        mine = photons[photons["light"] == li]
+        if len(mine):
+            img += pass_image(ps, hits, host, mine, "photonmap", settings, st, show_progress)
+        corr, near = seam_correction(ps, box, hits, host, li, straight[straight["light"] == li],
+                                     settings)
+        img += corr
+        near_hits += near
+    work = {f"voxel_surface_{k[len('photonmap_'):]}": int(v) for k, v in st.values.items()
+            if k in ("photonmap_nodes_visited", "photonmap_refs_tested")}
+    work["voxel_surface_seam_hits"] = near_hits
+    return img.astype(np.float32), work
+
+
+def seam_correction(ps, box: GridBox, hits: DeviceSegments, host: np.ndarray, light: int,
+                    straight: np.ndarray, settings: DensitySettings) -> tuple[np.ndarray, int]:
+    """Light ``light``'s seam correction of the surface estimate at the hits whose shadow
+    ray passes within ``settings.max_radius`` of the grid box's surface (``voxel_seam``:
+    those hits and the straight direct light the grid's occluder took from them): weight x
+    (that light - the photon-map estimate of the ``straight`` photons), summed into pixels
+    (H, W, 3); and how many hits it corrected."""
+    eng = ps.engine
+    cam = ps.scene.camera
+    img = np.zeros((cam.height, cam.width, 3), np.float64)
+    out = eng.empty(16 * max(hits.count, 1))
+    try:
+        ps.call("voxel", "voxel_seam", hits.count, hits=hits.buf, n=hits.count, light_index=light,
+                glo=box.lo4(), ghi=box.hi4(), delta=np.float32(settings.max_radius), out=out)
+        took = eng.read(out, (hits.count, 4), np.float32)
+    finally:
+        eng.free(out)
+    near = np.flatnonzero(took[:, 3] > 0)
+    if len(near) == 0:
+        return img, 0
+    e = np.zeros((len(near), 3), np.float64)
+    if len(straight):
+        rmap = build_map(eng, straight, "photonmap", settings)
+        try:
+            e = estimate(rmap, host["p"][near, :3], host["n"][near, :3], "photonmap", settings)[0]
+        finally:
+            rmap.release()
+    value = host["weight"][near, :3] * (took[near, :3].astype(np.float64) - e)
+    flat = img.reshape(-1, 3)
+    np.add.at(flat, host["pixel"][near], value)
+    return img, int(len(near))
 
 
 def direct_outside(ps, box: GridBox, segs: DeviceSegments, steps: int,
@@ -207,14 +310,15 @@ def gather_exits(ps, segs: DeviceSegments, exits: np.ndarray, radius: float,
 
 def outer_box(ps, box: GridBox, resolution: int) -> GridBox:
     """The coarse grid for the light beyond the voxel grid: the medium's bounds when it
-    has them, else the box of the scene's geometry and the voxel grid."""
+    has them, else the box of the scene's near geometry (far objects left out:
+    :meth:`~clscatter.transport.prepared.PreparedScene.near_box`) and the voxel grid."""
     if ps.medium["bounded"]:
         lo, hi = ps.medium["bmin"][:3].astype(np.float64), ps.medium["bmax"][:3].astype(np.float64)
     else:
-        root = ps.bvh.nodes[0]
         lo, hi = box.lo.copy(), box.hi.copy()
-        if np.all(root["bmin"] <= root["bmax"]):
-            lo, hi = np.minimum(lo, root["bmin"]), np.maximum(hi, root["bmax"])
+        near = ps.near_box()
+        if near is not None:
+            lo, hi = np.minimum(lo, near[0]), np.maximum(hi, near[1])
     return make_box(lo, hi, resolution)
 
 

@@ -39,13 +39,37 @@ MIN_THROUGHPUT = 1e-4     # as view_paths.cl: branches below this (per sample) a
 
 @dataclass
 class ViewResult:
-    """What :func:`view_pass` returns. ``segments`` are on the device, sorted by (sample,
-    branch), with pixel offsets; the caller releases them."""
+    """What :func:`view_pass` returns. ``segments`` (and ``hits``) are on the device,
+    sorted by (sample, branch), with pixel offsets; the caller releases them."""
 
     surface: np.ndarray        # (H, W, 3) directly lit surfaces, seen through the grid too
     inside: np.ndarray         # (H, W, 3) medium radiance from inside the grid (photons)
     segments: DeviceSegments   # structs.VIEW_SEGMENT: the straight medium pieces outside
     counters: dict
+    hits: DeviceSegments | None = None   # structs.DIFFUSE_HIT: every diffuse hit (want_hits)
+
+    def release(self) -> None:
+        self.segments.release()
+        if self.hits is not None:
+            self.hits.release()
+
+
+def tracer_medium(ps, box: GridBox, occlude: bool, density=None):
+    """The straight tracers' ``medium`` buffer (``voxel_shadow`` in voxel.cl), on the device
+    (the caller frees it): the scene's Medium record and a void record, which with
+    ``occlude`` is the grid's occluder (bounded, the grid box: shadow rays crossing it get
+    nothing, the photons light those surfaces); without, a scene's density buffer
+    (``density``, density.h's layout: its record 1 is the void one) when given, so that
+    shadow rays go through the grids."""
+    eng = ps.engine
+    if density is not None and not occlude:
+        return None
+    recs = np.zeros(2, structs.MEDIUM)
+    recs[0] = ps.medium
+    if occlude:
+        recs[1]["bounded"] = 1
+        recs[1]["bmin"][:3], recs[1]["bmax"][:3] = box.lo, box.hi
+    return eng.to_device(recs)
 
 
 class _Pass:
@@ -55,20 +79,25 @@ class _Pass:
     read back: each launch's per-work-item values are summed into pixels on the device and
     the image (or a camera launch's band of pixels) is added here (float64)."""
 
-    def __init__(self, ps, box: GridBox, samples_per_launch: int, medium=None):
+    def __init__(self, ps, box: GridBox, samples_per_launch: int, medium=None,
+                 want_hits: bool = False):
         eng = self.eng = ps.engine
         self.ps = ps
-        # the straight tracers' medium buffer (density grids: their shadow rays go through them)
-        self.medium = {"medium": medium} if medium is not None else {}
+        # the straight tracers' medium buffer (tracer_medium: the grid's occluder, or the
+        # density grids their shadow rays go through); the caller owns it
+        self.medium = {"medium": medium}
         cam = ps.scene.camera
         self.w, self.h, self.spp = cam.width, cam.height, cam.spp
         self.total = self.w * self.h * self.spp
         self.chunk = int(max(1, min(samples_per_launch, self.total)))
-        self.bounds = {"gmin": box.lo4(), "gmax": box.hi4()}
+        self.bounds = {"gmin": box.lo4(), "gmax": box.hi4(), "want_hits": int(want_hits)}
         self.apps = {"stopped": AppendBuffer(eng, VOX_RAY, self.chunk + 64),
                      "segs": AppendBuffer(eng, structs.VIEW_SEGMENT,
-                                          self.chunk * 2 if ps.has_medium else 1)}
+                                          self.chunk * 2 if ps.has_medium else 1),
+                     "hits": AppendBuffer(eng, structs.DIFFUSE_HIT,
+                                          self.chunk + 64 if want_hits else 1)}
         self.segs = _Store(eng, structs.VIEW_SEGMENT)
+        self.hits = _Store(eng, structs.DIFFUSE_HIT)
         self.first = _first_samples(eng, 0, self.total, self.w, self.h, self.spp)
         self.surface = np.zeros((self.h, self.w, 3), np.float64)
         self.inside = np.zeros((self.h, self.w, 3), np.float64)
@@ -76,12 +105,14 @@ class _Pass:
     def trace(self, kernel: str, n: int, stopped: _Store, surface, **args) -> None:
         """One straight-tracer launch (``voxel_trace_camera`` / ``voxel_trace_rays``) over
         ``n`` work-items: ``surface[i]`` written, the rays it stopped at the grid moved
-        into ``stopped``, its segments into :attr:`segs` (an overflowing launch runs again
-        with its buffers grown: the kernels are deterministic)."""
+        into ``stopped``, its segments into :attr:`segs` and its diffuse hits into
+        :attr:`hits` (an overflowing launch runs again with its buffers grown: the kernels
+        are deterministic)."""
         got = launch_appending(self.eng, "voxel", kernel, n, self.apps, **self.bounds,
                                **args, surface=surface)
         stopped.take(self.apps["stopped"], got["stopped"])
         self.segs.take(self.apps["segs"], got["segs"])
+        self.hits.take(self.apps["hits"], got["hits"])
 
     def by_sample(self, store: _Store) -> DeviceSegments:
         """``store``'s records bucket-sorted by (sample, branch), with pixel offsets."""
@@ -152,6 +183,7 @@ class _Pass:
         for app in self.apps.values():
             app.release()
         self.segs.release()
+        self.hits.release()
         self.eng.free(self.first)
 
 
@@ -198,15 +230,20 @@ def march_args(ps, fields: Fields, radiance: Radiance, test_surfaces: bool) -> d
     return dict(glo=box.lo4(), ghi=box.hi4(), dims=box.dims4(), h=box.h, n_grid=fields.n,
                 grad=fields.grad, sigma_s=fields.sigma_s, kappa=fields.kappa, rad=radiance.rad,
                 dirs=radiance.dirs, g_phase=float(ps.medium["g"]), max_steps=4 * sum(box.dims),
-                test_surfaces=int(test_surfaces), boundary=fields.boundary)
+                test_surfaces=int(test_surfaces), boundary=fields.boundary,
+                max_depth=ps.scene.render.max_depth)
 
 
 def view_pass(ps, fields: Fields, radiance: Radiance, max_rounds: int = 4,
               show_progress: bool = True, test_surfaces: bool = True,
-              samples_per_launch: int = SAMPLES_PER_LAUNCH, medium=None) -> ViewResult:
+              samples_per_launch: int = SAMPLES_PER_LAUNCH, medium=None,
+              surface_photons: bool = False) -> ViewResult:
     """Trace the whole image through the grid (see the module docstring). ``medium``: a
     device buffer in ``density.h``'s layout for the straight tracers (a scene with density
     volumes: surfaces are then lit through the grids), else the scene's own.
+    ``surface_photons``: the photons light the surfaces where the light crosses the grid
+    (:func:`tracer_medium`'s occluder for the shadow rays, and every diffuse hit kept in
+    :attr:`ViewResult.hits` for the photon estimate); ``medium`` is then not used.
 
     Everything per camera sample and per ray stays on the device between the passes: the
     rays stopped at the grid are collected launch by launch and bucket-sorted by (sample,
@@ -228,8 +265,10 @@ def view_pass(ps, fields: Fields, radiance: Radiance, max_rounds: int = 4,
     box: GridBox = fields.box
     args = march_args(ps, fields, radiance, test_surfaces)
     counters = {"voxel_view_rays": 0, "voxel_view_rounds": 0}
-    vp = _Pass(ps, box, samples_per_launch, medium)
+    own = tracer_medium(ps, box, surface_photons, medium)
+    vp = _Pass(ps, box, samples_per_launch, own if own is not None else medium, surface_photons)
     rays = None
+    hits = None
     try:
         with progress(vp.total, "voxel view", show_progress) as bar:
             rays = vp.camera(bar)
@@ -242,10 +281,16 @@ def view_pass(ps, fields: Fields, radiance: Radiance, max_rounds: int = 4,
             rays.release()
             rays = nxt
         segments = vp.by_sample(vp.segs)
+        if surface_photons:
+            hits = vp.by_sample(vp.hits)
     finally:
         if rays is not None:
             rays.release()
         vp.release()
+        if own is not None:
+            ps.engine.free(own)
     counters["voxel_segments_outside"] = int(segments.count)
+    if hits is not None:
+        counters["voxel_diffuse_hits"] = int(hits.count)
     return ViewResult(vp.surface.astype(np.float32), vp.inside.astype(np.float32), segments,
-                      counters)
+                      counters, hits)

@@ -19,10 +19,11 @@ Stages, each a kernel of ``cl_kernels/voxel.cl`` except the per-volume mix:
 5. **Gradient** (``vox_gradient``): central differences of n.
 6. **Boundary sides** (``boundary_sides``, NumPy): per voxel the blurred weight w of
    the volume weighing most there and the indices just outside and inside its boundary.
-   A path whose w passes 1/2 (the sharp boundary) crosses from n1 to n2 and keeps the
-   Fresnel transmittance of a sharp n1 -> n2 interface (``vox_crossing``): the ray
-   equation bends it through the smoothed band as Snell's law would, and the crossing
-   takes what the interface would reflect.
+   A path whose w passes 1/2 (the sharp boundary) crosses from n1 to n2 by Snell's law
+   and keeps the Fresnel transmittance of a sharp n1 -> n2 interface (``vox_cut``,
+   ``vox_cross``); the ray equation elsewhere follows the interior gradient
+   (``interior_gradient``: grad n without the boundaries' jumps), since bending through
+   the smoothed band under-deviates grazing rays at a curved boundary.
 
 A grid volume (``grid = "*.npy"``) has n_v(x) = the grid's value trilinear between its
 centres, clamped at its outermost centres; its weight is the exact fraction of each voxel
@@ -131,6 +132,16 @@ def gradient(eng: Engine, box: GridBox, n_buf) -> object:
     return g
 
 
+def interior_gradient(eng: Engine, box: GridBox, grad_buf, boundary_buf) -> None:
+    """Take the volumes' boundary jumps out of ``grad_buf`` (from :func:`gradient`), in
+    place (``vox_interior_gradient``): per voxel grad n - (n_hi - n_lo) grad w, with the
+    boundary record of :func:`boundary_sides` and grad w by the same central differences.
+    Paths cross the boundaries by Snell's law where w = 1/2 instead of being bent through
+    the smoothed band; a constant-index volume leaves 0, a graded one w grad n_v."""
+    eng.call("voxel", "vox_interior_gradient", box.size, grad=grad_buf, boundary=boundary_buf,
+             dims=box.dims4(), h=box.h)
+
+
 def volume_weight(eng: Engine, box: GridBox, v: Volume, frame: Frame) -> np.ndarray:
     """Unblurred weight (coverage) of one volume on the grid."""
     if v.mesh is not None:
@@ -194,8 +205,9 @@ def medium_at_centres(box: GridBox, medium: np.ndarray) -> tuple[np.ndarray, np.
 
 
 def boundary_sides(weights: list[np.ndarray], fields: list[tuple], n: np.ndarray) -> np.ndarray:
-    """Where the volumes' smoothed boundaries lie and what they separate, for the Fresnel
-    loss of paths crossing them (``vox_crossing`` in voxel.cl): per voxel (w, n_lo, n_hi,
+    """Where the volumes' sharp boundaries lie and what they separate, for paths crossing
+    them by Snell's law and Fresnel (``vox_cut``, ``vox_cross`` in voxel.cl) and for the
+    interior gradient (:func:`interior_gradient`): per voxel (w, n_lo, n_hi,
     0), float32 (nx, ny, nz, 4). w is the blurred weight of the volume weighing most
     there (its sharp boundary lies where w = 1/2); n_lo and n_hi are the index ``n`` (of
     :func:`mix`) with that volume's weight set to 0 and to 1, the indices just outside and
