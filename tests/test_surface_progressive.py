@@ -166,3 +166,46 @@ def test_budgeted_passes_keep_the_budget_on_a_fake_clock(ball, method, monkeypat
     assert clock() - started <= 1.2 * 5.5
     assert st[f"{method}_stopped_by"] == "time_budget"
     assert 3 <= st[f"{method}_passes"] <= 6
+
+
+def test_sized_rays_rule():
+    """Rays for a pass from a measured one: in proportion to the time wanted, at most the
+    parameter's count, at least MIN_PASS_RAYS, within RESIZE of the measured pass."""
+    sized = surface_passes.sized_rays
+    assert sized(40000, None, 1.0) == 40000
+    assert sized(40000, (40000, 4.0), 1.0) == 10000
+    assert sized(40000, (10000, 1.0), 100.0) == 40000            # never beyond the parameter
+    assert sized(40000, (40000, 4.0), 1e-6) == 40000 / surface_passes.RESIZE
+    assert sized(40000, (2000, 4.0), 1e-3) == surface_passes.MIN_PASS_RAYS
+    assert sized(1000, (1000, 4.0), 1e-3) == 1000                # fewer than the least: all
+
+
+@pytest.mark.parametrize("method", ESTIMATORS)
+def test_budgeted_passes_are_sized_from_the_pass_before(ball, method, monkeypatch):
+    """Tracing advances a fake clock by 1 s per 10,000 rays. 40,000 rays a pass, 4 passes
+    planned, a 6 s deadline: the first pass takes all of them (4 s, nothing measured yet),
+    the three after share the 2 s left (about 6,700 rays each); the render keeps its
+    budget within 1.2x. A second render given the first pass's cost (a session's cache)
+    sizes its first pass too."""
+    ps, paths = ball
+    clock = FakeClock()
+    real = surface_passes.caustic_pieces
+
+    def costly(ps_, rays, *a, **kw):
+        clock.now += rays / 10000.0
+        return real(ps_, rays, *a, **kw)
+
+    monkeypatch.setattr(surface_passes, "caustic_pieces", costly)
+    started = clock()
+    cache = {}
+    params = {"photons": 40000, "passes": 4}
+    _, st = _surface(ps, paths, method, params, deadline=clock() + 6.0, clock=clock, cache=cache)
+    rays = st[f"{method}_pass_rays"]
+    assert clock() - started <= 1.2 * 6.0
+    assert rays[0] == 40000 and len(rays) == 4
+    assert all(abs(r - 6667) <= 700 for r in rays[1:]), rays
+    started = clock()
+    _, st = _surface(ps, paths, method, params, deadline=clock() + 2.0, clock=clock, cache=cache)
+    rays = st[f"{method}_pass_rays"]
+    assert rays[0] == pytest.approx(5000, abs=500), rays       # 2 s over 4 passes
+    assert clock() - started <= 1.2 * 2.0

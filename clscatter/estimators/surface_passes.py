@@ -35,6 +35,22 @@ from .ray_density import DensitySettings, caustic_pieces, pass_image, read_hits
 FOOTPRINT_FRACTION = 16.0
 #: later passes gather up to this many times k rays (the heap bounds a fixed-radius disc)
 LATER_HEAP = 2
+#: under a deadline a pass has at least this many rays (or all of them, if fewer) and at
+#: most RESIZE times (or 1 / RESIZE of) the rays of the pass its cost was measured on
+MIN_PASS_RAYS = 2000
+RESIZE = 8.0
+
+
+def sized_rays(rays: int, measured: tuple[int, float] | None, want: float) -> int:
+    """Rays for a pass that should take ``want`` seconds, given that ``measured = (rays,
+    seconds)`` of a pass like it (None: nothing measured: ``rays``), as if its cost grew in
+    proportion to its rays; at most ``rays`` (the parameter's count) and at least
+    :data:`MIN_PASS_RAYS`."""
+    if measured is None or not np.isfinite(want):
+        return int(rays)
+    n, secs = measured
+    ratio = min(max(want / max(secs, 1e-6), 1.0 / RESIZE), RESIZE)
+    return int(min(rays, max(min(MIN_PASS_RAYS, rays), n * ratio)))
 
 
 def ppm_scales(alpha: float, passes: int) -> np.ndarray:
@@ -67,6 +83,7 @@ class SurfacePasses:
 
     image: np.ndarray
     seconds: list[float] = field(default_factory=list)
+    rays: list[int] = field(default_factory=list)          # traced by each pass
     radius: float = 0.0
     scales: np.ndarray = field(default_factory=lambda: np.zeros(0))
     stopped_by: str = "passes"
@@ -83,14 +100,21 @@ def base_radii(first: np.ndarray, foot: np.ndarray, explicit: float) -> np.ndarr
 def progressive_surface_caustics(ps, estimator: str, rays: int, settings: DensitySettings,
                                  stats: Stats, prog, alpha: float, radius: float = 0.0,
                                  seed: int = 0, show_progress: bool = False,
-                                 sample_range: tuple[int, int] | None = None) -> SurfacePasses:
+                                 sample_range: tuple[int, int] | None = None,
+                                 first_cost: tuple[int, float] | None = None) -> SurfacePasses:
     """The surface caustics (as :func:`~.ray_density.surface_caustics`) refined by passes
     while ``prog`` (a :class:`~clscatter.transport.progressive.Progression`) says so;
     each later pass's own image goes to ``prog.add`` with its radius (the median base
     radius times ``s_i``; the first, k-nearest, pass is another estimator and stays out of
     the error estimate). ``radius``: explicit first radius (normalised; 0: automatic);
     ``seed``: selects independent sets of rays (pass i uses ``seed_offset = i + (seed <<
-    16)``). The first pass with ``seed`` 0 is exactly ``surface_caustics``."""
+    16)``). The first pass with ``seed`` 0 is exactly ``surface_caustics``.
+
+    Under a deadline (``prog.budgeted``) each pass's rays are sized to its share of the
+    time left (:func:`sized_rays`): the first from ``first_cost`` (rays and seconds of an
+    earlier first pass over the same hits, e.g. a session's previous render; None: all
+    ``rays``), each later one from the pass before. Passes with fewer rays are noisier
+    but estimate the same thing, so their mean still converges."""
     cam = ps.scene.camera
     out = SurfacePasses(np.zeros((cam.height, cam.width, 3), np.float32))
     if ps.num_lights == 0:
@@ -102,7 +126,7 @@ def progressive_surface_caustics(ps, estimator: str, rays: int, settings: Densit
         stats.set(diffuse_hits=int(dev.count))
         if dev.count > 0:
             _run_passes(ps, dev, hits, estimator, rays, settings, stats, prog, alpha, radius,
-                        seed, show_progress, out)
+                        seed, show_progress, out, first_cost)
     finally:
         dev.release()
     return out
@@ -110,7 +134,8 @@ def progressive_surface_caustics(ps, estimator: str, rays: int, settings: Densit
 
 def _run_passes(ps, dev, hits, estimator: str, rays: int, settings: DensitySettings,
                 stats: Stats, prog, alpha: float, radius: float, seed: int,
-                show_progress: bool, out: SurfacePasses) -> None:
+                show_progress: bool, out: SurfacePasses,
+                first_cost: tuple[int, float] | None = None) -> None:
     """The pass loop of :func:`progressive_surface_caustics`, filling ``out``: until a
     pass has rays, each is a first pass (it sets the radii); then fixed radii ``s_i B``."""
     total = None
@@ -120,11 +145,16 @@ def _run_passes(ps, dev, hits, estimator: str, rays: int, settings: DensitySetti
     later = replace(settings, k=min(LATER_HEAP * settings.k, HEAP_SIZES[-1]))
     foot = footprints(ps, hits["p"])
     i = 0
-    while prog.more():
+    measured = first_cost
+    while True:
+        n = sized_rays(rays, measured, prog.pass_seconds()) if prog.budgeted else rays
+        expected = None if measured is None else measured[1] * n / max(measured[0], 1)
+        if not prog.more(expected if prog.budgeted else None):
+            break
         t0 = prog.clock()
         s = float(ppm_scales(alpha, i + 1)[-1])
         with stats.stage(f"{estimator}_trace"):
-            pieces = caustic_pieces(ps, rays, stats, show_progress, seed_offset=i + (seed << 16))
+            pieces = caustic_pieces(ps, n, stats, show_progress, seed_offset=i + (seed << 16))
         stats.add(f"{estimator}_rays_stored", int(len(pieces)))
         opening = base is None          # the k-nearest pass: another estimator than the rest
         if len(pieces) == 0:
@@ -136,6 +166,8 @@ def _run_passes(ps, dev, hits, estimator: str, rays: int, settings: DensitySetti
             own = pass_image(ps, dev, hits, pieces, estimator, later, stats, show_progress,
                              radii=(base * s).astype(np.float32))
         out.seconds.append(prog.clock() - t0)
+        out.rays.append(int(n))
+        measured = (n, out.seconds[-1])
         scales.append(s)
         # the error estimate compares passes of one estimator: the k-nearest opening pass
         # (a different kernel and radius rule) is left out of it

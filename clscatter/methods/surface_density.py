@@ -98,10 +98,15 @@ class SurfaceDensityMethod(Method):
             prog.max_passes = MAX_PASSES
         s = self.settings()
         s.max_radius = p["max_radius"] * scene_relative(ps)
+        # a session's earlier first pass over as many hits sizes this one's under a deadline
+        slot = ("first_pass", len(ctx.paths), ctx.paths.sample_range)
         res = progressive_surface_caustics(ps, self.NAME, p["photons"], s, ctx.stats, prog,
                                            p["ppm_alpha"], p["radius"] * scene_relative(ps),
                                            show_progress=ctx.show_progress,
-                                           sample_range=ctx.paths.sample_range)
+                                           sample_range=ctx.paths.sample_range,
+                                           first_cost=ctx.cache.get(slot))
+        if res.rays:
+            ctx.cache[slot] = (res.rays[0], res.seconds[0])
         self._report(ctx, prog, res, ps)
         return PassResult(surface=res.image)
 
@@ -114,6 +119,7 @@ class SurfaceDensityMethod(Method):
                          if len(res.scales) else 0.0,
                          f"{name}_passes": len(res.seconds),
                          f"{name}_pass_seconds": res.seconds,
+                         f"{name}_pass_rays": res.rays,
                          f"{name}_time_budget": self.params["time_budget"],
                          f"{name}_stopped_by": res.stopped_by,
                          f"{name}_error_estimate": res.error})

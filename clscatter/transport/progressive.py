@@ -106,10 +106,12 @@ class Progression:
         left = max(self.planned - len(self.seconds), 1)
         return max(self.remaining(), 0.0) / left
 
-    def more(self) -> bool:
-        """Whether another pass should run; records why not in ``stopped_by``. Raises
-        :class:`Cancelled` when the render's ``cancel()`` says so (a newer change on the
-        page: stale work stops within a pass's time)."""
+    def more(self, next_seconds: float | None = None) -> bool:
+        """Whether another pass should run; records why not in ``stopped_by``. Under a
+        deadline the next pass is expected to take ``next_seconds`` (a method that sizes its
+        passes says so) or else the mean of the passes so far. Raises :class:`Cancelled`
+        when the render's ``cancel()`` says so (a newer change on the page: stale work
+        stops within a pass's time)."""
         if self._cancel is not None and self._cancel():
             raise Cancelled("render cancelled")
         done = len(self.seconds)
@@ -123,7 +125,7 @@ class Progression:
             self.stopped_by = "target_error"
             return False
         if self.deadline is not None:
-            mean = sum(self.seconds) / done
+            mean = sum(self.seconds) / done if next_seconds is None else next_seconds
             if self.clock() + mean > self.deadline:
                 self.stopped_by = "time_budget"
                 return False
