@@ -15,7 +15,11 @@ Writes ``bench_out/voxel.json`` and ``bench_out/voxel.png``:
 * ``adaptive_luneburg``: the Luneburg-lens beam of tests/test_voxel_photons.py at 64^3
   (index graded everywhere inside: the octree can only speed up the outside).
 
-``--quick`` runs a small subset (~1 minute on two CPU cores).
+``--quick`` runs a small subset (~1 minute on two CPU cores). ``--grids``, ``--images`` and
+``--photons`` (comma-separated) choose the table's rows instead (e.g. ``--grids 64,128,256
+--images 256 --photons 65536``); ``--table-only`` skips the adaptive-step comparisons and
+writes ``voxel_table.json``. Each row also has the process's peak resident memory so far
+(``peak_rss_mib``: the largest grid's working set dominates it).
 """
 from __future__ import annotations
 
@@ -34,13 +38,18 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 
-def stage_table(quick: bool) -> list[dict]:
+def stage_table(quick: bool, grids: tuple[int, ...] | None = None,
+                images: tuple[int, ...] | None = None,
+                photons: tuple[int, ...] | None = None) -> list[dict]:
+    """Rows of per-stage seconds (first frame, best of two light moves) over ``grids`` x
+    ``images`` x ``photons`` (defaults: the full table, or one row with ``quick``)."""
+    from clscatter.methods.voxel import Voxel
     from clscatter.pipeline.relighter import Relighter
     from clscatter.scene.builtin.volumes import VOLUME_SCENES
     from clscatter.scene.loader import scene_from_dict
-    grids = (64,) if quick else (64, 128)
-    images = (256,) if quick else (256, 512)
-    photons = (1 << 16,) if quick else (1 << 16, 1 << 18, 1 << 20)
+    grids = grids or ((64,) if quick else (64, 128))
+    images = images or ((256,) if quick else (256, 512))
+    photons = photons or ((1 << 16,) if quick else (1 << 16, 1 << 18, 1 << 20))
     rows = []
     for g in grids:
         for im in images:
@@ -48,6 +57,9 @@ def stage_table(quick: bool) -> list[dict]:
                 d = VOLUME_SCENES["volume_sphere"]()
                 d["camera"].update(resolution=[im, im], spp=1)
                 d["render"]["voxel"] = {"resolution": g, "photons": ph}
+                # every row's first frame voxelises from scratch (the engine keeps the
+                # last scene's voxelised volumes for the next session otherwise)
+                Voxel.release_cache()
                 rl = Relighter(scene_from_dict(d))
                 try:
                     rl.frame()
@@ -65,7 +77,8 @@ def stage_table(quick: bool) -> list[dict]:
                            "light_move": min(moves, key=lambda m: m["total"]),
                            "photon_steps": rl.stats["voxel_photon_steps"],
                            "photons_entering": rl.stats["voxel_photons_entering"],
-                           "view_rays_into_grid": rl.stats["voxel_view_rays"]}
+                           "view_rays_into_grid": rl.stats["voxel_view_rays"],
+                           "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
                 finally:
                     rl.close()
                 print(json.dumps(row), flush=True)
@@ -179,17 +192,34 @@ def adaptive_vs_fixed_glass(resolution: int = 64, photons: int = 1 << 16) -> lis
     return out
 
 
+def _ints(text: str) -> tuple[int, ...]:
+    """'64,128,256' -> (64, 128, 256)."""
+    return tuple(int(t) for t in text.split(",") if t.strip())
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("-o", default="bench_out")
+    ap.add_argument("--grids", type=_ints, help="table grid resolutions, e.g. 64,128,256")
+    ap.add_argument("--images", type=_ints, help="table image sides, e.g. 256,512")
+    ap.add_argument("--photons", type=_ints, help="table photon counts, e.g. 65536,262144")
+    ap.add_argument("--table-only", action="store_true",
+                    help="only the per-stage table (written to voxel_table.json)")
     a = ap.parse_args()
     from clscatter.device import get_engine
     res = {"device": get_engine().name, "cpu_cores": os.cpu_count(),
-           "load_average_at_start": os.getloadavg(), "adaptive_glass": adaptive_vs_fixed_glass(),
-           "adaptive_luneburg": adaptive_vs_fixed(), "table": stage_table(a.quick)}
+           "load_average_at_start": os.getloadavg()}
+    if not a.table_only:
+        res.update(adaptive_glass=adaptive_vs_fixed_glass(), adaptive_luneburg=adaptive_vs_fixed())
+    res["table"] = stage_table(a.quick, a.grids, a.images, a.photons)
+    res["load_average_at_end"] = os.getloadavg()
     out = Path(a.o)
     out.mkdir(exist_ok=True)
+    if a.table_only:
+        (out / "voxel_table.json").write_text(json.dumps(res, indent=2) + "\n")
+        print(f"wrote {out / 'voxel_table.json'}")
+        return
     (out / "voxel.json").write_text(json.dumps(res, indent=2) + "\n")
     try:
         import matplotlib

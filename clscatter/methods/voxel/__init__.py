@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...device import Engine
 from ...errors import SceneError
 from ...estimators.density_march import upload
 from ...estimators.segment_march import march_segments
@@ -21,7 +22,7 @@ from ...transport.prepared import (
 )
 from .. import register
 from ..base import AutoRole, Method, Param, PassResult, camera_samples, costs
-from .pipeline import Pipeline, beyond_mode
+from .pipeline import Pipeline, beyond_mode, release_contributions
 
 
 def as_volume_scene(scene: Scene, voxelise_dielectrics: bool) -> Scene:
@@ -96,7 +97,9 @@ class Voxel(Method):
 
     Usage: ``clscatter render scene.toml --method voxel --set render.voxel.resolution=128``;
     ``--stats`` reports the grid (``voxel_grid``: min, max, dims, voxel size in scene
-    units), photons, marching steps and launches, and per-stage seconds.
+    units), photons, marching steps and launches, per-stage seconds, and which volumes the
+    geometry stage voxelised (``voxel_revoxelised``: in a session only the volumes whose
+    shape moved, or all of them when the grid box changed; docs/voxel.md).
     """
 
     NAME = "voxel"
@@ -205,8 +208,15 @@ class Voxel(Method):
             ctx.cache.release()
             raise
         stats.set(**{k: v for k, v in pipe.counters.items()}, voxel_stages_run=list(pipe.ran),
-                  voxel_stage_seconds=dict(pipe.timings))
+                  voxel_stage_seconds=dict(pipe.timings), voxel_revoxelised=list(pipe.revoxelised))
         return PassResult(medium=out["medium"], view_surface=out["surface"])
+
+    @staticmethod
+    def release_cache(engine: Engine | None = None) -> None:
+        """Drop the volumes' voxelised contributions kept for ``engine`` (every engine's
+        when None) past the sessions' caches (``pipeline.kept_contributions``); the next
+        render voxelises every volume."""
+        release_contributions(engine)
 
     # ---- what the session keeps between renders (ctx.cache) ----
     @staticmethod
@@ -227,7 +237,11 @@ class Voxel(Method):
     def _pipeline(self, ctx: PassContext, ps: PreparedScene) -> Pipeline:
         """The pipeline of the session's previous render with the stages whose inputs
         changed dropped (a fresh one the first time): a warm re-render after a light move
-        runs lighting and view only."""
+        runs lighting and view only. A geometry change makes the session drop this cache
+        (it prepares the scene anew); the geometry stage then voxelises again only the
+        volumes whose own shape, or the grid box, changed, reusing the contributions kept
+        per engine (``pipeline.contribution_key``, ``pipeline.kept_contributions``; the
+        stats' ``voxel_revoxelised`` lists the volumes voxelised)."""
         keys = stage_keys(ps, self.params)
         old = ctx.cache.get("pipeline")
         if old is None:
@@ -273,14 +287,17 @@ def _digest(*parts) -> str:
 
 
 def stage_keys(ps, params: dict) -> tuple[str, str, str]:
-    """Fingerprints of what the geometry, material and lighting stages read."""
+    """Fingerprints of what the geometry, material and lighting stages read. The geometry
+    stage reads the volumes' shapes (meshes, a grid volume's bounds), their ``resolution``
+    and the grid parameters; a grid volume's values are the material stage's (sampled
+    there, like the densities); each key folds in those before it."""
     vols = ps.scene.volumes
     geo = [ps.frame.scale, ps.frame.centre, params["resolution"], params["margin"]]
     mat = [ps.medium, params["eps"], params["eps2"], params["step_max"]]
     for v in vols:
         geo += [v.resolution, None if v.mesh is None else v.mesh.vertices,
-                None if v.mesh is None else v.mesh.faces, v.grid, repr(v.grid_bounds)]
-        mat += [v.ior, v.sigma_s, v.sigma_a, getattr(v, "sigma_s_grid", None),
+                None if v.mesh is None else v.mesh.faces, repr(v.grid_bounds)]
+        mat += [v.ior, v.sigma_s, v.sigma_a, v.grid, getattr(v, "sigma_s_grid", None),
                 getattr(v, "sigma_a_grid", None), v.density]
     g, m = _digest(*geo), _digest(*mat)
     light = _digest(g, m, ps.lights, ps.bvh.triangles, ps.scene.render.seed, ps.scene.render.max_depth,

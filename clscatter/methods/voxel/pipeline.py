@@ -5,7 +5,9 @@ changed (Sun et al. 2008, fig. 2):
 stage           computes                                     re-runs when
 ==============  ===========================================  ============================
 ``geometry``    grid box, coverage of every volume, blurred  a volume's shape moves or
-                weights (``voxelise.py``)                    changes; grid parameters
+                weights (``voxelise.py``); per volume:       changes; grid parameters
+                only the volumes whose own fingerprint
+                changed are voxelised again
 ``material``    n, sigma_s, kappa, grad n, octree, boundary  a volume's ior / sigma, the
                 sides (``voxelise.py``, ``octree.py``)       medium; eps parameters
 ``lighting``    photons, marching, deposition, smoothing;    a light; anything above
@@ -14,14 +16,34 @@ stage           computes                                     re-runs when
                 outside it (``view.py`` + ``raymarch``);
                 the surface photon map at the diffuse hits
 ==============  ===========================================  ============================
+
+The geometry stage keeps each volume's blurred weight (its *contribution*) keyed by
+:func:`contribution_key`: the volume's own shape (mesh vertices and faces, or a grid
+volume's bounds), the grid box (corner, voxel side, dims) and the normalised frame it is
+voxelised into. When the geometry changes the box is recomputed and only the volumes
+whose key changed are voxelised again (:attr:`Pipeline.revoxelised`); the rest are
+reused as they are. The material stage mixes the contributions in the scene's volume
+order, exactly as a whole-scene voxelisation does, so the grids are the same bit for bit.
+When the grid box itself changes (a volume moved out of it or past its faces, the union
+of the volumes grew or shrank, or ``resolution`` / ``margin`` changed) or the frame
+changes, every key changes and every volume is voxelised again.
+
+A session drops its methods' caches, and so the whole :class:`Pipeline`, whenever the
+scene's geometry changes (it prepares the scene anew), so the contributions are kept per
+engine outside it (:func:`kept_contributions`): host arrays, only those of the last
+geometry stage run on that engine (at most one scene's weights, what the pipeline holds
+anyway), dropped by :func:`release_contributions` or with the engine.
 """
 from __future__ import annotations
 
+import hashlib
 import time
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from ...device import Engine
 from ...estimators.line_gather import Gatherer
 from ...estimators.ray_density import (
     DensitySettings,
@@ -32,6 +54,8 @@ from ...estimators.ray_density import (
 )
 from ...estimators.segment_tree import TreeParams
 from ...io.stats import Stats
+from ...scene.model import Volume
+from ...scene.normalised import Frame
 from ...transport.view_paths import DeviceSegments, ViewPaths
 from .grid import GridBox, make_box, scene_box
 from .photons import Fields, MarchSettings, Radiance, light_pass, upload_fields
@@ -47,6 +71,24 @@ from .voxelise import (
 )
 
 STAGES = ("geometry", "material", "lighting", "view")
+
+# per engine: {contribution_key: blurred weight} of the last geometry stage run on it
+_CONTRIBUTIONS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def kept_contributions(eng: Engine) -> dict[str, np.ndarray]:
+    """The contributions (blurred volume weights by :func:`contribution_key`) the last
+    geometry stage on engine ``eng`` voxelised or reused; empty when there are none. The
+    arrays are shared, not copies, and read-only."""
+    return _CONTRIBUTIONS.get(eng, {})
+
+
+def release_contributions(eng: Engine | None = None) -> None:
+    """Drop the contributions kept for engine ``eng`` (every engine's when None)."""
+    if eng is None:
+        _CONTRIBUTIONS.clear()
+    else:
+        _CONTRIBUTIONS.pop(eng, None)
 
 
 def beyond_mode(beyond: str, medium) -> str:
@@ -67,6 +109,7 @@ class Pipeline:
     engine: object = None                            # the device its stages live on
     box: GridBox | None = None
     weights: list = field(default_factory=list)
+    revoxelised: list = field(default_factory=list)  # volumes voxelised by the last update()
     fields: Fields | None = None
     radiance: Radiance | None = None
     ran: list = field(default_factory=list)          # stages run by the last update()
@@ -92,7 +135,8 @@ class Pipeline:
             self.weights = []
 
     def release(self, eng=None) -> None:
-        """Free every stage's device buffers."""
+        """Free every stage's device buffers (the engine's kept contributions stay:
+        :func:`release_contributions` drops them)."""
         self.invalidate("geometry", eng if eng is not None else self.engine)
 
     def _timed(self, name: str, stats, fn):
@@ -108,11 +152,27 @@ class Pipeline:
 
     # ---- stages ----
     def _geometry(self, ps) -> None:
+        """The grid box and every volume's blurred weight, reusing the engine's kept
+        contributions whose :func:`contribution_key` is unchanged (equal to voxelising
+        again, bit for bit); records the volumes voxelised again in :attr:`revoxelised`
+        (their ``key``, or ``volumes[<index>]`` without one) and keeps only the current
+        volumes' contributions for the engine."""
         p = self.params
         self.box = scene_box(ps.scene, ps.frame, p["resolution"], p["margin"])
-        taps = gaussian_taps()
-        self.weights = [blur(ps.engine, volume_weight(ps.engine, self.box, v, ps.frame), taps)
-                        for v in ps.scene.volumes]
+        old = kept_contributions(ps.engine)
+        kept, weights = {}, []
+        for i, v in enumerate(ps.scene.volumes):
+            key = contribution_key(self.box, v, ps.frame)
+            w = kept.get(key)
+            if w is None:
+                w = old.get(key)
+            if w is None:
+                w = voxelise_volume(ps.engine, self.box, v, ps.frame)
+                self.revoxelised.append(v.key or f"volumes[{i}]")
+            kept[key] = w
+            weights.append(w)
+        _CONTRIBUTIONS[ps.engine] = kept
+        self.weights = weights
 
     def _material(self, ps) -> None:
         p = self.params
@@ -137,7 +197,7 @@ class Pipeline:
         """Run the stages whose results are missing, then the view; returns
         ``{"surface": (H,W,3), "medium": (H,W,3)}`` (full surface term, seen through the grid).
         ``medium``: the density buffer of a scene with density volumes (``view_pass``)."""
-        self.ran, self.timings = [], {}
+        self.ran, self.timings, self.revoxelised = [], {}, []
         if self.box is None:
             self._timed("geometry", stats, lambda: self._geometry(ps))
         if self.fields is None:
@@ -182,6 +242,36 @@ class Pipeline:
                 "inside": vr.inside, "direct_outside": direct, "beyond": beyond,
                 "surface_direct": vr.surface, "surface_photons": photon_surface,
                 "counters": vr.counters}
+
+
+def voxelise_volume(eng: Engine, box: GridBox, v: Volume, frame: Frame) -> np.ndarray:
+    """One volume's contribution: its coverage on ``box`` (``volume_weight``) blurred by
+    the 9-tap Gaussian, float32 (nx, ny, nz), read-only (it is shared between renders);
+    what a whole-scene voxelisation computes for it."""
+    w = blur(eng, volume_weight(eng, box, v, frame), gaussian_taps())
+    w.flags.writeable = False
+    return w
+
+
+def contribution_key(box: GridBox, v: Volume, frame: Frame) -> str:
+    """Fingerprint of what one volume's blurred weight reads: its shape (a mesh's vertices
+    and faces, or a grid volume's bounds; not its index or coefficients, not a grid's
+    values, which only the material stage samples), the grid box (corner, voxel side,
+    dims) and the normalised frame (centre, scale). Equal keys give equal weights."""
+    h = hashlib.sha256()
+    parts = [box.lo, box.h, tuple(box.dims), frame.centre, frame.scale]
+    if v.mesh is not None:
+        parts += ["mesh", v.mesh.vertices, v.mesh.faces]
+    else:
+        parts += ["bounds", *v.grid_bounds]
+    for part in parts:
+        if isinstance(part, np.ndarray):
+            a = np.ascontiguousarray(part)
+            h.update(repr((a.dtype.str, a.shape)).encode())
+            h.update(a.tobytes())
+        else:
+            h.update(repr(part).encode())
+    return h.hexdigest()
 
 
 def surface_settings(k: int, radius: float) -> DensitySettings:
