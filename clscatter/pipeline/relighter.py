@@ -15,7 +15,8 @@ call                   voxel stages re-run on the next :meth:`Relighter.frame`
 ``set_light``          lighting, view
 ``set_volume``         material, lighting, view (ior, sigma_s, sigma_a of a volume)
 ``set_material``       material, lighting, view (a ``[materials]`` entry)
-``set_geometry``       everything (a volume's mesh moved or replaced)
+``set_geometry``       every stage (a volume's mesh moved or replaced); the voxelisation
+                      of that volume only, while the grid's box stays the same
 =====================  ===========================================================
 
 ``clscatter relight SCENE --frames N --orbit light|camera -o DIR`` runs the same session
