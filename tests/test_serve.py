@@ -535,3 +535,41 @@ def test_a_converted_mitsuba_scene_logs_its_notes(tmp_path, caplog):
         session.close()
     notes = [r.getMessage() for r in caplog.records if r.name == "clscatter.serve"]
     assert notes == ['note: shape "cylinder" (pillar): not a shape clscatter reads; dropped']
+
+
+def test_keyframes_reach_the_page_and_a_frame_sets_its_keys(tmp_path):
+    """``clscatter serve --keyframes``: the frames (each one's ``key=value`` changes, as
+    :func:`clscatter.keyframes.load` makes them) come in ``hello``; sending a frame's changes
+    (what the page's frame slider does) renders that frame, whose image differs from
+    frame 0's and equals a fresh render of the scene with those keys. A missing keyframe
+    file is the command line's one line, exit 2."""
+    from clscatter.keyframes import load as load_keyframes
+    from clscatter.pipeline.session import RenderSession
+
+    kf = tmp_path / "keys.toml"
+    kf.write_text('[[key]]\nframe = 0\n"lights[0].intensity" = 2.0\n'
+                  '[[key]]\nframe = 2\n"lights[0].intensity" = 6.0\n')
+    frames = load_keyframes(kf)
+    assert frames == [["lights[0].intensity=2.0"], ["lights[0].intensity=4.0"],
+                      ["lights[0].intensity=6.0"]]
+    with BackgroundServer(SPEC, TINY, keyframes=frames) as srv:
+        p = Page(srv)
+        try:
+            assert p.hello["keyframes"] == frames
+            p.final(0)
+            first = decode(p.final(p.set(frames[0])))
+            last = decode(p.final(p.set(frames[2])))
+        finally:
+            p.close()
+    assert not np.array_equal(first, last)
+    with RenderSession.from_source(SPEC, TINY + frames[2]) as s:
+        fresh = s.render(show_progress=False)
+    from clscatter.serve.app import png_bytes
+    from PIL import Image
+    want = np.asarray(Image.open(io.BytesIO(png_bytes(fresh.image))).convert("RGB"))
+    assert np.abs(last.astype(int) - want.astype(int)).max() <= 1
+    out = subprocess.run([sys.executable, "-m", "clscatter", "serve", SPEC, "--port", "0",
+                          "--keyframes", str(tmp_path / "missing.toml")],
+                         capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert out.returncode == 2
+    assert len(out.stderr.strip().splitlines()) == 1 and "missing.toml" in out.stderr

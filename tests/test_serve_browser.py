@@ -78,13 +78,15 @@ TINY = ["camera.resolution=[64,48]", "camera.spp=1", 'render.method="raymarch"',
 
 
 @contextlib.contextmanager
-def open_page(spec: str, sets: list[str]):
-    """The relighting page of ``spec`` (with ``sets``) in headless Chromium, loaded; on
-    leaving, no script error may have happened on the page."""
+def open_page(spec: str, sets: list[str], keyframes: list[list[str]] = ()):
+    """The relighting page of ``spec`` (with ``sets``, and ``keyframes`` for its frame
+    slider) in headless Chromium, loaded; on leaving, no script error may have happened on
+    the page."""
     chromium = need_chromium(CHROMIUM, REQUIRED)
     from clscatter.serve import BackgroundServer
 
-    with BackgroundServer(spec, sets) as srv, sync_api.sync_playwright() as pw:
+    with BackgroundServer(spec, sets, keyframes=keyframes) as srv, \
+            sync_api.sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=chromium, headless=True)
         try:
             page = browser.new_page(viewport={"width": 1280, "height": 800})
@@ -235,3 +237,27 @@ def test_hint_stage_dots_and_a_refused_value():
         wait_final(page, n)
         assert page.input_value("#g") == g
         assert "bad" not in (page.get_attribute("#g", "class") or "")
+
+
+def test_keyframe_slider_renders_the_frame():
+    """With keyframes the page shows a frame slider (hidden without); moving it to the last
+    frame renders that frame: the light's intensity field shows the frame's value and the
+    image changes (the page's exposure follows the image, so not by the factor)."""
+    tiny = ["camera.resolution=[64,48]", "camera.spp=1", 'render.method="raymarch"',
+            "render.raymarch.steps=8"]
+    frames = [["lights[0].intensity=1.0"], ["lights[0].intensity=8.0"]]
+    with open_page("builtin:occluder", tiny, frames) as page:
+        wait_final(page, 0)
+        assert page.is_visible("#frame-box")
+        before = pixels(page)
+        n = finals(page)
+        page.evaluate("""() => { const s = document.getElementById('frame-slider');
+            s.value = '1'; s.dispatchEvent(new Event('input'));
+            s.dispatchEvent(new Event('change')); }""")
+        wait_final(page, n)
+        assert page.inner_text("#frame-label").strip() == "1 / 1"
+        assert float(page.input_value("#light-power")) == 8.0
+        assert not np.array_equal(pixels(page), before)
+    with open_page("builtin:occluder", tiny) as page:
+        wait_final(page, 0)
+        assert not page.is_visible("#frame-box")

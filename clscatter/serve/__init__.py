@@ -36,6 +36,8 @@ def add_serve_command(subparsers: Any) -> argparse.ArgumentParser:
     s.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a scene key (dotted path, TOML value); repeatable")
     s.add_argument("--device", default=None, help="OpenCL device: P:D or a name substring")
+    s.add_argument("--keyframes", default=None, metavar="FILE.toml",
+                   help="keyframed scene keys (as for relight): the page gets a frame slider")
     return s
 
 
@@ -85,16 +87,21 @@ def url_of(sock: socket.socket) -> str:
 
 
 def serve(spec: str, overrides: Sequence[str] = (), host: str = "127.0.0.1", port: int = 8000,
-          device: str | None = None, ready=None) -> None:
+          device: str | None = None, ready=None,
+          keyframes: Sequence[Sequence[str]] = ()) -> None:
     """Check the scene, listen on ``host:port``, print the URL and serve until interrupted.
 
     ``ready(url)`` is called instead of printing when given. The scene is loaded and checked
-    first, so a bad scene fails here with the command line's one-line error."""
+    first, so a bad scene fails here with the command line's one-line error; so is every
+    frame of ``keyframes`` (:func:`clscatter.keyframes.load`: each frame's ``--set``
+    overrides), which the page offers on a frame slider."""
     _need_extra()
     from ..pipeline.render import check
     from ..scene import load_scene
 
     check(load_scene(spec, overrides))           # one-line SceneError before listening
+    for frame in keyframes:
+        check(load_scene(spec, [*overrides, *frame]))
     if host not in LOOPBACK:
         print(f"clscatter: warning: serving on {host}: anyone who can reach this address can "
               "use the page and the device (default: 127.0.0.1)", file=sys.stderr)
@@ -108,7 +115,7 @@ def serve(spec: str, overrides: Sequence[str] = (), host: str = "127.0.0.1", por
         ready(url)
     else:
         print(f"clscatter serve: {spec} at {url}  (Ctrl-C stops)", flush=True)
-    app = create_app(spec, overrides, device)
+    app = create_app(spec, overrides, device, keyframes=keyframes)
     server = uvicorn.Server(uvicorn.Config(app, log_level="warning", ws_max_size=1 << 20))
     try:
         server.run(sockets=[sock])
@@ -122,7 +129,7 @@ class BackgroundServer:
     is the Starlette app (``srv.app.state.pages`` holds the open pages)."""
 
     def __init__(self, spec: str, overrides: Sequence[str] = (), device: str | None = None,
-                 session_factory=None):
+                 session_factory=None, keyframes: Sequence[Sequence[str]] = ()):
         _need_extra()
         import threading
 
@@ -130,7 +137,7 @@ class BackgroundServer:
 
         from .app import create_app
 
-        self.app = create_app(spec, overrides, device, session_factory)
+        self.app = create_app(spec, overrides, device, session_factory, keyframes)
         self._sock = _listen("127.0.0.1", 0)
         self.url = url_of(self._sock)
         self._server = uvicorn.Server(uvicorn.Config(self.app, log_level="warning"))
@@ -161,6 +168,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
     overrides = list(args.overrides)
     if args.method is not None:
         overrides.append(f'render.method="{args.method}"')
+    frames: list[list[str]] = []
+    if args.keyframes is not None:
+        from ..keyframes import load as load_keyframes
+        frames = load_keyframes(args.keyframes)
     serve(args.scene or f"builtin:{DEFAULT_BUILTIN}", overrides, host=args.host, port=args.port,
-          device=args.device)
+          device=args.device, keyframes=frames)
     return 0

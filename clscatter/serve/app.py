@@ -35,7 +35,9 @@ page -> server
     ``{"type": "refine", "id": N}``: render the current settings at full quality only
     (sent when a drag ends: its previews were already shown)
 server -> page
-    ``hello`` (page id, scene state, methods), ``state`` (after an accepted change),
+    ``hello`` (page id, scene state, methods, ``keyframes``: each frame's ``key=value``
+    changes, empty without ``--keyframes``; the page's frame slider sends a frame's changes
+    as a ``set``), ``state`` (after an accepted change),
     ``busy`` (a render started), ``frame`` (level ``preview``, ``full`` or ``refine``; a
     PNG as base64, its stats and ``notes``: the
     plan's notes that leave light out of the image, which the command line prints as
@@ -454,17 +456,25 @@ class ServeConfig:
     overrides: list[str] = field(default_factory=list)
     device: str | None = None
     session_factory: Callable[..., Any] | None = None
+    keyframes: list[list[str]] = field(default_factory=list)
 
 
 def create_app(spec: str, overrides: Sequence[str] = (), device: str | None = None,
-               session_factory: Callable[..., Any] | None = None) -> Starlette:
-    """The Starlette app serving the page for scene ``spec`` (``--set`` ``overrides``).
+               session_factory: Callable[..., Any] | None = None,
+               keyframes: Sequence[Sequence[str]] = ()) -> Starlette:
+    """The Starlette app serving the page for scene ``spec`` (``--set`` ``overrides``);
+    ``keyframes`` (each frame's overrides, :func:`clscatter.keyframes.load`) go to the page
+    in ``hello``, which shows a frame slider that sets a frame's keys as any change does;
+    the page opens at frame 0.
 
     Each WebSocket connection gets its own :class:`PageWorker` (its own session, so tabs do
     not disturb each other); ``app.state.pages`` maps page ids to workers while they are
     open. ``session_factory(spec, overrides, device)`` replaces :func:`open_session` (tests).
     """
-    config = ServeConfig(spec, list(overrides), device, session_factory)
+    frames = [list(f) for f in keyframes]
+    # the page opens at frame 0
+    config = ServeConfig(spec, list(overrides) + (frames[0] if frames else []), device,
+                         session_factory, frames)
     pages: dict[str, PageWorker] = {}
 
     async def index(request: Request) -> Response:
@@ -515,7 +525,8 @@ def create_app(spec: str, overrides: Sequence[str] = (), device: str | None = No
             return
         pages[worker.page] = worker
         state = await asyncio.to_thread(scene_state, worker.session, config.spec)
-        await ws.send_text(dumps({"type": "hello", "page": worker.page, "state": state}))
+        await ws.send_text(dumps({"type": "hello", "page": worker.page, "state": state,
+                                  "keyframes": config.keyframes}))
         worker.start()
 
         async def pump() -> None:

@@ -22,6 +22,7 @@ let frames = 0, finals = 0;
 let finalCurrent = false;  // the shown image is the full render of the current settings
 let lightIndex = 0;
 let wheelTimer = null;
+let keyframes = [];        // each frame's key=value changes (clscatter serve --keyframes)
 
 // ---- small vector helpers -------------------------------------------------------------
 const sub = (a, b) => [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
@@ -121,6 +122,7 @@ function onMessage(m) {
   switch (m.type) {
     case "hello":
       page = m.page;
+      showKeyframes(m.keyframes || []);
       applyState(m.state);
       setBusy(true, "rendering…");
       break;
@@ -148,6 +150,26 @@ function onMessage(m) {
       break;
   }
 }
+
+// ---- keyframes: the slider sets a frame's keys (previews while it moves, full on release)
+function showKeyframes(list) {
+  keyframes = list;
+  const slider = $("frame-slider");
+  $("frame-box").classList.toggle("hidden", list.length === 0);
+  slider.max = String(Math.max(list.length - 1, 0));
+  slider.value = "0";
+  $("frame-label").textContent = list.length ? `0 / ${list.length - 1}` : "";
+}
+
+$("frame-slider").addEventListener("input", () => {
+  const k = Number($("frame-slider").value);
+  $("frame-label").textContent = `${k} / ${keyframes.length - 1}`;
+  if (keyframes[k]) request(keyframes[k], "preview");
+});
+$("frame-slider").addEventListener("change", () => {
+  const k = Number($("frame-slider").value);
+  if (keyframes[k]) request(keyframes[k], "refine");
+});
 
 function setBusy(on, text) {
   $("busy").className = on ? "busy" : "idle";
