@@ -110,11 +110,11 @@ def progressive_surface_caustics(ps, estimator: str, rays: int, settings: Densit
     ``seed``: selects independent sets of rays (pass i uses ``seed_offset = i + (seed <<
     16)``). The first pass with ``seed`` 0 is exactly ``surface_caustics``.
 
-    Under a deadline (``prog.budgeted``) each pass's rays are sized to its share of the
-    time left (:func:`sized_rays`): the first from ``first_cost`` (rays and seconds of an
+    Under a deadline (``prog.budgeted``) the passes' rays are sized to the first pass's
+    share of the time (:func:`sized_rays`) from ``first_cost`` (rays and seconds of an
     earlier first pass over the same hits, e.g. a session's previous render; None: all
-    ``rays``), each later one from the pass before. Passes with fewer rays are noisier
-    but estimate the same thing, so their mean still converges."""
+    ``rays``), and every later pass traces as many (the radius rule assumes passes
+    alike); the passes stop when the next would end past the deadline."""
     cam = ps.scene.camera
     out = SurfacePasses(np.zeros((cam.height, cam.width, 3), np.float32))
     if ps.num_lights == 0:
@@ -145,11 +145,16 @@ def _run_passes(ps, dev, hits, estimator: str, rays: int, settings: DensitySetti
     later = replace(settings, k=min(LATER_HEAP * settings.k, HEAP_SIZES[-1]))
     foot = footprints(ps, hits["p"])
     i = 0
-    measured = first_cost
+    # every pass traces the same rays (progressive photon mapping's radius rule assumes
+    # passes alike): under a deadline, as many as the first pass's share of it allows
+    n = sized_rays(rays, first_cost, prog.pass_seconds()) if prog.budgeted else rays
     while True:
-        n = sized_rays(rays, measured, prog.pass_seconds()) if prog.budgeted else rays
-        expected = None if measured is None else measured[1] * n / max(measured[0], 1)
-        if not prog.more(expected if prog.budgeted else None):
+        expected = None
+        if prog.budgeted and out.seconds:
+            expected = out.seconds[-1]
+        elif prog.budgeted and first_cost is not None:
+            expected = first_cost[1] * n / max(first_cost[0], 1)
+        if not prog.more(expected):
             break
         t0 = prog.clock()
         s = float(ppm_scales(alpha, i + 1)[-1])
@@ -167,7 +172,6 @@ def _run_passes(ps, dev, hits, estimator: str, rays: int, settings: DensitySetti
                              radii=(base * s).astype(np.float32))
         out.seconds.append(prog.clock() - t0)
         out.rays.append(int(n))
-        measured = (n, out.seconds[-1])
         scales.append(s)
         # the error estimate compares passes of one estimator: the k-nearest opening pass
         # (a different kernel and radius rule) is left out of it
