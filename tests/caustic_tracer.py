@@ -111,6 +111,17 @@ class Camera:
              + py[:, None, None] * self.tan_y * self.upv)
         return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
+    def project(self, p) -> tuple[float, float] | None:
+        """(column, row) in pixels of world point ``p`` (None behind the camera): the
+        inverse of :meth:`pixel_rays`."""
+        q = np.asarray(p, float) - self.origin
+        depth = q @ self.forward
+        if depth <= 0:
+            return None
+        u = (q @ self.right) / depth / self.tan_x
+        v = (q @ self.upv) / depth / self.tan_y
+        return (u + 1) / 2 * self.width, (1 - v) / 2 * self.height
+
 
 @dataclass
 class Beams:

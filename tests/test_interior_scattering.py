@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from caustic_tracer import Camera
 from test_lsg import _as_dict, _gather, _medium, _random_set, reference_gather
 
 from clscatter.device import structs
@@ -266,28 +267,18 @@ def _ball_quadrature(cam: dict, light_pos, intensity: float, radius: float, ss: 
     by midpoint quadrature along each camera ray's chord: sigma_s p I / d^2
     exp(-kappa (s + l)), s the depth into the ball, l the light's path inside it."""
     w, h = cam["resolution"]
-    o = np.asarray(cam["origin"], float)
-    fwd = np.asarray(cam["target"], float) - o
-    fwd /= np.linalg.norm(fwd)
-    right = np.cross(fwd, [0.0, 1.0, 0.0])
-    right /= np.linalg.norm(right)
-    up = np.cross(right, fwd)
-    tx = np.tan(np.radians(cam["fov"]) / 2)
-    ty = tx * h / w
+    c = Camera(cam["origin"], cam["target"], [0.0, 1.0, 0.0], cam["fov"], w, h)
+    o = c.origin
     ju = (np.arange(sub) + 0.5) / sub
-    px = (np.arange(w)[:, None] + ju[None, :]).reshape(-1)
-    py = (np.arange(h)[:, None] + ju[None, :]).reshape(-1)
-    X, Y = np.meshgrid(px, py)                                  # (h*sub, w*sub)
-    d = (fwd[None, None] + ((2 * X / w - 1) * tx)[..., None] * right
-         + ((1 - 2 * Y / h) * ty)[..., None] * up)
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    # (h, sub, w, sub, 3): the directions through sub x sub points of every pixel
+    d = np.stack([np.stack([c.pixel_rays(u, v) for u in ju], axis=2) for v in ju], axis=1)
     b = d @ o
     disc = b * b - (o @ o - radius ** 2)
     hit = disc > 0
     t0 = np.where(hit, -b - np.sqrt(np.maximum(disc, 0)), 0.0)
     t1 = np.where(hit, -b + np.sqrt(np.maximum(disc, 0)), 0.0)
     kappa = ss + sa
-    L = np.zeros(X.shape)
+    L = np.zeros(d.shape[:-1])
     lp = np.asarray(light_pos, float)
     for i in range(steps):
         t = t0 + (t1 - t0) * (i + 0.5) / steps
@@ -303,7 +294,7 @@ def _ball_quadrature(cam: dict, light_pos, intensity: float, radius: float, ss: 
         L += ss * phase * intensity / dist ** 2 * np.exp(-kappa * ((t - t0) + inside_l)) \
             * (t1 - t0) / steps
     L = np.where(hit, L, 0.0)
-    return L.reshape(h, sub, w, sub).mean(axis=(1, 3))
+    return L.mean(axis=(1, 3))
 
 
 def test_index_one_glass_ball_of_fog_against_quadrature(engine):

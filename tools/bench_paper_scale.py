@@ -231,6 +231,17 @@ def _log(rec: dict, extra: str = "") -> None:
 
 
 # ---- the plot ---------------------------------------------------------------------------------
+def _loglog(a, xlabel: str, ylabel: str) -> None:
+    """Log-log axes with labels, a grid and the legend."""
+    a.set_xscale("log")
+    a.set_yscale("log")
+    a.set_xlabel(xlabel)
+    a.set_ylabel(ylabel)
+    a.grid(True, which="both", alpha=0.3)
+    if a.get_legend_handles_labels()[0]:
+        a.legend(fontsize=8)
+
+
 def plot(result: dict, path: Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
@@ -250,12 +261,7 @@ def plot(result: dict, path: Path) -> None:
             a.scatter(*zip(*pts), color=colours[m], s=16, alpha=0.6)
             fr = pareto(pts)
             a.plot(*zip(*fr), "-o", color=colours[m], ms=4, label=f"{m} (Pareto front)")
-        a.set_xscale("log")
-        a.set_yscale("log")
-        a.set_xlabel("relMSE against the converged lsg")
-        a.set_ylabel(label)
-        a.grid(True, which="both", alpha=0.3)
-        a.legend(fontsize=8)
+        _loglog(a, "relMSE against the converged lsg", label)
     for panel, (cost, label) in enumerate((("render_seconds", "render seconds (relative)"),
                                            ("peak_bytes", "peak_bytes (relative)")), start=2):
         a = ax[panel]
@@ -264,12 +270,7 @@ def plot(result: dict, path: Path) -> None:
             ys = [r[cost] for r in sw["runs"]]
             k = sw["slope_" + cost]
             a.plot(np.array(xs) / xs[0], np.array(ys) / ys[0], "-o", label=f"{name} (slope {k:.2f})")
-        a.set_xscale("log")
-        a.set_yscale("log")
-        a.set_xlabel("triangles / lighting rays / pixels, relative to the smallest")
-        a.set_ylabel(label)
-        a.grid(True, which="both", alpha=0.3)
-        a.legend(fontsize=8)
+        _loglog(a, "triangles / lighting rays / pixels, relative to the smallest", label)
     fig.suptitle(f"paper_bunny {result['size']} {result['spp']} spp: LSG growth, LSG vs VPM "
                  f"({'quick' if result['quick'] else 'full'})")
     fig.tight_layout()

@@ -33,8 +33,11 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
+for p in (REPO, REPO / "tests"):
+    if str(p) not in sys.path:
+        sys.path.insert(0, str(p))
+
+from caustic_tracer import Camera  # noqa: E402  the tests' independent camera model
 
 from clscatter.device import get_engine  # noqa: E402
 from clscatter.io.image import relmse  # noqa: E402
@@ -61,24 +64,13 @@ def edge_mask(d: dict, shape: tuple[int, int]) -> np.ndarray:
     """Pixels within 3 of the image of the table's free edge (x = 0, y = TABLE_TOP)."""
     cam = d["camera"]
     h, w = shape
-    o = np.asarray(cam["origin"], float)
-    fwd = np.asarray(cam["target"], float) - o
-    fwd /= np.linalg.norm(fwd)
-    right = np.cross(fwd, [0.0, 1.0, 0.0])
-    right /= np.linalg.norm(right)
-    up = np.cross(right, fwd)
-    tx = np.tan(np.radians(cam["fov"]) / 2)
-    ty = tx * h / w
+    c = Camera(cam["origin"], cam["target"], cam.get("up", [0.0, 1.0, 0.0]), cam["fov"], w, h)
     mask = np.zeros(shape, bool)
     for z in np.linspace(-1.5, 1.5, 400):
-        p = np.array([0.0, TABLE_TOP, z]) - o
-        depth = p @ fwd
-        if depth <= 0:
+        at = c.project([0.0, TABLE_TOP, z])
+        if at is None:
             continue
-        u = (p @ right) / depth / tx
-        v = (p @ up) / depth / ty
-        col, row = (u + 1) / 2 * w, (1 - v) / 2 * h
-        r0, c0 = int(row), int(col)
+        r0, c0 = int(at[1]), int(at[0])
         mask[max(r0 - 3, 0):r0 + 4, max(c0 - 3, 0):c0 + 4] = True
     return mask
 
