@@ -183,3 +183,24 @@ def test_volumes_make_the_voxel_pipeline_render_alone():
     passes, notes = _plan(d)
     assert _roles(passes) == [("voxel", "all")]
     assert any("renders the whole image alone" in n and "direct by raymarch" in n for n in notes)
+
+
+@pytest.mark.parametrize("spec,sets,missing", [
+    ("builtin:caustic_sphere", [], []),                     # voxelised glass, photons on the floor
+    ("builtin:caustic_sphere", ["render.voxel.surface_photons=false"], ["surface_caustics"]),
+    ("builtin:caustic_sphere", ["render.voxel.voxelise_dielectrics=false"],
+     ["caustics", "surface_caustics"]),
+    ("builtin:glass", [], ["caustics", "surface_caustics"]),          # a mirror besides the glass
+    ("builtin:caustic_mirror", [], ["caustics", "surface_caustics"]),   # photons end at mirrors
+])
+def test_voxel_says_which_caustics_it_leaves_out(spec, sets, missing):
+    """An explicit voxel pass notes the caustics it leaves out (Method.computes): none where
+    it voxelises the glass and puts photons on surfaces; the surface ones without surface
+    photons; all of them without voxelised glass or with a mirror."""
+    from clscatter.scene import load_scene
+    _, notes = plan(load_scene(spec, sets), "voxel")
+    said = [n for n in notes if "does not compute" in n]
+    if missing:
+        assert len(said) == 1 and f"does not compute {', '.join(missing)}:" in said[0], notes
+    else:
+        assert not said, notes

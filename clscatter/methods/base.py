@@ -280,6 +280,13 @@ class Method:
         terms it leaves to them (the ray map's medium term). Default: none."""
         return []
 
+    @classmethod
+    def computes(cls, scene, params: dict) -> frozenset[str]:
+        """The terms this method computes for ``scene`` with its checked ``params``: its
+        ``TERMS`` (a method whose terms depend on the scene or on its parameters says so
+        here; the planner's notes on light left out read this)."""
+        return cls.TERMS
+
     def render(self, ctx: PassContext) -> PassResult:
         """What this method adds to the image (its ``TERMS``), given its
         :class:`~clscatter.transport.context.PassContext`."""

@@ -142,9 +142,10 @@ def _explicit(scene: Scene, requested: str, terms: list[str],
     cls = methods[requested]
     if not terms:
         return [], notes
-    companions = [c for c in cls.companions(configure(requested, scene.render.params.get(requested)))
+    params = configure(requested, scene.render.params.get(requested))
+    companions = [c for c in cls.companions(params)
                   if methods[c].TERMS & set(terms)]      # only for terms the scene needs
-    computed = set(cls.TERMS).union(*(methods[c].TERMS for c in companions))
+    computed = set(cls.computes(scene, params)).union(*(methods[c].TERMS for c in companions))
     names = "+".join([requested, *companions])
     missing = [t for t in terms if t not in computed]
     if len(missing) == len(terms):

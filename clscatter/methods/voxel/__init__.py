@@ -141,6 +141,17 @@ class Voxel(Method):
               "scene extent", lo=0.0, lo_open=True),
     )
     TERMS = frozenset({"direct", "volumes"})
+
+    @classmethod
+    def computes(cls, scene, params: dict) -> frozenset[str]:
+        """Its ``TERMS``, and where it voxelises the glass of a scene without mirrors (whose
+        light its photons do not follow), the glass's caustics: in the medium, and on
+        surfaces with ``surface_photons``."""
+        kinds = {o.material.type for o in scene.objects}
+        if not params["voxelise_dielectrics"] or "mirror" in kinds or "dielectric" not in kinds:
+            return cls.TERMS
+        return cls.TERMS | {"caustics"} | ({"surface_caustics"} if params["surface_photons"]
+                                           else set())
     PREVIEW_SCALE = {"photons": 0.25}
     AUTO = {"volumes": AutoRole(priority=10)}
     # When auto picks this method it must render the whole image alone: it computes the
