@@ -1,0 +1,91 @@
+#!/usr/bin/env python3
+"""Benchmark: where LSG's gather spends its work, and what the line tree's leaf size is
+worth, on the glass-ball caustic (``tools/scenes/glass_ball_fog.toml``).
+
+Each run is ``clscatter render --method lsg`` in a fresh process with the caustic
+lighting segments only (``min_light_depth = 1``), one pass of ``--rays`` lighting rays at
+``--size``, and ``render.lsg.leaf_size`` set to each of ``--leaf-sizes``; the sizes take
+turns ``--repeats`` times, so drift on a shared machine falls on all alike. Recorded from
+``--stats`` for every run: the gather's and the tree build's seconds, the view and kept
+lighting segments, the pairs an exhaustive gather would test, the points in the leaves
+the walk reached (the culling of the tree: Plücker slabs and the nodes' 3-D boxes), the
+exact pair tests and the valid pairs. Prints a markdown table of the medians and writes
+bench_out/lsg_gather.json (and docs/bench/lsg_gather.json unless ``--no-copy``).
+
+    .venv/bin/python tools/bench_lsg_gather.py [--size 160 120] [--rays 50000]
+        [--leaf-sizes 4 16] [--repeats 2] [--no-copy]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+KEYS = ("gather_seconds", "tree_build_seconds", "view_segments", "lsg_light_segments_kept",
+        "pair_tests_bruteforce", "lsg_leaf_points_tested", "pair_tests", "valid_pairs")
+
+
+def run(scene: Path, size: tuple[int, int], rays: int, leaf: int) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        st = Path(tmp) / "stats.json"
+        cmd = [sys.executable, "-m", "clscatter", "render", str(scene), "--method", "lsg",
+               "-o", str(Path(tmp) / "img.npy"), "--stats", str(st), "--no-progress",
+               "--time-budget", "0", "--set", f"camera.resolution=[{size[0]},{size[1]}]",
+               "--set", "render.lsg.min_light_depth=1", "--set", f"render.lsg.light_rays={rays}",
+               "--set", f"render.lsg.leaf_size={leaf}"]
+        proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise SystemExit(proc.stderr.strip())
+        s = json.loads(st.read_text())
+    return {k: s.get(k) for k in KEYS}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scene", default=str(ROOT / "tools" / "scenes" / "glass_ball_fog.toml"))
+    ap.add_argument("--size", type=int, nargs=2, default=[160, 120])
+    ap.add_argument("--rays", type=int, default=50_000)
+    ap.add_argument("--leaf-sizes", type=int, nargs="+", default=[4, 16])
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--no-copy", action="store_true")
+    args = ap.parse_args()
+    runs: dict[int, list[dict]] = {ls: [] for ls in args.leaf_sizes}
+    for _ in range(args.repeats):
+        for ls in args.leaf_sizes:
+            runs[ls].append(run(Path(args.scene), tuple(args.size), args.rays, ls))
+            print(f"leaf_size {ls}: gather {runs[ls][-1]['gather_seconds']:.2f} s", file=sys.stderr)
+    rows = []
+    for ls, rs in runs.items():
+        row = {"leaf_size": ls, **{k: rs[0][k] for k in KEYS if "seconds" not in k}}
+        for k in ("gather_seconds", "tree_build_seconds"):
+            row[k] = statistics.median(r[k] for r in rs)
+            row[k + "_all"] = [r[k] for r in rs]
+        rows.append(row)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
+                            capture_output=True, text=True).stdout.strip()
+    record = {"scene": Path(args.scene).name, "size": args.size, "rays": args.rays,
+              "commit": commit, "machine": platform.processor() or platform.machine(),
+              "rows": rows}
+    out = ROOT / "bench_out" / "lsg_gather.json"
+    out.parent.mkdir(exist_ok=True)
+    out.write_text(json.dumps(record, indent=1))
+    if not args.no_copy:
+        shutil.copy(out, ROOT / "docs" / "bench" / "lsg_gather.json")
+    print("| leaf_size | gather s (median) | tree s | leaf points tested | exact pair tests | "
+          "valid pairs | exhaustive pairs |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['leaf_size']} | {r['gather_seconds']:.2f} | {r['tree_build_seconds']:.2f} | "
+              f"{r['lsg_leaf_points_tested']:,} | {r['pair_tests']:,} | {r['valid_pairs']:,} | "
+              f"{r['pair_tests_bruteforce']:,} |")
+
+
+if __name__ == "__main__":
+    main()
