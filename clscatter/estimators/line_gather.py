@@ -45,7 +45,7 @@ BYTES_PER_SEGMENT = 512
 
 # Least points per leaf of the line tree (at most 8x). The gather's cost is mostly the
 # walk over internal nodes, so leaves of tens of points are faster than leaves of a few
-# (docs/benchmarks.md, "Where the time goes").
+# (tools/bench_lsg_gather.py).
 LEAF_SIZE = 16
 
 
