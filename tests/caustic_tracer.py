@@ -401,3 +401,92 @@ def axial_exit_rays(light_height: float, radius: float, ior: float, alpha: np.nd
     frac = (1 - F) ** 2 * F ** k
     return (radius * np.sin(ex_ang), radius * np.cos(ex_ang), dr[0], dr[1], frac,
             (k + 1) * 2 * radius * cos_t)
+
+
+# ---- surface irradiance: what diffuse surfaces show of the beams ------------------------
+def _first_surface(o, d, floor_y, floor_half, boxes):
+    """Where beams o + t d first meet a diffuse receiver: the floor quad {y = floor_y,
+    |x|, |z| <= floor_half} or a box of ``boxes`` [(lo, hi)]; (t (inf: none), unit
+    normal facing the beam)."""
+    m = len(o)
+    t_best = np.full(m, np.inf)
+    nrm = np.zeros((m, 3))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (floor_y - o[:, 1]) / d[:, 1]
+    p = o + np.where(np.isfinite(t), t, 0)[:, None] * d
+    ok = (t > 1e-9) & (np.abs(p[:, 0]) <= floor_half) & (np.abs(p[:, 2]) <= floor_half)
+    t_best[ok] = t[ok]
+    nrm[ok] = [0.0, 1.0, 0.0]
+    for lo, hi in boxes:
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        t0, t1 = ray_box(o, d, lo, hi)
+        ok = (t0 > 1e-9) & (t0 <= t1) & (t0 < t_best)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / d[ok]
+            near = np.minimum((lo - o[ok]) * inv, (hi - o[ok]) * inv)
+        axis = np.argmax(np.nan_to_num(near, nan=-np.inf), axis=1)
+        face = np.zeros((ok.sum(), 3))
+        face[np.arange(len(axis)), axis] = -np.sign(d[ok][np.arange(len(axis)), axis])
+        t_best[ok] = t0[ok]
+        nrm[ok] = face
+    return t_best, nrm
+
+
+def _blocked(x, cam_origin, sphere: Sphere, boxes):
+    """Whether the straight line from points x to the camera is blocked by the sphere or
+    a box (x lifted off its surface by a hair first)."""
+    v = cam_origin - x
+    dist = np.linalg.norm(v, axis=1)
+    u = v / dist[:, None]
+    x = x + 1e-7 * u
+    t0, t1 = ray_sphere(x, u, sphere.center, sphere.radius)
+    hit = np.isfinite(t0) & (t1 > 0) & (t0 < dist)
+    for lo, hi in boxes:
+        b0, b1 = ray_box(x, u, np.asarray(lo, float), np.asarray(hi, float))
+        hit |= (b0 <= b1) & (b1 > 1e-6) & (b0 < dist)
+    return hit
+
+
+def surface_image(beams: Beams, cam: Camera, sphere: Sphere, albedo: float,
+                  floor_y: float = 0.0, floor_half: float = 2.5, boxes=(),
+                  chunk: int = 1 << 20) -> np.ndarray:
+    """(H, W, 3) radiance (box-filtered pixel means) of diffuse surfaces (albedo
+    ``albedo``: the floor quad and ``boxes``) lit by the beams, no medium. Each beam ends
+    where it first meets a receiver; its power Phi lands at x, and a surface seen
+    directly (nothing between x and the camera) shows the pixel it projects to
+
+        integral over the pixel's image-plane area of L  =  sum of
+        albedo / pi  Phi  cos(theta_s) / (t^2 J),
+
+    (L = albedo / pi  E, E dA = dPhi; theta_s between the normal and the direction to the
+    camera, t the distance, J as in :func:`radiance_image`), divided by the pixel's
+    area. No density estimation: no blur, no boundary bias; its only noise is the
+    photons'. Pixels that see the floor through the sphere get nothing (compare where
+    :func:`pixels_missing_sphere`)."""
+    W, H = cam.width, cam.height
+    acc = np.zeros((3, W * H))
+    pix_area = (2.0 / W) * (2.0 / H)
+    for a in range(0, len(beams.power), chunk):
+        b = slice(a, a + chunk)
+        o, d, P = beams.origin[b], beams.direction[b], beams.power[b]
+        t, nrm = _first_surface(o, d, floor_y, floor_half, boxes)
+        ok = np.isfinite(t)
+        x, nrm, P = o[ok] + t[ok, None] * d[ok], nrm[ok], P[ok]
+        v = cam.origin - x
+        dist = np.linalg.norm(v, axis=1)
+        cos_s = _dot(nrm, v) / dist
+        z = -(v @ cam.forward)
+        seen = (cos_s > 0) & (z > 1e-9) & ~_blocked(x, cam.origin, sphere, boxes)
+        x, P, cos_s, z, dist = x[seen], P[seen], cos_s[seen], z[seen], dist[seen]
+        q = x - cam.origin
+        fx = (q @ cam.right) / z / cam.tan_x
+        fy = (q @ cam.upv) / z / cam.tan_y
+        px = np.floor((fx + 1) / 2 * W).astype(np.int64)
+        py = np.floor((1 - fy) / 2 * H).astype(np.int64)
+        inside = (px >= 0) & (px < W) & (py >= 0) & (py < H)
+        J = cam.tan_x * cam.tan_y * (z / dist) ** 3
+        w = P * (albedo / np.pi * cos_s / (dist * dist * J * pix_area))[:, None]
+        pix = (py * W + px)[inside]
+        for c in range(3):
+            acc[c] += np.bincount(pix, weights=w[inside, c], minlength=W * H)
+    return acc.T.reshape(H, W, 3)

@@ -5,19 +5,34 @@ edge and on a caustic whose peak lies on a table's free edge.
 Both surface density estimators run progressive passes (fresh rays each pass, radii
 shrinking by the progressive photon mapping rule) under the same time budget
 (``render.<m>.time_budget``; ``medium = "none"``: the surface term alone), so the
-comparison is at equal time by construction. Scenes: ``floor`` is ``builtin:caustic_sphere``
-(the glass ball's caustic on an open floor); ``edge`` is the same ball over a table whose
-edge runs under the ball's centre, so the caustic's peak straddles the edge (half on the
-table top, the rest falls past it). Each run is a fresh render in this process; the error
-is relMSE (``clscatter.io.image.relmse``) of the surface caustic (the pass's own image,
-direct light excluded) against a long ray-map run
-(``--ref-passes`` passes of ``--ref-photons``), over the whole image and over the pixels
-within 3 of the table edge's image (``edge`` only).
+comparison is at equal time by construction. Scenes: ``floor`` is the glass ball of
+``builtin:caustic_sphere`` over its open floor, seen from close by (the caustic spans tens
+of pixels); ``edge`` is the same ball lit from straight above, over a table top at its
+focus whose free edge runs under the ball's centre, so the caustic's peak straddles the
+edge (half on the table top, the rest falls past it to the floor). 160x120, 4 spp
+(stratified), so that a pixel's own sampling adds little to the error.
+
+The reference is independent of both estimators: the tests' NumPy light tracer
+(``tests/caustic_tracer.py``: exact sphere, Snell, Fresnel, internal reflections) lands
+``--ref-photons`` photons on the floor and the table and projects each into the pixel
+that sees it (``surface_image``: the box-filtered pixel radiance, no density estimation,
+no blur, no boundary bias). Compared are the pixels whose view misses the ball
+(``pixels_missing_sphere``); the reference's own noise (from one half of its photons
+against the other) is reported beside. Each run is a fresh render in this
+process; the error is relMSE (``clscatter.io.image.relmse``) of the surface caustic (the
+pass's own image, direct light excluded) over those pixels and over the pixels within 3
+of the table edge's image (``edge`` only).
 
 Writes bench_out/surface_equal_time/bench.json (and docs/bench/surface_equal_time.json
 unless ``--no-copy``) and prints a markdown table.
 
-    .venv/bin/python tools/bench_surface_equal_time.py [--budgets 2 4 8] [--size 160x120]
+Beside the equal-time runs, both run ``--equal-passes`` passes with no budget (equal work:
+the estimators' own accuracy), with the seconds per pass of each stage (the lighting
+rays; the diffuse hits and the pieces' bookkeeping; ``build``: the tree's root or the photons' balanced
+tree; ``radius``: how far the ray map's lazy tree refines in the first pass; ``refine``: the
+lazy refinement on the host; ``estimate``: the queries on the device).
+
+    .venv/bin/python tools/bench_surface_equal_time.py [--budgets 4 8 16] [--size 160x120]
 """
 from __future__ import annotations
 
@@ -37,7 +52,7 @@ for p in (REPO, REPO / "tests"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
-from caustic_tracer import Camera  # noqa: E402  the tests' independent camera model
+import caustic_tracer as ct  # noqa: E402  the tests' independent light tracer
 
 from clscatter.device import get_engine  # noqa: E402
 from clscatter.io.image import relmse  # noqa: E402
@@ -47,24 +62,64 @@ from clscatter.scene.builtin import BUILTIN  # noqa: E402
 
 OUT = REPO / "bench_out" / "surface_equal_time"
 TABLE_TOP = 0.45         # near the ball's focus; the edge is the line x = 0, z in [-1.5, 1.5]
+TABLE = ([-1.8, TABLE_TOP - 0.06, -1.5], [0.0, TABLE_TOP, 1.5])
+ALBEDO = 0.55            # builtin:caustic_sphere's floor
+#: close to the caustic, from the table's side of its edge (the edge face turned away)
+CAMERA = {"origin": [-0.3, 1.1, 2.4], "target": [0.0, 0.4, 0.0], "fov": 36.0}
 
 
 def scenes(size: tuple[int, int]) -> dict[str, dict]:
     floor = BUILTIN["caustic_sphere"]()
-    floor["camera"].update(resolution=list(size), spp=1)
+    floor["camera"].update(resolution=list(size), spp=4, **CAMERA)
     floor.pop("medium", None)
     edge = copy.deepcopy(floor)
     edge["lights"][0]["position"] = [0.0, 3.25, 0.0]
-    edge["objects"].append({"shape": "box", "min": [-1.8, TABLE_TOP - 0.06, -1.5],
-                            "max": [0.0, TABLE_TOP, 1.5], "material": "floor"})
+    edge["objects"].append({"shape": "box", "min": TABLE[0], "max": TABLE[1],
+                            "material": "floor"})
     return {"floor": floor, "edge": edge}
+
+
+def tracer_camera(d: dict) -> ct.Camera:
+    cam = d["camera"]
+    w, h = cam["resolution"]
+    return ct.Camera(cam["origin"], cam["target"], cam.get("up", [0.0, 1.0, 0.0]), cam["fov"],
+                     w, h)
+
+
+def tracer_sphere(d: dict) -> ct.Sphere:
+    ball = d["objects"][1]
+    glass = d["materials"][ball["material"]]
+    return ct.Sphere(ball["center"], ball["radius"], glass["ior"], glass["interior_sigma_a"])
+
+
+def reference(d: dict, photons: int, chunk: int = 1_000_000) -> tuple[np.ndarray, float]:
+    """The tracer's surface caustic of ``d`` (``photons`` from its point light, in chunks of
+    independent seeds) and its own noise: relMSE of one half against the other over the
+    compared pixels, divided by 4 (the difference of two halves has twice the variance of
+    a half, which has twice that of the mean)."""
+    cam, ball = tracer_camera(d), tracer_sphere(d)
+    light = d["lights"][0]
+    clear = ct.Medium(0.0, 0.0, 0.0, [-1e3] * 3, [1e3] * 3)
+    boxes = [(o["min"], o["max"]) for o in d["objects"] if o["shape"] == "box"]
+    parts = []
+    for seed in range(max(2, photons // chunk)):
+        beams = ct.trace(light["position"], light["intensity"], ball, clear, chunk, seed)
+        parts.append(ct.surface_image(beams, cam, ball, ALBEDO, boxes=boxes))
+    half = len(parts) // 2
+    keep = compared(d)
+    a, b = np.mean(parts[:half], 0), np.mean(parts[half:], 0)
+    return np.mean(parts, 0), relmse(a[keep], b[keep]) / 4
+
+
+def compared(d: dict) -> np.ndarray:
+    """The pixels compared: those whose view misses the ball (the tracer sees the surfaces
+    directly only)."""
+    return ct.pixels_missing_sphere(tracer_camera(d), tracer_sphere(d))
 
 
 def edge_mask(d: dict, shape: tuple[int, int]) -> np.ndarray:
     """Pixels within 3 of the image of the table's free edge (x = 0, y = TABLE_TOP)."""
-    cam = d["camera"]
-    h, w = shape
-    c = Camera(cam["origin"], cam["target"], cam.get("up", [0.0, 1.0, 0.0]), cam["fov"], w, h)
+    c = tracer_camera(d)
     mask = np.zeros(shape, bool)
     for z in np.linspace(-1.5, 1.5, 400):
         at = c.project([0.0, TABLE_TOP, z])
@@ -86,11 +141,13 @@ def surface(d: dict, method: str, table: dict, engine) -> tuple[np.ndarray, dict
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--budgets", type=float, nargs="*", default=[2.0, 4.0, 8.0])
+    ap.add_argument("--budgets", type=float, nargs="*", default=[4.0, 8.0, 16.0])
     ap.add_argument("--size", default="160x120")
     ap.add_argument("--photons", type=int, default=20_000)
-    ap.add_argument("--ref-photons", type=int, default=200_000)
-    ap.add_argument("--ref-passes", type=int, default=12)
+    ap.add_argument("--ref-photons", type=int, default=16_000_000,
+                    help="the tracer's photons for the reference")
+    ap.add_argument("--equal-passes", type=int, default=8,
+                    help="passes of the equal-work runs (no budget)")
     ap.add_argument("--no-copy", action="store_true")
     args = ap.parse_args()
     size = tuple(int(x) for x in args.size.split("x"))
@@ -98,16 +155,25 @@ def main() -> None:
     OUT.mkdir(parents=True, exist_ok=True)
     rows = []
     for name, d in scenes(size).items():
-        ref, _ = surface(d, "raymap", {"photons": args.ref_photons, "passes": args.ref_passes},
-                         engine)
-        mask = edge_mask(d, ref.shape[:2]) if name == "edge" else None
-        for budget in args.budgets:
+        ref, noise = reference(d, args.ref_photons)
+        keep = compared(d)
+        mask = edge_mask(d, ref.shape[:2]) & keep if name == "edge" else None
+        print(f"{name}: reference noise {noise:.2g}", file=sys.stderr)
+        # equal time (each budget), then equal work (--equal-passes passes, no budget)
+        runs = [(b, 1024) for b in args.budgets] + [(0.0, args.equal_passes)]
+        for budget, passes in runs:
             for method in ("raymap", "photonmap"):
-                img, st = surface(d, method, {"photons": args.photons, "passes": 1024,
+                img, st = surface(d, method, {"photons": args.photons, "passes": passes,
                                               "time_budget": budget}, engine)
+                stages = st["stages"]
                 row = {"scene": name, "method": method, "budget_seconds": budget,
+                       "stage_seconds": {"light_paths": stages.get("light_paths", 0.0),
+                                         **{k: stages.get(f"{method}_{k}", 0.0) for k in
+                                            ("trace", "build", "radius", "refine",
+                                             "estimate")}},
                        "seconds": st["stages"].get(f"{method}_estimate", 0.0),
-                       "passes": st.get(f"{method}_passes"), "relmse": relmse(img, ref),
+                       "passes": st.get(f"{method}_passes"),
+                       "relmse": relmse(img[keep], ref[keep]), "reference_noise": noise,
                        "pass_seconds_total": float(sum(st.get(f"{method}_pass_seconds", []))),
                        "error_estimate": st.get("error_estimate")}
                 if mask is not None:
@@ -117,17 +183,29 @@ def main() -> None:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
                             capture_output=True, text=True).stdout.strip()
     record = {"commit": commit, "machine": platform.machine(), "size": args.size,
-              "photons": args.photons, "reference": {"photons": args.ref_photons,
-                                                     "passes": args.ref_passes}, "rows": rows}
+              "photons": args.photons, "reference": {"tracer_photons": args.ref_photons},
+              "rows": rows}
     (OUT / "bench.json").write_text(json.dumps(record, indent=1))
     if not args.no_copy:
         shutil.copy(OUT / "bench.json", REPO / "docs" / "bench" / "surface_equal_time.json")
-    print("| scene | budget s | method | passes | time in passes s | relMSE | relMSE near the edge |")
-    print("|---|---|---|---|---|---|---|")
+    print("| scene | budget s | method | passes | time in passes s | relMSE | relMSE near the edge "
+          "| reference's own noise |")
+    print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         edge = f"{r['relmse_edge']:.2g}" if "relmse_edge" in r else "-"
-        print(f"| {r['scene']} | {r['budget_seconds']:g} | {r['method']} | {r['passes']} | "
-              f"{r['pass_seconds_total']:.2f} | {r['relmse']:.2g} | {edge} |")
+        budget = f"{r['budget_seconds']:g}" if r["budget_seconds"] > 0 else "none"
+        print(f"| {r['scene']} | {budget} | {r['method']} | {r['passes']} | "
+              f"{r['pass_seconds_total']:.2f} | {r['relmse']:.2g} | {edge} | "
+              f"{r['reference_noise']:.1g} |")
+    print("\n| scene | method | seconds per pass: lighting rays | diffuse hits and pieces | "
+          "build | radius | refine | queries |")
+    print("|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        if r["budget_seconds"] == 0:
+            per = {k: v / max(r["passes"] or 1, 1) for k, v in r["stage_seconds"].items()}
+            print(f"| {r['scene']} | {r['method']} | {per['light_paths']:.3f} | "
+                  f"{per['trace']:.3f} | {per['build']:.3f} | "
+                  f"{per['radius']:.3f} | {per['refine']:.3f} | {per['estimate']:.3f} |")
 
 
 if __name__ == "__main__":
