@@ -207,3 +207,48 @@ def test_budgeted_passes_are_sized_from_an_earlier_first_pass(ball, method, monk
     rays = st[f"{method}_pass_rays"]
     assert len(rays) == 4 and all(r == pytest.approx(5000, abs=1) for r in rays), rays
     assert clock() - started <= 1.2 * 2.0
+    assert st[f"{method}_sized_from"] == "session"
+
+
+@pytest.mark.parametrize("method", ESTIMATORS)
+def test_budgeted_first_pass_is_sized_from_the_devices_learnt_cost(ball, method, monkeypatch):
+    """No earlier pass in the session, but the device has learnt 1e-4 s per lighting ray
+    plus diffuse hit for a first pass (``ctx.predict``): 40,000 rays, 4 passes planned
+    under a 4 s deadline are sized to 1 s / (1e-4 (40,000 + hits)) of the 40,000 rays
+    each, the budget holds, and the first pass's own cost is learnt (``ctx.learn``, work
+    = its rays plus the hits). Tracing advances a fake clock by 1 s per 10,000 rays."""
+    ps, paths = ball
+    clock = FakeClock()
+    real = surface_passes.caustic_pieces
+
+    def costly(ps_, rays, *a, **kw):
+        clock.now += rays / 10000.0
+        return real(ps_, rays, *a, **kw)
+
+    monkeypatch.setattr(surface_passes, "caustic_pieces", costly)
+    asked, learnt = [], []
+
+    def predict(stage, work):
+        asked.append((stage, work))
+        return 1e-4 * work
+
+    def learn(stage, work, seconds):
+        learnt.append((stage, work, seconds))
+
+    started = clock()
+    _, st = _surface(ps, paths, method, {"photons": 40000, "passes": 4},
+                     deadline=clock() + 4.0, clock=clock, costs=(predict, learn))
+    hits = st["diffuse_hits"]
+    want = 40000 * 1.0 / (1e-4 * (40000 + hits))
+    rays = st[f"{method}_pass_rays"]
+    assert asked == [(f"{method}_first_pass", 40000 + hits)]
+    assert len(rays) == 4 and all(r == pytest.approx(want, abs=1) for r in rays), (rays, want)
+    assert st[f"{method}_sized_from"] == "calibration"
+    assert clock() - started <= 1.2 * 4.0
+    assert learnt == [(f"{method}_first_pass", rays[0] + hits, pytest.approx(rays[0] / 1e4))]
+    # without a deadline nothing is predicted and every pass traces all its rays
+    asked.clear()
+    _, st = _surface(ps, paths, method, {"photons": 4000, "passes": 2}, clock=clock,
+                     costs=(predict, learn))
+    assert asked == [] and st[f"{method}_pass_rays"] == [4000, 4000]
+    assert st[f"{method}_sized_from"] == "none"

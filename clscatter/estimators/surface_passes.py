@@ -23,6 +23,7 @@ holds in expectation; where more lie within, the nearest ``2 k`` are the estimat
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import Callable
 
 import numpy as np
 
@@ -88,6 +89,8 @@ class SurfacePasses:
     scales: np.ndarray = field(default_factory=lambda: np.zeros(0))
     stopped_by: str = "passes"
     error: float | None = None
+    hits: int = 0                         # diffuse hits estimated
+    sized_from: str = "none"              # what the passes' rays were sized from
 
 
 def base_radii(first: np.ndarray, foot: np.ndarray, explicit: float) -> np.ndarray:
@@ -101,7 +104,9 @@ def progressive_surface_caustics(ps, estimator: str, rays: int, settings: Densit
                                  stats: Stats, prog, alpha: float, radius: float = 0.0,
                                  seed: int = 0, show_progress: bool = False,
                                  sample_range: tuple[int, int] | None = None,
-                                 first_cost: tuple[int, float] | None = None) -> SurfacePasses:
+                                 first_cost: tuple[int, float] | None = None,
+                                 predict_first: Callable[[int, int], float | None] | None = None
+                                 ) -> SurfacePasses:
     """The surface caustics (as :func:`~.ray_density.surface_caustics`) refined by passes
     while ``prog`` (a :class:`~clscatter.transport.progressive.Progression`) says so;
     each later pass's own image goes to ``prog.add`` with its radius (the median base
@@ -112,9 +117,13 @@ def progressive_surface_caustics(ps, estimator: str, rays: int, settings: Densit
 
     Under a deadline (``prog.budgeted``) the passes' rays are sized to the first pass's
     share of the time (:func:`sized_rays`) from ``first_cost`` (rays and seconds of an
-    earlier first pass over the same hits, e.g. a session's previous render; None: all
-    ``rays``), and every later pass traces as many (the radius rule assumes passes
-    alike); the passes stop when the next would end past the deadline."""
+    earlier first pass over the same hits, e.g. a session's previous render) or else from
+    ``predict_first(rays, hits)`` (the seconds a first pass of ``rays`` over ``hits``
+    diffuse hits should take on this device, e.g. learnt from earlier renders; None: not
+    known); with neither, all ``rays``. Every later pass traces as many (the radius rule
+    assumes passes alike); the passes stop when the next would end past the deadline.
+    ``sized_from`` in the result says which of the three it was (``session``,
+    ``calibration``, ``none``)."""
     cam = ps.scene.camera
     out = SurfacePasses(np.zeros((cam.height, cam.width, 3), np.float32))
     if ps.num_lights == 0:
@@ -124,6 +133,13 @@ def progressive_surface_caustics(ps, estimator: str, rays: int, settings: Densit
     try:
         hits = read_hits(ps, dev)
         stats.set(diffuse_hits=int(dev.count))
+        out.hits = int(dev.count)
+        if first_cost is not None:
+            out.sized_from = "session"
+        elif predict_first is not None and prog.budgeted and dev.count > 0:
+            seconds = predict_first(int(rays), int(dev.count))
+            if seconds is not None and seconds > 0:
+                first_cost, out.sized_from = (int(rays), float(seconds)), "calibration"
         if dev.count > 0:
             _run_passes(ps, dev, hits, estimator, rays, settings, stats, prog, alpha, radius,
                         seed, show_progress, out, first_cost)

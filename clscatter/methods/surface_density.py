@@ -15,6 +15,10 @@ from .base import Method, Param, PassResult, camera_samples, costs
 BYTES_PER_RAY = 512
 #: most passes under an error target (the target or a deadline should end them first)
 MAX_PASSES = 1024
+#: the learnt cost of a first pass (``<method>_first_pass``), in seconds per lighting ray
+#: plus diffuse hit: a guide that errs long (the queries grow more slowly than the hits),
+#: so a first pass sized from it fits its share of a deadline
+FIRST_PASS_STAGE = "first_pass"
 
 #: the parameters every surface density estimator declares
 DENSITY_PARAMS = (
@@ -58,7 +62,10 @@ class SurfaceDensityMethod(Method):
     2-D kernel); the image is the mean of the passes, which converges. Passes stop at
     ``passes``, at the deadline (this pass's share of ``render.time_budget``, or
     ``time_budget``) or at ``render.target_error``; their own images give the render's
-    error estimate."""
+    error estimate. Under a deadline the passes' rays are sized to their share of it from
+    a session's earlier first pass, or else from this device's learnt cost of a first pass
+    (seconds per lighting ray plus diffuse hit, kept across runs); ``<name>_sized_from``
+    says which."""
 
     TERMS = frozenset({"surface_caustics"})
     PREVIEW_SCALE = {"photons": 0.125, "passes": 0.0, "time_budget": 0.0}
@@ -98,15 +105,20 @@ class SurfaceDensityMethod(Method):
             prog.max_passes = MAX_PASSES
         s = self.settings()
         s.max_radius = p["max_radius"] * scene_relative(ps)
-        # a session's earlier first pass over as many hits sizes this one's under a deadline
+        # under a deadline, a session's earlier first pass over as many hits sizes this
+        # one's, or else this device's learnt cost of a first pass (FIRST_PASS_STAGE)
         slot = ("first_pass", len(ctx.paths), ctx.paths.sample_range)
+        stage = f"{self.NAME}_{FIRST_PASS_STAGE}"
         res = progressive_surface_caustics(ps, self.NAME, p["photons"], s, ctx.stats, prog,
                                            p["ppm_alpha"], p["radius"] * scene_relative(ps),
                                            show_progress=ctx.show_progress,
                                            sample_range=ctx.paths.sample_range,
-                                           first_cost=ctx.cache.get(slot))
+                                           first_cost=ctx.cache.get(slot),
+                                           predict_first=lambda rays, hits:
+                                           ctx.predict(stage, rays + hits))
         if res.rays:
             ctx.cache[slot] = (res.rays[0], res.seconds[0])
+            ctx.learn(stage, res.rays[0] + res.hits, res.seconds[0])
         self._report(ctx, prog, res, ps)
         return PassResult(surface=res.image)
 
@@ -122,6 +134,7 @@ class SurfaceDensityMethod(Method):
                          f"{name}_pass_rays": res.rays,
                          f"{name}_time_budget": self.params["time_budget"],
                          f"{name}_stopped_by": res.stopped_by,
+                         f"{name}_sized_from": res.sized_from,
                          f"{name}_error_estimate": res.error})
         line = prog.overrun_note(name, "a pass of all its photons", f"render.{name}.photons")
         if line:

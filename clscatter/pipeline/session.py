@@ -322,7 +322,7 @@ class RenderSession:
             with PassContext(run.ps, run.paths, stats, run.show_progress,
                              self._caches.setdefault(p.method, PassCache()), run.on_note,
                              deadline, scene.render.target_error, image_so_far,
-                             cancel=run.cancel) as ctx:
+                             cancel=run.cancel, costs=_costs(run)) as ctx:
                 out = method.render(ctx)
                 err = ctx.errors()
             if deadline is None and not run.preview and run.only is None:
@@ -507,6 +507,14 @@ def _budget_order(cls) -> int:
     """When a pass runs within a budgeted render: fixed work first, then progressive passes
     of a fixed size, then those that size their passes to the time left."""
     return 0 if not cls.PROGRESSIVE else 2 if cls.SIZES_PASSES else 1
+
+
+def _costs(run: "_Run"):
+    """The (predict, learn) pair a pass context offers its method: this device's
+    calibration (:mod:`clscatter.pipeline.calibration`) under the method's own stage names."""
+    device = run.ps.engine.device.name.strip()
+    return (lambda stage, work: calibration.predict(device, stage, work),
+            lambda stage, work, seconds: calibration.record(device, stage, work, seconds))
 
 
 def _calibrate(run: "_Run", stage: str, seconds: float) -> None:

@@ -16,6 +16,10 @@ A method's ``render(ctx)`` reads everything through its :class:`PassContext`:
   keeps structures that survive a change that does not touch them;
 * ``ctx.note(line)``: a one-line note for the user (``render`` prints it as
   ``clscatter: note: ...``), e.g. why a budget could not be kept;
+* ``ctx.predict(stage, work)`` and ``ctx.learn(stage, work, seconds)``: this machine's
+  learnt seconds per unit of a method's own work (the session keeps them per device,
+  across runs; None before anything was learnt, and always without a session): how a
+  method sizes its first unit of work to a deadline before it has timed one;
 * ``ctx.progression(max_passes, planned, own_budget)``: the
   :class:`~clscatter.transport.progressive.Progression` a method with progressive passes
   runs them by: it ends them by the render's deadline (``ctx.deadline``, the share of
@@ -58,8 +62,11 @@ class PassContext:
                  deadline: float | None = None, target_error: float = 0.0,
                  image_so_far: Callable[[], np.ndarray | None] | None = None,
                  clock: Callable[[], float] = time.perf_counter,
-                 cancel: Callable[[], bool] | None = None):
+                 cancel: Callable[[], bool] | None = None,
+                 costs: tuple[Callable[[str, float], float | None],
+                              Callable[[str, float, float], None]] | None = None):
         self.ps = ps
+        self._costs = costs            # (predict, learn) of the session's calibration
         self.cancel = cancel           # polled between progressive passes
         self.clock = clock             # what deadlines are measured on (tests give a fake one)
         self.deadline = deadline
@@ -101,6 +108,16 @@ class PassContext:
         self.stats.set(notes=[*self.stats.values.get("notes", []), line])
         if self._on_note is not None:
             self._on_note(line)
+
+    def predict(self, stage: str, work: float) -> float | None:
+        """Seconds ``work`` units of ``stage`` should take on this device, as learnt from
+        earlier :meth:`learn` calls (None before any, or without a session)."""
+        return None if self._costs is None else self._costs[0](stage, work)
+
+    def learn(self, stage: str, work: float, seconds: float) -> None:
+        """Keep that ``work`` units of ``stage`` took ``seconds`` here (for :meth:`predict`)."""
+        if self._costs is not None:
+            self._costs[1](stage, work, seconds)
 
     def progression(self, max_passes: int, planned: int, own_budget: float = 0.0) -> Progression:
         """A :class:`Progression` for this pass's progressive passes: at most ``max_passes``,

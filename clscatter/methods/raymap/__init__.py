@@ -55,7 +55,8 @@ class RayMapMethod(SurfaceDensityMethod):
     lazy refinement on the host and the tree's upload), ``raymap_estimate`` (the queries
     on the device); per pass ``raymap_radius`` (median first radius, normalised),
     ``raymap_radius_world``, ``raymap_radius_last``, ``raymap_passes``,
-    ``raymap_pass_seconds``, ``raymap_stopped_by``, ``raymap_error_estimate``.
+    ``raymap_pass_seconds``, ``raymap_stopped_by``, ``raymap_error_estimate``,
+    ``raymap_sized_from`` (under a deadline: ``session``, ``calibration`` or ``none``).
 
     Usage: ``clscatter render builtin:caustic_sphere --method raymap --set render.raymap.k=128``
     """
