@@ -180,14 +180,8 @@ def test_sized_rays_rule():
     assert sized(1000, (1000, 4.0), 1e-3) == 1000                # fewer than the least: all
 
 
-@pytest.mark.parametrize("method", ESTIMATORS)
-def test_budgeted_passes_are_sized_from_an_earlier_first_pass(ball, method, monkeypatch):
-    """Tracing advances a fake clock by 1 s per 10,000 rays; 40,000 rays a pass, 4 passes
-    planned. Nothing measured yet: the passes trace all 40,000 rays each and stop by a
-    10 s deadline after two (4 s each; a third would end at 12 s). A second render given
-    the first's first-pass cost (a session's cache) and a 2 s deadline sizes its passes to
-    2 s / 4 (5,000 rays), all alike, and keeps the budget within 1.2x."""
-    ps, paths = ball
+def _tracing_costs_a_second_per_10000_rays(monkeypatch) -> FakeClock:
+    """A fake clock that the surface passes' lighting rays advance by 1 s per 10,000."""
     clock = FakeClock()
     real = surface_passes.caustic_pieces
 
@@ -196,6 +190,18 @@ def test_budgeted_passes_are_sized_from_an_earlier_first_pass(ball, method, monk
         return real(ps_, rays, *a, **kw)
 
     monkeypatch.setattr(surface_passes, "caustic_pieces", costly)
+    return clock
+
+
+@pytest.mark.parametrize("method", ESTIMATORS)
+def test_budgeted_passes_are_sized_from_an_earlier_first_pass(ball, method, monkeypatch):
+    """Tracing advances a fake clock by 1 s per 10,000 rays; 40,000 rays a pass, 4 passes
+    planned. Nothing measured yet: the passes trace all 40,000 rays each and stop by a
+    10 s deadline after two (4 s each; a third would end at 12 s). A second render given
+    the first's first-pass cost (a session's cache) and a 2 s deadline sizes its passes to
+    2 s / 4 (5,000 rays), all alike, and keeps the budget within 1.2x."""
+    ps, paths = ball
+    clock = _tracing_costs_a_second_per_10000_rays(monkeypatch)
     started = clock()
     cache = {}
     params = {"photons": 40000, "passes": 4}
@@ -218,14 +224,7 @@ def test_budgeted_first_pass_is_sized_from_the_devices_learnt_cost(ball, method,
     each, the budget holds, and the first pass's own cost is learnt (``ctx.learn``, work
     = its rays plus the hits). Tracing advances a fake clock by 1 s per 10,000 rays."""
     ps, paths = ball
-    clock = FakeClock()
-    real = surface_passes.caustic_pieces
-
-    def costly(ps_, rays, *a, **kw):
-        clock.now += rays / 10000.0
-        return real(ps_, rays, *a, **kw)
-
-    monkeypatch.setattr(surface_passes, "caustic_pieces", costly)
+    clock = _tracing_costs_a_second_per_10000_rays(monkeypatch)
     asked, learnt = [], []
 
     def predict(stage, work):
