@@ -13,7 +13,9 @@ fresh process, its wall time measured outside it:
   bench_out/budget/, keyed by the scene file and those settings).
 
 Each row records the whole-process seconds, whether the budget held (within 20%), the
-stages from ``--stats``, the passes LSG ran and their sizes, ``error_estimate`` (noise and
+stages from ``--stats``, the passes LSG and the ray map ran and their sizes (and what sized
+the ray map's: its first-pass cost learnt on this device by earlier renders, the default
+run's included), ``error_estimate`` (noise and
 blur parts) and the relMSE against the reference. Writes bench_out/budget/bench_budget.json
 (and a copy in docs/bench/budget.json unless ``--no-copy``) and prints a markdown table.
 
@@ -82,6 +84,8 @@ def row(name: str, budget: float | None, r: dict, ref: np.ndarray) -> dict:
             "stages": {k: round(v, 3) for k, v in s["stages"].items() if v >= 0.01},
             "lsg_passes": s.get("lsg_passes"), "lsg_pass_rays": s.get("lsg_pass_rays"),
             "lsg_stopped_by": s.get("lsg_stopped_by"),
+            "raymap_pass_rays": s.get("raymap_pass_rays"),
+            "raymap_sized_from": s.get("raymap_sized_from"),
             "error_estimate": s.get("error_estimate"),
             "error_estimate_noise": s.get("error_estimate_noise"),
             "error_estimate_bias": s.get("error_estimate_bias"),
@@ -117,16 +121,18 @@ def main() -> None:
     (OUT / "bench_budget.json").write_text(json.dumps(record, indent=1))
     if not args.no_copy:
         shutil.copy(OUT / "bench_budget.json", ROOT / "docs" / "bench" / f"{args.name}.json")
-    print("| run | whole process s | budget held | LSG passes (rays each) | error estimate "
-          "(noise + blur) | relMSE vs reference |")
-    print("|---|---|---|---|---|---|")
+    print("| run | whole process s | budget held | LSG passes (rays each) | ray-map passes (rays "
+          "each; sized from) | error estimate (noise + blur) | relMSE vs reference |")
+    print("|---|---|---|---|---|---|---|")
     for r in rows:
         rays = ", ".join(str(x) for x in (r["lsg_pass_rays"] or []))
+        rm = r["raymap_pass_rays"] or []
+        rm_s = f"{len(rm)} ({', '.join(str(x) for x in rm)}; {r['raymap_sized_from']})"
         est = r["error_estimate"]
         est_s = "-" if est is None else (f"{est:.2g} ({r['error_estimate_noise']:.2g} + "
                                          f"{r['error_estimate_bias']:.2g})")
         print(f"| {r['run']} | {r['wall_seconds']:.1f} | {'yes' if r['budget_held'] else 'no'} "
-              f"| {r['lsg_passes']} ({rays}) | {est_s} | {r['relmse']:.2g} |")
+              f"| {r['lsg_passes']} ({rays}) | {rm_s} | {est_s} | {r['relmse']:.2g} |")
 
 
 if __name__ == "__main__":
