@@ -25,13 +25,14 @@
 #include "point_tree.h"
 
 /* this work-item's heap (raymap.h, RM_HEAP): scratch_d/x hold RM_K entries per work-item
- * when RM_K > 256 and are unused (1 element) otherwise */
+ * when RM_K > 256 and are unused (1 element) otherwise; a private hx also holds the table
+ * of segments seen (RM_HX_SIZE) */
 #if RM_K > 256
 #define RM_HEAP_DECLARE \
     __global float *hd = scratch_d + (size_t)get_global_id(0) * RM_K; \
     __global int *hx = scratch_x + (size_t)get_global_id(0) * RM_K;
 #else
-#define RM_HEAP_DECLARE float hd[RM_K]; int hx[RM_K];
+#define RM_HEAP_DECLARE float hd[RM_K]; int hx[RM_HX_SIZE];
 #endif
 
 __kernel void rm_knn_batch(__global const RMNode *nodes, __global const int *refs,
@@ -74,6 +75,7 @@ __kernel void rm_knn_list(__global const int *cand_off, __global const int *cand
     RM_HEAP_DECLARE
     float4 x = qx[q], n = qn[q];
     int kk = min(k, RM_K), c = 0;
+    rm_seen_clear(hx);
     int end = cand_off[q + 1];
     for (int j = cand_off[q]; j < end; ++j)
         rm_candidate(cand_ids[j], seg_a, seg_b, seg_d, x, n, kk, metric, domain, radius,
@@ -205,6 +207,7 @@ __kernel void rm_density(__global const RMNode *nodes, __global const int *refs,
         int c = -1;
         if (nlist >= 0 && length3(x - x0) <= reuse_eps) {
             c = 0;
+            rm_seen_clear(hx);
             for (int j = 0; j < nlist; ++j)
                 rm_leaf(&nodes[list[j]], refs, seg_a, seg_b, seg_d, x, n, kk, metric, domain,
                         rq, 1, hd, hx, &c, work);

@@ -121,11 +121,46 @@ int rm_covered(__global const RMNode *nd, float4 n, float cos_alpha) {
     return dot3(nd->aux, n) >= cos_alpha;
 }
 
-/* Keep segment idx at distance v in the heap, once (a segment listed by several
- * leaves is offered by each). A full heap refuses v >= its root before the scan for a
- * repeat: knn_heap_insert would refuse it too. */
+/* Segments a query has put in its heap so far, for private heaps: an open-addressing
+ * table of RM_SEEN ids (stored + 1; 0 = empty) after the heap's RM_K ids in hx, and the
+ * table's fill after it. A segment listed by several leaves is offered by each: the
+ * table finds the repeat at once where a scan of the heap costs up to K compares. */
+#if RM_K <= 256
+#define RM_SEEN (2 * RM_K)
+#define RM_HX_SIZE (RM_K + RM_SEEN + 1)
+#else
+#define RM_HX_SIZE RM_K
+#endif
+
+/* Empty the table of segments seen (with the heap's count set to 0: a new query). */
+void rm_seen_clear(RM_HEAP int *hx) {
+#ifdef RM_SEEN
+    for (int j = RM_K; j < RM_HX_SIZE; ++j) hx[j] = 0;
+#endif
+}
+
+/* Keep segment idx at distance v in the heap, once. A full heap refuses v >= its root
+ * first (knn_heap_insert would refuse it too). A repeat carries the same v, so one that
+ * was put in the heap before is either still there or was evicted by nearer ones (the
+ * root only shrinks) and would be refused now: a segment put in before is skipped. While
+ * the table is at most half full it answers that; after, a scan of the heap does (exact
+ * as well: an evicted repeat is refused by the root test). */
 void rm_heap_push(RM_HEAP float *hd, RM_HEAP int *hx, int *count, int k, float v, int idx) {
     if (*count == k && !(v < hd[0])) return;
+#ifdef RM_SEEN
+    int fill = hx[RM_K + RM_SEEN];
+    if (fill < RM_SEEN / 2) {
+        uint h = ((uint)idx * 2654435761u) & (RM_SEEN - 1);
+        while (hx[RM_K + h] != 0) {
+            if (hx[RM_K + h] == idx + 1) return;
+            h = (h + 1) & (RM_SEEN - 1);
+        }
+        hx[RM_K + h] = idx + 1;
+        hx[RM_K + RM_SEEN] = fill + 1;
+        knn_heap_insert(hd, hx, count, k, v, idx);
+        return;
+    }
+#endif
     for (int j = 0; j < *count; ++j)
         if (hx[j] == idx) return;
     knn_heap_insert(hd, hx, count, k, v, idx);
@@ -186,6 +221,7 @@ int rm_knn(__global const RMNode *nodes, __global const int *refs,
            float radius, int incoming, float cos_alpha, RM_HEAP float *hd, RM_HEAP int *hx,
            int *work) {
     int count = 0;
+    rm_seen_clear(hx);
     int bounded = metric == RM_SEGMENT || metric == RM_HEMIDISC;
     float r = domain == RM_DOM_NONE ? T_INF : radius;
     int stack[RM_STACK];
