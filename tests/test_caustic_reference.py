@@ -396,31 +396,45 @@ def test_surface_image_matches_a_point_lights_closed_form():
     assert (img[~on_floor & (t < 0)] == 0).all()          # above the horizon: nothing
 
 
-@pytest.mark.parametrize("method", ["photonmap", "raymap"])
-def test_surface_caustic_against_the_tracers_photons(engine, method):
-    """The glass ball's caustic on the floor (builtin:caustic_sphere without its medium,
-    seen from close by, 160 x 120, 4 spp) against the tracer's photons projected into
-    the pixels (no density estimation). Density estimation blurs the sharp core, and
-    there a pixel's four jittered hits decide its value, so the check is on rings around
-    the caustic's centre outside the core (from 4 pixels out): the light the image shows
-    within each ring agrees with the tracer's to 4%."""
+def _floor_caustic_scene() -> dict:
+    """builtin:caustic_sphere without its medium, seen from close by, 160 x 120, 4 spp."""
     d = BUILTIN["caustic_sphere"]()
     d.pop("medium")
     d["camera"].update(resolution=[160, 120], spp=4, **SURFACE_CAMERA)
+    return d
+
+
+@pytest.fixture(scope="module")
+def floor_caustic_ref():
+    """The tracer's floor caustic of :func:`_floor_caustic_scene` (2 x 600k photons), the
+    pixels it can be compared on (views missing the ball) and its camera."""
+    d = _floor_caustic_scene()
     ball = d["objects"][1]
     glass = d["materials"][ball["material"]]
     sphere = ct.Sphere(ball["center"], ball["radius"], glass["ior"], glass["interior_sigma_a"])
     c = d["camera"]
-    cam = ct.Camera(c["origin"], c["target"], c["up"], c["fov"], 160, 120)
+    cam = ct.Camera(c["origin"], c["target"], c["up"], c["fov"], *c["resolution"])
     (light,) = d["lights"]
     clear = ct.Medium(0.0, 0.0, 0.0, [-1e3] * 3, [1e3] * 3)
     ref = np.mean([ct.surface_image(ct.trace(light["position"], light["intensity"], sphere,
-                                             clear, 1_000_000, seed), cam, sphere, 0.55)
+                                             clear, 600_000, seed), cam, sphere, 0.55)
                    for seed in range(2)], axis=0)[..., 0]
-    s = scene_from_dict(copy.deepcopy(d), HERE, "surface_reference")
-    s.render.params = {method: {"photons": 100_000, "passes": 4, "medium": "none"}}
+    return ref, ct.pixels_missing_sphere(cam, sphere)
+
+
+@pytest.mark.parametrize("method", ["photonmap", "raymap"])
+def test_surface_caustic_against_the_tracers_photons(engine, method, floor_caustic_ref):
+    """The glass ball's caustic on the floor (builtin:caustic_sphere without its medium,
+    seen from close by, 160 x 120, 4 spp; 4 passes of 50,000 lighting rays) against the
+    tracer's photons projected into the pixels (no density estimation). Density
+    estimation blurs the sharp core, and there a pixel's four jittered hits decide its
+    value, so the check is on rings around the caustic's centre outside the core (from 4
+    pixels out): the light the image shows within each ring agrees with the tracer's to
+    4%."""
+    ref, keep = floor_caustic_ref
+    s = scene_from_dict(_floor_caustic_scene(), HERE, "surface_reference")
+    s.render.params = {method: {"photons": 50_000, "passes": 4, "medium": "none"}}
     img = sum(render(s, method, engine=engine, show_progress=False).parts.values())[..., 0]
-    keep = ct.pixels_missing_sphere(cam, sphere)
     rows, cols = np.indices(ref.shape)
     cy, cx = np.unravel_index(np.argmax(np.where(keep, ref, 0)), ref.shape)
     dist = np.hypot(rows - cy, cols - cx)
