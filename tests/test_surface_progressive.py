@@ -245,6 +245,11 @@ def test_budgeted_first_pass_is_sized_from_the_devices_learnt_cost(ball, method,
     assert st[f"{method}_sized_from"] == "calibration"
     assert clock() - started <= 1.2 * 4.0
     assert learnt == [(f"{method}_first_pass", rays[0] + hits, pytest.approx(rays[0] / 1e4))]
+    # many passes allowed: the deadline is still shared among at most MAX_SPLIT when
+    # sizing them (4 s / 4 passes again, not 4 s / 1000)
+    _, st = _surface(ps, paths, method, {"photons": 40000, "passes": 1000},
+                     deadline=clock() + 4.0, clock=clock, costs=(predict, learn))
+    assert st[f"{method}_pass_rays"][0] == pytest.approx(want, abs=1)
     # without a deadline nothing is predicted and every pass traces all its rays
     asked.clear()
     _, st = _surface(ps, paths, method, {"photons": 4000, "passes": 2}, clock=clock,

@@ -40,6 +40,12 @@ LATER_HEAP = 2
 #: most RESIZE times (or 1 / RESIZE of) the rays of the pass its cost was measured on
 MIN_PASS_RAYS = 2000
 RESIZE = 8.0
+#: under a deadline the passes are sized as if it were shared among at most this many
+#: (however many ``passes`` allows; more run if time is left): the first pass's rays set
+#: the base radius, which falls with them faster than the later passes' shrinking makes
+#: up for, so a few large passes blur less than many small ones; four are the k-nearest
+#: opening pass and three for the error estimate's independent halves
+MAX_SPLIT = 4
 
 
 def sized_rays(rays: int, measured: tuple[int, float] | None, want: float) -> int:
@@ -116,7 +122,8 @@ def progressive_surface_caustics(ps, estimator: str, rays: int, settings: Densit
     16)``). The first pass with ``seed`` 0 is exactly ``surface_caustics``.
 
     Under a deadline (``prog.budgeted``) the passes' rays are sized to the first pass's
-    share of the time (:func:`sized_rays`) from ``first_cost`` (rays and seconds of an
+    share of the time (:func:`sized_rays`; the time left over the planned passes, at
+    least over :data:`MAX_SPLIT`) from ``first_cost`` (rays and seconds of an
     earlier first pass over the same hits, e.g. a session's previous render) or else from
     ``predict_first(rays, hits)`` (the seconds a first pass of ``rays`` over ``hits``
     diffuse hits should take on this device, e.g. learnt from earlier renders; None: not
@@ -163,7 +170,8 @@ def _run_passes(ps, dev, hits, estimator: str, rays: int, settings: DensitySetti
     i = 0
     # every pass traces the same rays (progressive photon mapping's radius rule assumes
     # passes alike): under a deadline, as many as the first pass's share of it allows
-    n = sized_rays(rays, first_cost, prog.pass_seconds()) if prog.budgeted else rays
+    share = max(prog.pass_seconds(), prog.remaining() / MAX_SPLIT)
+    n = sized_rays(rays, first_cost, share) if prog.budgeted else rays
     while True:
         expected = None
         if prog.budgeted and out.seconds:
