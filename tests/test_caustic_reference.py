@@ -73,10 +73,14 @@ def _tracer_setup(d: dict):
     assert glass["type"] == "dielectric" and "interior_sigma_s" not in glass
     sphere = ct.Sphere(ball["center"], ball["radius"], glass["ior"],
                        glass.get("interior_sigma_a"))
-    m = d["medium"]
-    medium = ct.Medium(m["sigma_s"], m["sigma_a"], m["g"], m["bounds"]["min"], m["bounds"]["max"])
-    floor = d["objects"][0]          # the floor is the box's bottom face: beams end there
-    assert floor["origin"][1] == m["bounds"]["min"][1] and floor["edge_u"][1] == 0.0
+    m = d.get("medium")
+    if m is None:                    # clear air: beams go on to the surfaces
+        medium = ct.Medium(0.0, 0.0, 0.0, [-1e3] * 3, [1e3] * 3)
+    else:
+        medium = ct.Medium(m["sigma_s"], m["sigma_a"], m["g"], m["bounds"]["min"],
+                           m["bounds"]["max"])
+        floor = d["objects"][0]      # the floor is the box's bottom face: beams end there
+        assert floor["origin"][1] == m["bounds"]["min"][1] and floor["edge_u"][1] == 0.0
     c = d["camera"]
     cam = ct.Camera(c["origin"], c["target"], c["up"], c["fov"], *c["resolution"],
                     fov_axis=c.get("fov_axis", "x"))
@@ -408,16 +412,9 @@ def _floor_caustic_scene() -> dict:
 def floor_caustic_ref():
     """The tracer's floor caustic of :func:`_floor_caustic_scene` (2 x 600k photons), the
     pixels it can be compared on (views missing the ball) and its camera."""
-    d = _floor_caustic_scene()
-    ball = d["objects"][1]
-    glass = d["materials"][ball["material"]]
-    sphere = ct.Sphere(ball["center"], ball["radius"], glass["ior"], glass["interior_sigma_a"])
-    c = d["camera"]
-    cam = ct.Camera(c["origin"], c["target"], c["up"], c["fov"], *c["resolution"])
-    (light,) = d["lights"]
-    clear = ct.Medium(0.0, 0.0, 0.0, [-1e3] * 3, [1e3] * 3)
-    ref = np.mean([ct.surface_image(ct.trace(light["position"], light["intensity"], sphere,
-                                             clear, 600_000, seed), cam, sphere, 0.55)
+    sphere, clear, cam, pos, inten, _ = _tracer_setup(_floor_caustic_scene())
+    ref = np.mean([ct.surface_image(ct.trace(pos, inten, sphere, clear, 600_000, seed), cam,
+                                    sphere, 0.55)
                    for seed in range(2)], axis=0)[..., 0]
     return ref, ct.pixels_missing_sphere(cam, sphere)
 
