@@ -42,6 +42,7 @@ image row 0 at the top.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -200,6 +201,38 @@ def _box_length(o, d, t_a, t_b, lo, hi):
     """Length of the part of the segment o + t d, t in [t_a, t_b], inside the box."""
     t0, t1 = ray_box(o, d, lo, hi)
     return np.clip(np.minimum(t1, t_b) - np.maximum(t0, t_a), 0.0, None)
+
+
+# ---- a scene dict, read ------------------------------------------------------------------
+def from_scene_dict(d: dict):
+    """The tracer's description of a scene dict in the TOML schema (plain numbers read from
+    the dict; object 1 is the glass sphere, the one light a point or a spot aimed at its
+    centre): (sphere, medium, camera, light position, intensity, spot half-angle in
+    radians or None). No medium: clear air around everything."""
+    ball = d["objects"][1]
+    glass = d["materials"][ball["material"]]
+    assert glass["type"] == "dielectric" and "interior_sigma_s" not in glass
+    sphere = Sphere(ball["center"], ball["radius"], glass["ior"],
+                       glass.get("interior_sigma_a"))
+    m = d.get("medium")
+    if m is None:                    # clear air: beams go on to the surfaces
+        medium = Medium(0.0, 0.0, 0.0, [-1e3] * 3, [1e3] * 3)
+    else:
+        medium = Medium(m["sigma_s"], m["sigma_a"], m["g"], m["bounds"]["min"],
+                           m["bounds"]["max"])
+        floor = d["objects"][0]      # the floor is the box's bottom face: beams end there
+        assert floor["origin"][1] == m["bounds"]["min"][1] and floor["edge_u"][1] == 0.0
+    c = d["camera"]
+    cam = Camera(c["origin"], c["target"], c["up"], c["fov"], *c["resolution"],
+                    fov_axis=c.get("fov_axis", "x"))
+    (light,) = d["lights"]
+    assert light["type"] in ("point", "spot")
+    half = None
+    if light["type"] == "spot":       # aimed at the centre, its cone within the ball
+        assert list(light["target"]) == list(ball["center"])
+        half = math.radians(light["cutoff_angle"])
+    return sphere, medium, cam, light["position"], light["intensity"], half
+
 
 
 # ---- the light tracer ---------------------------------------------------------------------

@@ -66,33 +66,6 @@ def _scene(spp: int, spot: bool = False, name: str = "volume_glass") -> dict:
     return d
 
 
-def _tracer_setup(d: dict):
-    """The tracer's description of the scene dict (plain numbers, read from the dict)."""
-    ball = d["objects"][1]
-    glass = d["materials"][ball["material"]]
-    assert glass["type"] == "dielectric" and "interior_sigma_s" not in glass
-    sphere = ct.Sphere(ball["center"], ball["radius"], glass["ior"],
-                       glass.get("interior_sigma_a"))
-    m = d.get("medium")
-    if m is None:                    # clear air: beams go on to the surfaces
-        medium = ct.Medium(0.0, 0.0, 0.0, [-1e3] * 3, [1e3] * 3)
-    else:
-        medium = ct.Medium(m["sigma_s"], m["sigma_a"], m["g"], m["bounds"]["min"],
-                           m["bounds"]["max"])
-        floor = d["objects"][0]      # the floor is the box's bottom face: beams end there
-        assert floor["origin"][1] == m["bounds"]["min"][1] and floor["edge_u"][1] == 0.0
-    c = d["camera"]
-    cam = ct.Camera(c["origin"], c["target"], c["up"], c["fov"], *c["resolution"],
-                    fov_axis=c.get("fov_axis", "x"))
-    (light,) = d["lights"]
-    assert light["type"] in ("point", "spot")
-    half = None
-    if light["type"] == "spot":       # aimed at the centre, its cone within the ball
-        assert list(light["target"]) == list(ball["center"])
-        half = math.radians(light["cutoff_angle"])
-    return sphere, medium, cam, light["position"], light["intensity"], half
-
-
 def _regions(cam, sphere):
     offball = ct.pixels_missing_sphere(cam, sphere, margin_px=1.5)
     ball_rows = np.where(~offball.all(axis=1))[0]
@@ -103,7 +76,7 @@ def _regions(cam, sphere):
 
 def _tracer_images(d: dict, fresnel: bool = True, batches=BATCHES):
     """Per batch: (reflected-at-entry image, all the rest)."""
-    sphere, medium, cam, pos, inten, half = _tracer_setup(d)
+    sphere, medium, cam, pos, inten, half = ct.from_scene_dict(d)
     out = []
     for seed in batches:
         b = ct.trace(pos, inten, sphere, medium, PHOTONS, seed=seed, half_angle=half,
@@ -117,7 +90,7 @@ def _tracer_images(d: dict, fresnel: bool = True, batches=BATCHES):
 class Reference:
     def __init__(self, d: dict, fresnel_free: bool = False):
         self.scene = d
-        sphere, _, cam, *_ = _tracer_setup(d)
+        sphere, _, cam, *_ = ct.from_scene_dict(d)
         self.regions = _regions(cam, sphere)
         parts = _tracer_images(d)
         self.batches = parts.sum(axis=1)                 # (batches, H, W, 3)
@@ -163,7 +136,7 @@ def test_tracer_conserves_energy_and_matches_the_axial_closed_form():
     construction for an axial light (measured within 2.6e-4, the photons' noise; bound
     1e-3): the 3-D vector Snell, Fresnel and intersection code against the closed form."""
     d = _scene(1)
-    sphere, medium, _, pos, inten, _ = _tracer_setup(d)
+    sphere, medium, _, pos, inten, _ = ct.from_scene_dict(d)
     clear = ct.Medium(0.0, 0.0, 0.0, medium.box_min, medium.box_max)
     b = ct.trace(pos, 1.0, sphere, clear, 4096, seed=3, max_internal=20)
     _, omega = ct.cone_directions(np.asarray(pos, float), sphere, 1, np.random.default_rng(0))
@@ -202,7 +175,7 @@ def test_radiance_estimator_matches_airlight_quadrature():
     total measured within 0.02%, bound 1%; every row within 4% (measured 1.8%: the
     beams' noise)."""
     d = _scene(1)
-    _, medium, _, pos, inten, _ = _tracer_setup(d)
+    _, medium, _, pos, inten, _ = ct.from_scene_dict(d)
     w_, h_ = 32, 24
     c = d["camera"]
     cam = ct.Camera(c["origin"], c["target"], c["up"], c["fov"], w_, h_)
@@ -412,7 +385,7 @@ def _floor_caustic_scene() -> dict:
 def floor_caustic_ref():
     """The tracer's floor caustic of :func:`_floor_caustic_scene` (2 x 600k photons), the
     pixels it can be compared on (views missing the ball) and its camera."""
-    sphere, clear, cam, pos, inten, _ = _tracer_setup(_floor_caustic_scene())
+    sphere, clear, cam, pos, inten, _ = ct.from_scene_dict(_floor_caustic_scene())
     ref = np.mean([ct.surface_image(ct.trace(pos, inten, sphere, clear, 600_000, seed), cam,
                                     sphere, 0.55)
                    for seed in range(2)], axis=0)[..., 0]

@@ -79,31 +79,16 @@ def scenes(size: tuple[int, int]) -> dict[str, dict]:
     return {"floor": floor, "edge": edge}
 
 
-def tracer_camera(d: dict) -> ct.Camera:
-    cam = d["camera"]
-    w, h = cam["resolution"]
-    return ct.Camera(cam["origin"], cam["target"], cam.get("up", [0.0, 1.0, 0.0]), cam["fov"],
-                     w, h)
-
-
-def tracer_sphere(d: dict) -> ct.Sphere:
-    ball = d["objects"][1]
-    glass = d["materials"][ball["material"]]
-    return ct.Sphere(ball["center"], ball["radius"], glass["ior"], glass["interior_sigma_a"])
-
-
 def reference(d: dict, photons: int, chunk: int = 1_000_000) -> tuple[np.ndarray, float]:
     """The tracer's surface caustic of ``d`` (``photons`` from its point light, in chunks of
     independent seeds) and its own noise: relMSE of one half against the other over the
     compared pixels, divided by 4 (the difference of two halves has twice the variance of
     a half, which has twice that of the mean)."""
-    cam, ball = tracer_camera(d), tracer_sphere(d)
-    light = d["lights"][0]
-    clear = ct.Medium(0.0, 0.0, 0.0, [-1e3] * 3, [1e3] * 3)
+    ball, clear, cam, pos, inten, _ = ct.from_scene_dict(d)
     boxes = [(o["min"], o["max"]) for o in d["objects"] if o["shape"] == "box"]
     parts = []
     for seed in range(max(2, photons // chunk)):
-        beams = ct.trace(light["position"], light["intensity"], ball, clear, chunk, seed)
+        beams = ct.trace(pos, inten, ball, clear, chunk, seed)
         parts.append(ct.surface_image(beams, cam, ball, ALBEDO, boxes=boxes))
     half = len(parts) // 2
     keep = compared(d)
@@ -114,12 +99,13 @@ def reference(d: dict, photons: int, chunk: int = 1_000_000) -> tuple[np.ndarray
 def compared(d: dict) -> np.ndarray:
     """The pixels compared: those whose view misses the ball (the tracer sees the surfaces
     directly only)."""
-    return ct.pixels_missing_sphere(tracer_camera(d), tracer_sphere(d))
+    ball, _, cam, *_ = ct.from_scene_dict(d)
+    return ct.pixels_missing_sphere(cam, ball)
 
 
 def edge_mask(d: dict, shape: tuple[int, int]) -> np.ndarray:
     """Pixels within 3 of the image of the table's free edge (x = 0, y = TABLE_TOP)."""
-    c = tracer_camera(d)
+    c = ct.from_scene_dict(d)[2]
     mask = np.zeros(shape, bool)
     for z in np.linspace(-1.5, 1.5, 400):
         at = c.project([0.0, TABLE_TOP, z])
