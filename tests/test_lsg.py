@@ -391,6 +391,35 @@ AIRLIGHT = {
 }
 
 
+def test_sample_groups_taking_turns_match_the_closed_form(engine):
+    """The uniform beam above with each pass gathering one group of each pixel's 16 camera
+    samples (view_samples = 6: groups of 6, 5 and 5, weighted by their share), 3 passes
+    of 60k rays: every sample is gathered once, the whole gather costs about one pass over
+    every sample, and the image meets the single pass's bounds (relMSE 1e-3, mean 1 %)."""
+    d = {
+        "camera": _cam(24, 16, 16, (0.2, 0.3, 4.0), (0.0, 0.1, 0.0), fov=40.0),
+        "medium": {"sigma_s": [0.5, 0.3, 0.2], "sigma_a": [0.1, 0.3, 0.0], "g": 0.3,
+                   "bounds": {"min": [-1.0, -0.5, -0.8], "max": [1.0, 0.7, 0.8]}},
+        "lights": [{"type": "directional", "direction": [0.3, -1.0, -0.2], "irradiance": 2.0}],
+        "render": {"method": "lsg", "lsg": {"light_rays": 60000, "radius": 0.004, "passes": 3,
+                                            "view_samples": 6}},
+    }
+    res = render(_scene(d), engine=engine, show_progress=False)
+    m = d["medium"]
+    ld = _unit(d["lights"][0]["direction"])
+    chans = [analytic.pixel_average(
+        lambda o, dirs, c=c: analytic.directional_slab(
+            o, dirs, ld, 2.0, m["sigma_s"][c], m["sigma_s"][c] + m["sigma_a"][c], m["g"],
+            m["bounds"]["min"], m["bounds"]["max"]),
+        **analytic.camera_kwargs(d["camera"]), sub=4) for c in range(3)]
+    ref = np.stack(chans, -1)
+    assert_matches_reference(res.image, ref, 1e-3, "beam in turns", mean_tol=0.01)
+    st = res.stats
+    assert st["lsg_passes"] == 3
+    per_pass = st["light_segments"] / 3 * st["view_segments"]
+    assert 0.9 * per_pass < st["pair_tests_bruteforce"] < 1.1 * per_pass
+
+
 def test_point_light_unbounded_matches_airlight_quadrature(engine):
     """LSG's direct lighting rays alone (no objects) against analytic.airlight_point.
 
@@ -575,6 +604,43 @@ def test_gatherer_image_and_counters_stay_on_the_device(engine):
     np.testing.assert_array_equal(per_view, counted)
     np.testing.assert_allclose(img, host, rtol=2e-6, atol=1e-7 * float(np.abs(host).max()))
     assert np.abs(host).max() > 0
+
+
+def test_sample_groups_gather_their_views_scaled_to_the_pixel(engine):
+    """Gatherer.select (the kernel's view_index/scale): a group gathers exactly its view
+    segments (sample k % groups == group), each times spp over the group's samples, and
+    nothing elsewhere; the mean over the groups is the full gather (float tolerance), with
+    spp = 4 in 2 groups and spp = 3 in 2 (unequal groups: 2 and 1 samples, scales 1.5 and
+    3), and the pair counts add up to the full gather's."""
+    rng = np.random.default_rng(5)
+    lights, views = _random_set("random", rng, nl=1500, nv=400)
+    med = _medium()
+    for spp, groups in ((4, 2), (3, 2)):
+        views["sample"] = rng.integers(0, 50 * spp, len(views))
+        k = views["sample"] % spp
+        full, res_full = _gather(engine, lights, views, 0.03, med)
+        gat = Gatherer(engine, views, med, 0.03)
+        try:
+            parts, valid = [], 0
+            for g in range(groups):
+                gat.reset()
+                gat.select(g, groups, spp)
+                assert gat.active == int(np.sum(k % groups == g))
+                valid += gat.add(lights).valid_pairs
+                parts.append(gat.values().copy())
+            gat.select(None)
+            assert gat.active == len(views)
+        finally:
+            gat.release()
+        assert valid == res_full.valid_pairs > 100
+        tol = dict(rtol=1e-5, atol=1e-7 * float(np.abs(full).max()))
+        for g, part in enumerate(parts):
+            mine = k % groups == g
+            slots = len(range(g, spp, groups))
+            np.testing.assert_allclose(part[mine], full[mine] * (spp / slots), **tol)
+            assert not part[~mine].any()
+        weights = [len(range(g, spp, groups)) / spp for g in range(groups)]
+        np.testing.assert_allclose(sum(w * p for w, p in zip(weights, parts)), full, **tol)
 
 
 SLAB_MIN, SLAB_MAX = [-1.0, -0.5, -0.8], [1.0, 0.7, 0.8]

@@ -17,6 +17,11 @@
  * ones, built on the host), and only the view segments of the same region (view_region
  * == region) gather; the others add 0. Light is gathered only where it is.
  *
+ * Sample groups: with indexed = 1 work-item gid gathers view segment view_index[view_offset +
+ * gid] (the segments of some of each pixel's camera samples, clscatter/estimators/line_gather.py)
+ * and its estimate is multiplied by scale (spp over the samples in the group), so that
+ * group alone estimates the whole pixel; indexed = 0 gathers view_offset + gid, scale 1.
+ *
  * exhaustive = 1: the same per-pair code for every (view, light) pair, no culling: the
  * reference the tree must reproduce exactly (tests/test_lsg.py).
  *
@@ -109,13 +114,14 @@ __kernel void lsg_gather(__global const LineNode *nodes, __global const float4 *
                          __global const float8 *points,
                          __global const int *line_ids, int num_lines, float max_m1,
                          __global const ViewSegment *views, int view_offset, int num_views,
+                         __global const int *view_index, int indexed, float scale,
                          float4 pl_centre, float pl_inv_scale, float radius, float min_sin,
                          __global const Medium *medium, int region, int exhaustive,
                          __global float4 *out, __global int4 *counts,
                          __global int2 *pairs, volatile __global int *pair_count, int max_pairs) {
     int gid = get_global_id(0);
     if (gid >= num_views) return;
-    int vi = view_offset + gid;
+    int vi = indexed ? view_index[view_offset + gid] : view_offset + gid;
     ViewQuery q;
     int4 cnt = (int4)(0, 0, 0, 0);
     float4 acc = (float4)(0.0f);
@@ -159,7 +165,7 @@ __kernel void lsg_gather(__global const LineNode *nodes, __global const float4 *
                 gnode += 1;
             }
         }
-        acc *= medium->sigma_s * views[vi].weight;
+        acc *= medium->sigma_s * (views[vi].weight * scale);
     }
     out[vi] += acc;
     counts[vi] += cnt;

@@ -186,6 +186,9 @@ class Gatherer:
     of dielectric material m, ``medium`` then holding its interior coefficients,
     :func:`region_media`); view segments of other regions gather nothing.
 
+    :meth:`select` restricts the following :meth:`add` calls to a group of each pixel's
+    camera samples (their estimate scaled to stand for the whole pixel).
+
     Per view segment, the estimate and the work counters (tests, valid pairs, leaf points)
     accumulate on the device; an :meth:`add` reads back the counters' totals only, and
     :meth:`image` sums the estimate into pixels there. The host needs the view segments
@@ -223,6 +226,33 @@ class Gatherer:
         self._totals = np.zeros(4, np.int64)     # their totals after the last add()
         self.pairs_buf = engine.empty(max(self.record, 1) * 8)
         self.pair_count = engine.empty(4)
+        self._groups: dict[tuple[int, int], tuple[object, int, float]] = {}
+        self._group: tuple[object, int, float] | None = None    # None: every view segment
+
+    @property
+    def active(self) -> int:
+        """View segments the next :meth:`add` gathers (the selected group's, or all)."""
+        return self._group[1] if self._group is not None else self.n
+
+    # ---- camera-sample groups ----
+    def select(self, group: int | None, groups: int = 1, spp: int = 1) -> None:
+        """Gather only the view segments of the camera samples ``k`` with ``k % groups ==
+        group`` (``k`` the sample's index within its pixel, ``spp`` per pixel), each
+        estimate times ``spp`` over the group's samples, so one group estimates the whole
+        pixel as all of them do (exactly so on average over the groups); ``None`` (or one
+        group): every view segment, as before. The index lists are built once per group."""
+        groups, spp = max(1, int(groups)), max(1, int(spp))
+        if group is None or groups <= 1:
+            self._group = None
+            return
+        key = (int(group) % groups, groups)
+        if key not in self._groups:
+            k = self.views["sample"].astype(np.int64) % spp
+            idx = np.flatnonzero(k % groups == key[0]).astype(np.int32)
+            slots = len(range(key[0], spp, groups))
+            buf = self.eng.to_device(idx if len(idx) else np.zeros(1, np.int32))
+            self._groups[key] = (buf, len(idx), spp / max(slots, 1))
+        self._group = self._groups[key]
 
     # ---- one chunk ----
     def add(self, segs: np.ndarray, bruteforce: bool = False) -> ChunkResult:
@@ -251,16 +281,19 @@ class Gatherer:
             fr = prep.frame
             centre = structs.vec4(fr.centre)
             tests = valid = leaf = 0
-            if len(prep.lines) and self.n:
-                with progress(self.n, "lsg gather", self.show_progress) as bar:
-                    for start in range(0, self.n, self.per_launch):
-                        m = min(self.per_launch, self.n - start)
+            index_buf, count, scale = self._group or (self.pair_count, self.n, 1.0)
+            if len(prep.lines) and count:
+                with progress(count, "lsg gather", self.show_progress) as bar:
+                    for start in range(0, count, self.per_launch):
+                        m = min(self.per_launch, count - start)
                         eng.call("lsg", "lsg_gather", m, nodes=nodes_buf, boxes=boxes_buf,
                                  leaf_ranges=ranges_buf,
                                  first_leaf=prep.tree.first_leaf, lines=lines_buf,
                                  points=points_buf, line_ids=ids_buf, num_lines=len(prep.lines),
                                  max_m1=prep.max_m1, views=self.views_buf, view_offset=start,
-                                 num_views=m, pl_centre=centre, pl_inv_scale=1.0 / fr.scale,
+                                 num_views=m, view_index=index_buf,
+                                 indexed=int(self._group is not None), scale=scale,
+                                 pl_centre=centre, pl_inv_scale=1.0 / fr.scale,
                                  radius=self.radius, min_sin=self.min_sin, medium=self.medium_buf,
                                  region=self.region, exhaustive=int(bruteforce), out=self.out_buf,
                                  counts=self.counts_buf, pairs=self.pairs_buf,
@@ -306,7 +339,9 @@ class Gatherer:
 
     def release(self) -> None:
         self.eng.free(*([self.views_buf] if self._own_views else []), self.medium_buf,
-                      self.out_buf, self.counts_buf, self.pairs_buf, self.pair_count)
+                      self.out_buf, self.counts_buf, self.pairs_buf, self.pair_count,
+                      *(g[0] for g in self._groups.values()))
+        self._groups.clear()
 
 
 def scene_materials(scene) -> list:
@@ -407,6 +442,14 @@ class RegionGatherer:
     def reset(self) -> None:
         for p in self.parts:
             p.gatherer.reset()
+
+    def select(self, group: int | None, groups: int = 1, spp: int = 1) -> None:
+        for p in self.parts:
+            p.gatherer.select(group, groups, spp)
+
+    @property
+    def active(self) -> int:
+        return sum(p.gatherer.active for p in self.parts)
 
     @property
     def valid_per_view(self) -> np.ndarray:

@@ -53,6 +53,15 @@ def _chunk_rays(counts: np.ndarray, k: int, n: int) -> int:
     return int(sum(int(c) * (k + 1) // n - int(c) * k // n for c in counts))
 
 
+def _group_weights(by_group: dict, groups: int, spp: int) -> dict[int, float]:
+    """Weight of each camera-sample group gathered so far in the image: its share of the
+    samples of the groups gathered so far (each group's image already stands for the whole
+    pixel: its samples' estimates times spp over their number)."""
+    slots = {g: len(range(g, spp, groups)) for g in by_group}
+    total = sum(slots.values())
+    return {g: n / total for g, n in slots.items()}
+
+
 def ppb_radii(r1: float, alpha: float, passes: int) -> np.ndarray:
     """Radii of progressive passes 1..passes: ``r_{i+1} = r_i (i + alpha) / (i + 1)``.
 
@@ -132,6 +141,20 @@ class LineSpaceGathering(Method):
     the render's noise estimate (:mod:`clscatter.transport.progressive`); with
     ``render.target_error`` passes go on past ``passes`` until the estimate meets it.
 
+    *Camera samples in turn* (``view_samples``, default 1). A pixel's camera samples see
+    nearly the same lines through the medium and share every lighting segment, so gathering
+    all of them in one pass buys little: the noise is the lighting rays'. Pass i gathers
+    only the view segments of samples ``k`` with ``k % G == i % G`` (``G = ceil(spp /
+    view_samples)``), weighted to stand for the whole pixel; the passes take turns, so every
+    sample is gathered once every G passes. The image is each group's mean over its passes,
+    weighted by the group's share of the samples, so every sample weighs the same whatever
+    the number of passes. A pass then costs about 1/G of the gather, and a time budget buys G times the
+    lighting rays. G is at most the passes the render may run (``passes``, or more under an
+    error target): a single pass gathers every sample, as before. Until G passes have run,
+    the medium term of a pixel comes from the samples gathered so far (edges of objects are
+    antialiased as the passes go on); ``view_samples = 0`` gathers every sample in every
+    pass.
+
     *Inside glass* (a dielectric's ``interior_sigma_s``, ``interior_sigma_a``,
     ``interior_g``: a homogeneous medium inside the closed object). Every straight piece of
     a lighting ray inside such an object is kept too, with the flux at its start: the
@@ -161,7 +184,8 @@ class LineSpaceGathering(Method):
     ``lsg_chunk_bytes_max``, ``lsg_radius`` (normalised; ``lsg_radius_world`` in scene
     units), ``lsg_radius_last``, ``lsg_passes``, ``lsg_pass_seconds``, ``lsg_time_budget``,
     ``lsg_auto_radius``, ``lsg_targeted``, ``light_rays_specular_fraction``, ``lsg_pass_rays``,
-    ``lsg_stopped_by`` (passes, time_budget or target_error), ``lsg_error_estimate``,
+    ``lsg_stopped_by`` (passes, time_budget or target_error), ``lsg_sample_groups`` (G),
+    ``lsg_error_estimate``,
     ``lsg_interior_view_segments``.
 
     Usage: ``clscatter render scene.toml --method lsg --set render.lsg.light_rays=1000000
@@ -192,6 +216,8 @@ class LineSpaceGathering(Method):
         Param("leaf_size", LEAF_SIZE, "least points per tree leaf (at most 8x)", lo=1),
         Param("min_sin", 1e-6, "sin(theta) below this counts as parallel", lo=0, hi=1, hi_open=True),
         Param("segments_per_launch", 65536, "view segments per kernel launch (progress)", lo=1),
+        Param("view_samples", 1, "camera samples of each pixel a pass gathers, the pixel's samples "
+              "taking turns pass by pass (0: all of them in every pass)", lo=0),
         Param("min_light_depth", 0, "gather only lighting segments with at least this many "
               "specular bounces (1: caustics only, as auto uses it beside a direct method)", lo=0),
         Param("interior", True, "also gather inside glass that scatters (a dielectric's "
@@ -225,7 +251,7 @@ class LineSpaceGathering(Method):
                          "pair tests (order of magnitude)")]
 
     #: optional ``f(passes_done, radius, mean values per view segment)`` called after every
-    #: pass (tests and benchmarks: the error after each pass from one progressive run)
+    #: pass (:meth:`_mean_values`) (tests and benchmarks: the error after each pass from one progressive run)
     pass_callback = None
 
     def targeted(self) -> bool:
@@ -298,6 +324,7 @@ class LineSpaceGathering(Method):
                   lsg_radius_world=float(r1) * ps.frame.scale,
                   lsg_pass_seconds=pass_seconds, lsg_pass_rays=self._pass_rays,
                   lsg_time_budget=p["time_budget"], lsg_stopped_by=prog.stopped_by or "passes",
+                  lsg_sample_groups=self._sample_groups(ps, prog)[0],
                   lsg_error_estimate=prog.error,
                   light_rays_specular_fraction=spec / max(rays, 1))
         return PassResult(medium=image)
@@ -419,7 +446,8 @@ class LineSpaceGathering(Method):
             if len(lit) >= min(64, max(1, len(views) // 4)) or len(segs) == 0:
                 break
             r0 *= 2.0
-        measured = (pilot, traced + gathered * stride)
+        # a pass gathers one group of each pixel's camera samples (_sample_groups)
+        measured = (pilot, traced + gathered * stride / self._sample_groups(ps, prog)[0])
         if prog is not None and prog.budgeted:
             n_rays = self._sized_rays(pilot, measured[1], prog, limit=PILOT_RESIZE_MAX)
         self._rays = n_rays
@@ -444,6 +472,15 @@ class LineSpaceGathering(Method):
         return int(min(most, max(min(MIN_PASS_RAYS, most), want)))
 
     # ---- passes ----
+    def _sample_groups(self, ps: PreparedScene, prog) -> tuple[int, int]:
+        """(groups G, spp): pass i gathers the camera samples k of each pixel with
+        ``k % G == i % G``: at most ``view_samples`` of them, and G no more than the passes
+        the render may run (one pass gathers every sample)."""
+        spp = int(ps.scene.camera.spp)
+        vs = int(self.params["view_samples"])
+        groups = 1 if vs <= 0 else -(-spp // vs)
+        return max(1, min(groups, prog.max_passes if prog is not None else 1)), spp
+
     def _select(self, segs: np.ndarray) -> np.ndarray:
         if self.params["min_light_depth"] > 0:
             return segs[segs["depth"] >= self.params["min_light_depth"]]
@@ -464,6 +501,8 @@ class LineSpaceGathering(Method):
         r = float(ppb_radii(r1, p["alpha"], first + 1)[-1])    # pass `first`'s radius
         keep_images = prog.max_passes > 1
         previous = None
+        groups, spp = self._sample_groups(ps, prog)
+        by_group: dict[int, list] = {}          # group -> [sum of its passes' images, passes]
         total = prog.planned if prog.max_passes > prog.planned else prog.max_passes
         with progress(total, "lsg passes", show_progress) as bar:
             i = first
@@ -475,6 +514,7 @@ class LineSpaceGathering(Method):
                     self._rays = min(self._rays, PILOT_BUDGETED)
                 t0 = prog.clock()
                 gat.radius = r
+                gat.select(i % groups, groups, spp)
                 res = self._gather_chunks(ps, gat, stats, show_progress,
                                           seed_offset=i + (self.params["light_seed"] << 16))
                 seconds.append(prog.clock() - t0)
@@ -483,8 +523,13 @@ class LineSpaceGathering(Method):
                 own = cumulative if previous is None or cumulative is None else cumulative - previous
                 prog.add(own, seconds[-1], radius=r)
                 previous = cumulative
+                if groups > 1:
+                    acc = by_group.setdefault(i % groups, [0.0, 0])
+                    acc[0] = acc[0] + own
+                    acc[1] += 1
                 if self.pass_callback is not None:
-                    self.pass_callback(done + 1, r, gat.values() / (done + 1))
+                    self.pass_callback(done + 1, r, self._mean_values(gat, by_group, groups, spp,
+                                                                      done + 1))
                 for key, v in res.items():
                     tot[key] = max(tot.get(key, 0), v) if key.endswith("_max") else tot.get(key, 0) + v
                 if done + 1 > bar.total:
@@ -495,8 +540,28 @@ class LineSpaceGathering(Method):
                 i += 1
         with stats.stage("lsg_gather"):
             n = max(len(seconds), 1)
-            image = previous * np.float32(1.0 / n) if previous is not None else gat.image(dev, 1.0 / n)
+            if by_group:   # each group weighs its samples, however many passes it had
+                w = _group_weights(by_group, groups, spp)
+                image = sum(np.float32(w[g]) * a / np.float32(k) for g, (a, k) in by_group.items())
+            elif previous is not None:
+                image = previous * np.float32(1.0 / n)
+            else:
+                image = gat.image(dev, 1.0 / n)
         return image, tot, seconds
+
+    @staticmethod
+    def _mean_values(gat, by_group: dict, groups: int, spp: int, passes: int) -> np.ndarray:
+        """The running estimate per view segment, (n_views, 4): what sums into the pixels of
+        the image so far (with sample groups, a segment's sum over its group's passes over
+        their number, times its group's weight)."""
+        values = gat.values()
+        if groups <= 1:
+            return values / passes
+        group = gat.views["sample"].astype(np.int64) % spp % groups
+        w = _group_weights(by_group, groups, spp)
+        per = np.array([w.get(g, 0.0) / by_group[g][1] if g in by_group else 0.0
+                        for g in range(groups)])
+        return (values * per[group][:, None]).astype(np.float32)
 
     def _gather_chunks(self, ps: PreparedScene, gat: Gatherer, stats: Stats,
                        show_progress: bool, seed_offset: int = 0) -> dict:
@@ -541,11 +606,11 @@ class LineSpaceGathering(Method):
             res = gat.add(segs)
             tot["pair_tests"] += res.pair_tests
             tot["valid_pairs"] += res.valid_pairs
-            tot["light_x_view"] += len(segs) * gat.n
+            tot["light_x_view"] += len(segs) * gat.active
             tot["chunks"] += 1
             tot["lsg_light_segments_kept"] += res.kept
             tot["lsg_leaf_points_tested"] += res.leaf_points
-            tot["lsg_kept_x_view"] += res.kept * gat.n
+            tot["lsg_kept_x_view"] += res.kept * gat.active
             tot["tree_build_seconds"] += res.tree_seconds
             tot["gather_seconds"] += res.gather_seconds
             tot["lsg_chunk_bytes_max"] = max(tot["lsg_chunk_bytes_max"], res.nbytes)
