@@ -153,7 +153,8 @@ class LineSpaceGathering(Method):
     error target): a single pass gathers every sample, as before. Until G passes have run,
     the medium term of a pixel comes from the samples gathered so far (edges of objects are
     antialiased as the passes go on); ``view_samples = 0`` gathers every sample in every
-    pass.
+    pass. The error estimate compares whole rounds of G passes (two groups differ by their
+    samples as well as by their rays).
 
     *Inside glass* (a dielectric's ``interior_sigma_s``, ``interior_sigma_a``,
     ``interior_g``: a homogeneous medium inside the closed object). Every straight piece of
@@ -503,6 +504,7 @@ class LineSpaceGathering(Method):
         previous = None
         groups, spp = self._sample_groups(ps, prog)
         by_group: dict[int, list] = {}          # group -> [sum of its passes' images, passes]
+        round_: list = []                       # (group, image, radius) of this round's passes
         total = prog.planned if prog.max_passes > prog.planned else prog.max_passes
         with progress(total, "lsg passes", show_progress) as bar:
             i = first
@@ -521,12 +523,22 @@ class LineSpaceGathering(Method):
                 self._pass_rays.append(int(self._rays))
                 cumulative = gat.image(dev) if keep_images else None
                 own = cumulative if previous is None or cumulative is None else cumulative - previous
-                prog.add(own, seconds[-1], radius=r)
                 previous = cumulative
+                tracked, r_tracked = own, r
                 if groups > 1:
                     acc = by_group.setdefault(i % groups, [0.0, 0])
                     acc[0] = acc[0] + own
                     acc[1] += 1
+                    # the error estimate compares whole rounds (one pass of every group):
+                    # two passes of different groups differ by their samples, not only noise
+                    round_.append((i % groups, own, r))
+                    tracked = None
+                    if len(round_) == groups:
+                        w = _group_weights({g: None for g, _, _ in round_}, groups, spp)
+                        tracked = sum(np.float32(w[g]) * img for g, img, _ in round_)
+                        r_tracked = float(np.mean([x for _, _, x in round_]))
+                        round_.clear()
+                prog.add(tracked, seconds[-1], radius=r_tracked)
                 if self.pass_callback is not None:
                     self.pass_callback(done + 1, r, self._mean_values(gat, by_group, groups, spp,
                                                                       done + 1))
