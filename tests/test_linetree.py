@@ -77,6 +77,32 @@ def test_median_splits_separate_children_on_their_axis():
     assert np.mean((hi[a][k, axis] - lo[a][k, axis]) < 0.75 * (uhi - ulo)[k, axis]) > 0.9
 
 
+def test_extra_coordinates_steer_the_splits_but_stay_out_of_the_boxes():
+    """split_extra (lsg: where the segments start): 8 clusters far apart in the extra
+    coordinates, and Plücker points spread alike in all of them. The first 8-ary level
+    splits on the extra coordinates (each child holds one whole cluster), the boxes are
+    those of the Plücker points alone (every point inside its leaf's box, the root's box
+    their bounds), and without the extra coordinates the clusters mix."""
+    rng = np.random.default_rng(9)
+    n = 8 ** 3 * 4
+    pts = rng.uniform(-1, 1, size=(n, 6)).astype(np.float32)
+    cluster = rng.permutation(np.arange(n) % 8)
+    corners = np.array([[i & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], np.float64) * 10
+    extra = corners[cluster] + rng.uniform(-1, 1, size=(n, 3))
+    t = build_linetree(pts, 4, extra)
+    assert t.levels == 3 and t.nodes["lo"].shape == (len(t.nodes), 6)
+    first = cluster[t.order].reshape(8, -1)             # the points of each level-1 node
+    assert all(len(np.unique(row)) == 1 for row in first)
+    assert sorted(first[:, 0]) == list(range(8))
+    np.testing.assert_array_equal(t.nodes["lo"][0], pts.min(0))
+    np.testing.assert_array_equal(t.nodes["hi"][0], pts.max(0))
+    sp = pts[t.order]
+    g = t.first_leaf + np.repeat(np.arange(8 ** 3), np.diff(t.leaf_ranges, axis=1)[:, 0])
+    assert np.all(sp >= t.nodes["lo"][g]) and np.all(sp <= t.nodes["hi"][g])
+    plain = cluster[build_linetree(pts, 4).order].reshape(8, -1)
+    assert all(len(np.unique(row)) > 1 for row in plain)
+
+
 def test_build_is_vectorised_and_quick_for_large_sets():
     """200k points in a few kd levels with no per-point Python: the Python and C calls the
     build makes (counted with ``sys.setprofile``, not timed) grow with the levels, not the

@@ -1,11 +1,13 @@
 #!/usr/bin/env python3
-"""Benchmark: where LSG's gather spends its work, and what the line tree's leaf size is
-worth, on the glass-ball caustic (``tools/scenes/glass_ball_fog.toml``).
+"""Benchmark: where LSG's gather spends its work, and what the line tree's leaf size and
+its spatial splits are worth, on the glass-ball caustic (``tools/scenes/glass_ball_fog.toml``).
 
 Each run is ``clscatter render --method lsg`` in a fresh process with the caustic
 lighting segments only (``min_light_depth = 1``), one pass of ``--rays`` lighting rays at
-``--size``, and ``render.lsg.leaf_size`` set to each of ``--leaf-sizes``; the sizes take
-turns ``--repeats`` times, so drift on a shared machine falls on all alike. Recorded from
+``--size``, with ``render.lsg.leaf_size`` set to each of ``--leaf-sizes`` and
+``render.lsg.spatial_split`` to each of ``--spatial-splits`` (0: the paper's tree, split
+on the Plücker coordinates only); the settings take turns ``--repeats`` times, so drift
+on a shared machine falls on all alike. Recorded from
 ``--stats`` for every run: the gather's and the tree build's seconds, the view and kept
 lighting segments, the pairs an exhaustive gather would test, the points in the leaves
 the walk reached (the culling of the tree: Plücker slabs and the nodes' 3-D boxes), the
@@ -13,7 +15,7 @@ exact pair tests and the valid pairs. Prints a markdown table of the medians and
 bench_out/lsg_gather.json (and docs/bench/lsg_gather.json unless ``--no-copy``).
 
     .venv/bin/python tools/bench_lsg_gather.py [--size 160 120] [--rays 50000]
-        [--leaf-sizes 4 16] [--repeats 2] [--no-copy]
+        [--leaf-sizes 4 16] [--spatial-splits 0 8] [--repeats 2] [--no-copy]
 """
 from __future__ import annotations
 
@@ -32,14 +34,15 @@ KEYS = ("gather_seconds", "tree_build_seconds", "view_segments", "lsg_light_segm
         "pair_tests_bruteforce", "lsg_leaf_points_tested", "pair_tests", "valid_pairs")
 
 
-def run(scene: Path, size: tuple[int, int], rays: int, leaf: int) -> dict:
+def run(scene: Path, size: tuple[int, int], rays: int, leaf: int, split: float) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         st = Path(tmp) / "stats.json"
         cmd = [sys.executable, "-m", "clscatter", "render", str(scene), "--method", "lsg",
                "-o", str(Path(tmp) / "img.npy"), "--stats", str(st), "--no-progress",
                "--time-budget", "0", "--set", f"camera.resolution=[{size[0]},{size[1]}]",
                "--set", "render.lsg.min_light_depth=1", "--set", f"render.lsg.light_rays={rays}",
-               "--set", f"render.lsg.leaf_size={leaf}"]
+               "--set", f"render.lsg.leaf_size={leaf}",
+               "--set", f"render.lsg.spatial_split={split}"]
         proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
         if proc.returncode != 0:
             raise SystemExit(proc.stderr.strip())
@@ -53,17 +56,21 @@ def main() -> None:
     ap.add_argument("--size", type=int, nargs=2, default=[160, 120])
     ap.add_argument("--rays", type=int, default=50_000)
     ap.add_argument("--leaf-sizes", type=int, nargs="+", default=[4, 16])
+    ap.add_argument("--spatial-splits", type=float, nargs="+", default=[0.0, 8.0])
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--no-copy", action="store_true")
     args = ap.parse_args()
-    runs: dict[int, list[dict]] = {ls: [] for ls in args.leaf_sizes}
+    configs = [(ls, sp) for ls in args.leaf_sizes for sp in args.spatial_splits]
+    runs: dict[tuple, list[dict]] = {c: [] for c in configs}
     for _ in range(args.repeats):
-        for ls in args.leaf_sizes:
-            runs[ls].append(run(Path(args.scene), tuple(args.size), args.rays, ls))
-            print(f"leaf_size {ls}: gather {runs[ls][-1]['gather_seconds']:.2f} s", file=sys.stderr)
+        for ls, sp in configs:
+            runs[ls, sp].append(run(Path(args.scene), tuple(args.size), args.rays, ls, sp))
+            print(f"leaf_size {ls}, spatial_split {sp:g}: gather "
+                  f"{runs[ls, sp][-1]['gather_seconds']:.2f} s", file=sys.stderr)
     rows = []
-    for ls, rs in runs.items():
-        row = {"leaf_size": ls, **{k: rs[0][k] for k in KEYS if "seconds" not in k}}
+    for (ls, sp), rs in runs.items():
+        row = {"leaf_size": ls, "spatial_split": sp,
+               **{k: rs[0][k] for k in KEYS if "seconds" not in k}}
         for k in ("gather_seconds", "tree_build_seconds"):
             row[k] = statistics.median(r[k] for r in rs)
             row[k + "_all"] = [r[k] for r in rs]
@@ -78,11 +85,12 @@ def main() -> None:
     out.write_text(json.dumps(record, indent=1))
     if not args.no_copy:
         shutil.copy(out, ROOT / "docs" / "bench" / "lsg_gather.json")
-    print("| leaf_size | gather s (median) | tree s | leaf points tested | exact pair tests | "
-          "valid pairs | exhaustive pairs |")
-    print("|---|---|---|---|---|---|---|")
+    print("| leaf_size | spatial_split | gather s (median) | tree s | leaf points tested | "
+          "exact pair tests | valid pairs | exhaustive pairs |")
+    print("|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['leaf_size']} | {r['gather_seconds']:.2f} | {r['tree_build_seconds']:.2f} | "
+        print(f"| {r['leaf_size']} | {r['spatial_split']:g} | {r['gather_seconds']:.2f} | "
+              f"{r['tree_build_seconds']:.2f} | "
               f"{r['lsg_leaf_points_tested']:,} | {r['pair_tests']:,} | {r['valid_pairs']:,} | "
               f"{r['pair_tests_bruteforce']:,} |")
 

@@ -43,6 +43,14 @@ structs.register_struct("lsg.h", "LsgLine", LSG_LINE)
 # measured working set of every chunk is reported as lsg_chunk_bytes_max.
 BYTES_PER_SEGMENT = 512
 
+# Weight of where a lighting segment starts (normalised frame, in [-1, 1]) against its
+# Plücker coordinates when the line tree chooses its splits (line_tree.build_linetree's
+# split_extra). With a few thousand segments a tree has too few levels to split six
+# Plücker coordinates often enough for its 6-D boxes to cull; splitting on place first
+# groups segments that start together, whose nodes' 3-D boxes then cull
+# (tools/bench_lsg_gather.py). 0: Plücker coordinates only, as in the paper.
+SPATIAL_SPLIT = 8.0
+
 # Least points per leaf of the line tree (at most 8x). The gather's cost is mostly the
 # walk over internal nodes, so leaves of tens of points are faster than leaves of a few
 # (tools/bench_lsg_gather.py).
@@ -127,9 +135,11 @@ def continue_across_faces(segs: np.ndarray, medium: np.ndarray, radius: float) -
 
 def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
                   leaf_size: int = LEAF_SIZE,
-                  frame: PluckerFrame | None = None) -> PreparedLines:
+                  frame: PluckerFrame | None = None,
+                  spatial_split: float = SPATIAL_SPLIT) -> PreparedLines:
     """Clip lighting segments to the view segments' box grown by ``radius`` (no pair closer
-    than r lies outside it), form canonical Plücker points and build the 8-ary tree."""
+    than r lies outside it), form canonical Plücker points and build the 8-ary tree (its
+    splits steered by where the segments start, times ``spatial_split``)."""
     margin = radius * 1.001 + 1e-5
     ids, a, u, length, flux = clip_segments(segs, np.asarray(view_lo) - margin,
                                             np.asarray(view_hi) + margin, kappa)
@@ -139,7 +149,8 @@ def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
     u32 = u.astype(np.float32)
     pts = plucker(a, u32.astype(np.float64), frame).astype(np.float32)   # (u32, m32)
     pts[:, :3] = u32
-    tree = build_linetree(pts * canonical_signs(u32)[:, None], leaf_size)
+    extra = (a - frame.centre) / frame.scale * spatial_split if spatial_split > 0 else None
+    tree = build_linetree(pts * canonical_signs(u32)[:, None], leaf_size, extra)
     o = tree.order
     lines = np.zeros(len(o), LSG_LINE)
     lines["a"][:, :3] = a[o]
@@ -178,7 +189,8 @@ class Gatherer:
     into the accumulator; :meth:`values` reads the sum, ``(n_views, 4)`` rgb.
     ``record_pairs > 0`` also returns up to that many valid (view, light) pairs per chunk.
     ``clip = False`` keeps lighting segments whole (otherwise they are cut to the view
-    segments' box grown by the radius); ``frame`` fixes the Plücker frame (tests).
+    segments' box grown by the radius); ``frame`` fixes the Plücker frame (tests);
+    ``spatial_split`` weighs where segments start in the tree's splits (:data:`SPATIAL_SPLIT`).
     ``views_buf``: the same view segments already on the device (a render's
     :class:`~clscatter.transport.view_paths.DeviceSegments` buffer; not freed here), else uploaded.
     ``region``: the region the lighting segments and ``medium`` belong to
@@ -199,7 +211,8 @@ class Gatherer:
     def __init__(self, engine: Engine, views: np.ndarray, medium: np.ndarray, radius: float,
                  min_sin: float = 1e-6, leaf_size: int = LEAF_SIZE, per_launch: int = 65536,
                  record_pairs: int = 0, show_progress: bool = False, clip: bool = True,
-                 frame: PluckerFrame | None = None, views_buf=None, region: int = 0):
+                 frame: PluckerFrame | None = None, views_buf=None, region: int = 0,
+                 spatial_split: float = SPATIAL_SPLIT):
         self.eng = engine
         self.region = int(region)
         self.views = views
@@ -208,6 +221,7 @@ class Gatherer:
         self.radius = float(radius)
         self.min_sin = float(min_sin)
         self.leaf_size = int(leaf_size)
+        self.spatial_split = float(spatial_split)
         self.per_launch = max(1, int(per_launch))
         self.record = int(record_pairs)
         self.show_progress = show_progress
@@ -263,7 +277,8 @@ class Gatherer:
         leaf = 1 << 62 if bruteforce else self.leaf_size
         with t_build:
             segs = continue_across_faces(segs, self.medium, self.radius)
-            prep = prepare_lines(segs, self.lo, self.hi, self.radius, kappa, leaf, self.frame)
+            prep = prepare_lines(segs, self.lo, self.hi, self.radius, kappa, leaf, self.frame,
+                                 self.spatial_split)
         with t_gather:
             eng.note_host(prep.nbytes)
             lines_buf = eng.to_device(prep.lines)

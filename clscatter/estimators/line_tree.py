@@ -34,8 +34,9 @@ Canonical sign
     the segments themselves keep their orientation for the radiance estimate.
 
 The tree (:func:`build_linetree`, paper section 4.3)
-    A balanced kd-tree with median splits on the axis of largest extent, ``3 L`` levels
-    deep, where ``L`` is the largest integer with ``8^L * leaf_size <= N``; every three
+    A balanced kd-tree with median splits on the axis of largest extent (of the six
+    Plücker coordinates, and of any ``split_extra`` coordinates: they steer the splits
+    but are not in the nodes' boxes), ``3 L`` levels deep, where ``L`` is the largest integer with ``8^L * leaf_size <= N``; every three
     kd levels are collapsed into one, giving a *perfect* 8-ary tree with ``8^L`` leaves.
     kd node ``j`` of level ``k`` owns the points ``[j N // 2^k, (j + 1) N // 2^k)`` of the
     final order; these ranges nest exactly (``2 j N // 2^(k+1) = j N // 2^k``), so 8-ary
@@ -131,12 +132,17 @@ def _ranges(n: int, parts: int) -> np.ndarray:
     return (np.arange(parts, dtype=np.int64) * n) // parts
 
 
-def build_linetree(points, leaf_size: int = 4) -> LineTree:
+def build_linetree(points, leaf_size: int = 4, split_extra=None) -> LineTree:
     """Balanced median-split kd-tree over ``points`` (N, 6), collapsed to a perfect 8-ary
     tree. ``points`` should be the float32 values the kernel reads: the boxes are computed
-    from them exactly, so every stored point lies inside its nodes' boxes."""
+    from them exactly, so every stored point lies inside its nodes' boxes.
+    ``split_extra`` (N, k): more coordinates a node may be split on (the axis of largest
+    extent among all 6 + k), which do not enter the boxes."""
     pts = np.ascontiguousarray(points, np.float32)
     n = len(pts)
+    if split_extra is not None and n:
+        pts = np.concatenate([pts, np.asarray(split_extra, np.float32).reshape(n, -1)], axis=1)
+    width = pts.shape[1]
     if n == 0:
         nodes = np.zeros(1, LINE_NODE)
         nodes["lo"], nodes["hi"] = 1e30, -1e30     # empty box: always culled
@@ -153,7 +159,7 @@ def build_linetree(points, leaf_size: int = 4) -> LineTree:
         ext = hi - lo
         axis = np.argmax(ext, axis=1)                                # split axis per node
         node = np.repeat(np.arange(parts), np.diff(np.append(starts, n)))
-        val = cur.ravel()[np.arange(n) * 6 + axis[node]].astype(np.float64)
+        val = cur.ravel()[np.arange(n) * width + axis[node]].astype(np.float64)
         span = ext[np.arange(parts), axis]
         rel = (val - lo[np.arange(parts), axis][node]) / np.where(span > 0, span, 1.0)[node]
         # node index + position inside the node in [0, 0.5]: one sortable key; the sort
@@ -162,7 +168,7 @@ def build_linetree(points, leaf_size: int = 4) -> LineTree:
         cur = np.take(cur, perm, axis=0)
         order = np.take(order, perm)
     # ---- 8-ary levels: boxes of every node, breadth-first ----
-    sorted_pts = cur
+    sorted_pts = cur[:, :6]
     total = (8 ** (levels + 1) - 1) // 7
     nodes = np.zeros(total, LINE_NODE)
     for lvl in range(levels + 1):

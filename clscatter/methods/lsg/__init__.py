@@ -12,6 +12,7 @@ from ...device import structs
 from ...estimators.line_gather import (
     BYTES_PER_SEGMENT,
     LEAF_SIZE,
+    SPATIAL_SPLIT,
     Gatherer,
     RegionGatherer,
     region_media,
@@ -215,6 +216,8 @@ class LineSpaceGathering(Method):
               lo=0),
         Param("max_bytes", 1 << 30, "working-set bound for one chunk of rays", lo=1),
         Param("leaf_size", LEAF_SIZE, "least points per tree leaf (at most 8x)", lo=1),
+        Param("spatial_split", SPATIAL_SPLIT, "weight of where lighting segments start against "
+              "their Plücker coordinates when the tree splits (0: Plücker coordinates only)", lo=0),
         Param("min_sin", 1e-6, "sin(theta) below this counts as parallel", lo=0, hi=1, hi_open=True),
         Param("segments_per_launch", 65536, "view segments per kernel launch (progress)", lo=1),
         Param("view_samples", 1, "camera samples of each pixel a pass gathers, the pixel's samples "
@@ -356,7 +359,7 @@ class LineSpaceGathering(Method):
         def make(v, medium, buf, region):
             return Gatherer(ps.engine, v, medium, radius, p["min_sin"], p["leaf_size"],
                             p["segments_per_launch"], show_progress=show_progress,
-                            views_buf=buf, region=region)
+                            views_buf=buf, region=region, spatial_split=p["spatial_split"])
         if inside is None:
             return make(views, ps.medium, dev.buf, 0)
         parts = []
@@ -411,7 +414,7 @@ class LineSpaceGathering(Method):
             p = self.params
             gat = Gatherer(ps.engine, views, ps.medium, gat.radius, p["min_sin"],
                            p["leaf_size"], p["segments_per_launch"],
-                           show_progress=gat.show_progress)
+                           show_progress=gat.show_progress, spatial_split=p["spatial_split"])
         try:
             return self._pilot(ps, gat, views, prog, pilot, stride)
         finally:
