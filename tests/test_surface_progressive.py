@@ -168,6 +168,25 @@ def test_budgeted_passes_keep_the_budget_on_a_fake_clock(ball, method, monkeypat
     assert 3 <= st[f"{method}_passes"] <= 6
 
 
+@pytest.mark.parametrize("method", ESTIMATORS)
+def test_overrun_note_names_what_a_sized_first_pass_is_left_with(ball, method, monkeypatch):
+    """A first pass sized down from the learnt cost (1e-4 s per ray and hit: 1 s of a 4 s
+    deadline shared by 4 planned passes) that still overruns (the fake clock: 1 s per 2,000
+    rays) says that what is left is its rays over every diffuse hit, and names k and the
+    resolution, not the photon count it no longer traces all of."""
+    ps, paths = ball
+    clock = _tracing_costs_a_second_per_10000_rays(monkeypatch, rays_per_second=2000)
+    _, st = _surface(ps, paths, method, {"photons": 40000, "passes": 4}, deadline=4.0,
+                     clock=clock, costs=(lambda stage, work: 1e-4 * work, lambda *a: None))
+    rays = st[f"{method}_pass_rays"][0]
+    assert rays < 40000 and st[f"{method}_sized_from"] == "calibration"
+    note = [n for n in st["notes"] if "first pass alone" in n]
+    assert len(note) == 1, st["notes"]
+    assert f"a first pass of {rays} lighting rays" in note[0]
+    assert f"{st['diffuse_hits']} diffuse hits" in note[0]
+    assert f"render.{method}.k" in note[0] and f"render.{method}.photons" not in note[0]
+
+
 def test_sized_rays_rule():
     """Rays for a pass from a measured one: in proportion to the time wanted, at most the
     parameter's count, at least MIN_PASS_RAYS, within RESIZE of the measured pass."""
@@ -180,13 +199,15 @@ def test_sized_rays_rule():
     assert sized(1000, (1000, 4.0), 1e-3) == 1000                # fewer than the least: all
 
 
-def _tracing_costs_a_second_per_10000_rays(monkeypatch) -> FakeClock:
-    """A fake clock that the surface passes' lighting rays advance by 1 s per 10,000."""
+def _tracing_costs_a_second_per_10000_rays(monkeypatch, rays_per_second: float = 10000.0
+                                            ) -> FakeClock:
+    """A fake clock that the surface passes' lighting rays advance by 1 s per 10,000 (or
+    per ``rays_per_second``)."""
     clock = FakeClock()
     real = surface_passes.caustic_pieces
 
     def costly(ps_, rays, *a, **kw):
-        clock.now += rays / 10000.0
+        clock.now += rays / rays_per_second
         return real(ps_, rays, *a, **kw)
 
     monkeypatch.setattr(surface_passes, "caustic_pieces", costly)

@@ -136,6 +136,13 @@ class SurfaceDensityMethod(Method):
                          f"{name}_stopped_by": res.stopped_by,
                          f"{name}_sized_from": res.sized_from,
                          f"{name}_error_estimate": res.error})
-        line = prog.overrun_note(name, "a pass of all its photons", f"render.{name}.photons")
+        rays = res.rays[0] if res.rays else int(self.params["photons"])
+        if rays >= int(self.params["photons"]):
+            unit, lower = "a pass of all its photons", f"render.{name}.photons"
+        else:   # sized down: what is left is the k-nearest queries of every diffuse hit
+            unit = (f"a first pass of {rays} lighting rays, each of its {res.hits} diffuse hits "
+                    "gathering its k nearest,")
+            lower = f"render.{name}.k, camera.resolution or camera.spp"
+        line = prog.overrun_note(name, unit, lower)
         if line:
             ctx.note(line)
