@@ -57,6 +57,17 @@ SPATIAL_SPLIT = 8.0
 LEAF_SIZE = 16
 
 
+def sample_groups(views: np.ndarray, groups: int, spp: int) -> np.ndarray:
+    """The camera-sample group of every view segment: its sample's index within its pixel
+    (``spp`` samples a pixel), modulo ``groups``."""
+    return views["sample"].astype(np.int64) % max(1, int(spp)) % max(1, int(groups))
+
+
+def group_samples(group: int, groups: int, spp: int) -> int:
+    """How many of a pixel's ``spp`` samples fall in ``group`` of ``groups``."""
+    return len(range(int(group), max(1, int(spp)), max(1, int(groups))))
+
+
 @dataclass
 class PreparedLines:
     """One chunk's lighting segments, clipped, in tree order, with their 8-ary tree."""
@@ -240,7 +251,7 @@ class Gatherer:
         self._totals = np.zeros(4, np.int64)     # their totals after the last add()
         self.pairs_buf = engine.empty(max(self.record, 1) * 8)
         self.pair_count = engine.empty(4)
-        self._groups: dict[tuple[int, int], tuple[object, int, float]] = {}
+        self._groups: dict[tuple[int, int, int], tuple[object, int, float]] = {}
         self._group: tuple[object, int, float] | None = None    # None: every view segment
 
     @property
@@ -259,13 +270,11 @@ class Gatherer:
         if group is None or groups <= 1:
             self._group = None
             return
-        key = (int(group) % groups, groups)
+        key = (int(group) % groups, groups, spp)
         if key not in self._groups:
-            k = self.views["sample"].astype(np.int64) % spp
-            idx = np.flatnonzero(k % groups == key[0]).astype(np.int32)
-            slots = len(range(key[0], spp, groups))
+            idx = np.flatnonzero(sample_groups(self.views, groups, spp) == key[0]).astype(np.int32)
             buf = self.eng.to_device(idx if len(idx) else np.zeros(1, np.int32))
-            self._groups[key] = (buf, len(idx), spp / max(slots, 1))
+            self._groups[key] = (buf, len(idx), spp / max(group_samples(key[0], groups, spp), 1))
         self._group = self._groups[key]
 
     # ---- one chunk ----
@@ -296,6 +305,7 @@ class Gatherer:
             fr = prep.frame
             centre = structs.vec4(fr.centre)
             tests = valid = leaf = 0
+            # (index list, its length, scale); all views: any buffer, unread with indexed = 0
             index_buf, count, scale = self._group or (self.pair_count, self.n, 1.0)
             if len(prep.lines) and count:
                 with progress(count, "lsg gather", self.show_progress) as bar:

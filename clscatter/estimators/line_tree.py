@@ -36,8 +36,9 @@ Canonical sign
 The tree (:func:`build_linetree`, paper section 4.3)
     A balanced kd-tree with median splits on the axis of largest extent (of the six
     Plücker coordinates, and of any ``split_extra`` coordinates: they steer the splits
-    but are not in the nodes' boxes), ``3 L`` levels deep, where ``L`` is the largest integer with ``8^L * leaf_size <= N``; every three
-    kd levels are collapsed into one, giving a *perfect* 8-ary tree with ``8^L`` leaves.
+    but are not in the nodes' boxes), ``3 L`` levels deep, where ``L`` is the largest
+    integer with ``8^L * leaf_size <= N``; every three kd levels are collapsed into one,
+    giving a *perfect* 8-ary tree with ``8^L`` leaves.
     kd node ``j`` of level ``k`` owns the points ``[j N // 2^k, (j + 1) N // 2^k)`` of the
     final order; these ranges nest exactly (``2 j N // 2^(k+1) = j N // 2^k``), so 8-ary
     node ``j`` of level ``l`` is kd node ``j`` of level ``3 l`` and no padding is needed:

@@ -15,7 +15,9 @@ from ...estimators.line_gather import (
     SPATIAL_SPLIT,
     Gatherer,
     RegionGatherer,
+    group_samples,
     region_media,
+    sample_groups,
 )
 from ...io.stats import Stats, progress
 from ...transport.context import PassContext
@@ -54,13 +56,13 @@ def _chunk_rays(counts: np.ndarray, k: int, n: int) -> int:
     return int(sum(int(c) * (k + 1) // n - int(c) * k // n for c in counts))
 
 
-def _group_weights(by_group: dict, groups: int, spp: int) -> dict[int, float]:
-    """Weight of each camera-sample group gathered so far in the image: its share of the
-    samples of the groups gathered so far (each group's image already stands for the whole
-    pixel: its samples' estimates times spp over their number)."""
-    slots = {g: len(range(g, spp, groups)) for g in by_group}
-    total = sum(slots.values())
-    return {g: n / total for g, n in slots.items()}
+def _group_weights(gathered, groups: int, spp: int) -> dict[int, float]:
+    """Weight in the image of each camera-sample group in ``gathered``: its share of their
+    samples (each group's image already stands for the whole pixel: its samples'
+    estimates times spp over their number)."""
+    share = {g: group_samples(g, groups, spp) for g in gathered}
+    total = sum(share.values())
+    return {g: n / total for g, n in share.items()}
 
 
 def ppb_radii(r1: float, alpha: float, passes: int) -> np.ndarray:
@@ -149,13 +151,13 @@ class LineSpaceGathering(Method):
     view_samples)``), weighted to stand for the whole pixel; the passes take turns, so every
     sample is gathered once every G passes. The image is each group's mean over its passes,
     weighted by the group's share of the samples, so every sample weighs the same whatever
-    the number of passes. A pass then costs about 1/G of the gather, and a time budget buys G times the
-    lighting rays. G is at most the passes the render may run (``passes``, or more under an
-    error target): a single pass gathers every sample, as before. Until G passes have run,
-    the medium term of a pixel comes from the samples gathered so far (edges of objects are
-    antialiased as the passes go on); ``view_samples = 0`` gathers every sample in every
-    pass. The error estimate compares whole rounds of G passes (two groups differ by their
-    samples as well as by their rays).
+    the number of passes. A pass then costs about 1/G of the gather, and a time budget buys
+    G times the lighting rays. G is at most the passes the render may run (``passes``, or
+    more under an error target): a single pass gathers every sample, as before. Until G
+    passes have run, the medium term of a pixel comes from the samples gathered so far
+    (edges of objects are antialiased as the passes go on); ``view_samples = 0`` gathers
+    every sample in every pass. The error estimate compares whole rounds of G passes (two
+    groups differ by their samples as well as by their rays).
 
     *Inside glass* (a dielectric's ``interior_sigma_s``, ``interior_sigma_a``,
     ``interior_g``: a homogeneous medium inside the closed object). Every straight piece of
@@ -255,7 +257,8 @@ class LineSpaceGathering(Method):
                          "pair tests (order of magnitude)")]
 
     #: optional ``f(passes_done, radius, mean values per view segment)`` called after every
-    #: pass (:meth:`_mean_values`) (tests and benchmarks: the error after each pass from one progressive run)
+    #: pass (:meth:`_mean_values`; tests and benchmarks: the error after each pass from one
+    #: progressive run)
     pass_callback = None
 
     def targeted(self) -> bool:
@@ -537,7 +540,7 @@ class LineSpaceGathering(Method):
                     round_.append((i % groups, own, r))
                     tracked = None
                     if len(round_) == groups:
-                        w = _group_weights({g: None for g, _, _ in round_}, groups, spp)
+                        w = _group_weights([g for g, _, _ in round_], groups, spp)
                         tracked = sum(np.float32(w[g]) * img for g, img, _ in round_)
                         r_tracked = float(np.mean([x for _, _, x in round_]))
                         round_.clear()
@@ -572,7 +575,7 @@ class LineSpaceGathering(Method):
         values = gat.values()
         if groups <= 1:
             return values / passes
-        group = gat.views["sample"].astype(np.int64) % spp % groups
+        group = sample_groups(gat.views, groups, spp)
         w = _group_weights(by_group, groups, spp)
         per = np.array([w.get(g, 0.0) / by_group[g][1] if g in by_group else 0.0
                         for g in range(groups)])
