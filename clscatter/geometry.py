@@ -49,6 +49,7 @@ def slab_interval(a: np.ndarray, d: np.ndarray, lo, hi, t_max) -> tuple[np.ndarr
     inside = (a >= lo) & (a <= hi)
     near = np.where(par, np.where(inside, -np.inf, np.inf), np.minimum(t0, t1))
     far = np.where(par, np.where(inside, np.inf, -np.inf), np.maximum(t0, t1))
-    enter = np.maximum(near.max(axis=-1), 0.0)
-    leave = np.minimum(far.min(axis=-1), t_max)
+    # the three slabs combined elementwise (a reduction over a length-3 axis is ~10x slower)
+    enter = np.maximum(np.maximum(np.maximum(near[..., 0], near[..., 1]), near[..., 2]), 0.0)
+    leave = np.minimum(np.minimum(np.minimum(far[..., 0], far[..., 1]), far[..., 2]), t_max)
     return enter, leave

@@ -90,7 +90,7 @@ def clip_segments(segs: np.ndarray, lo, hi, kappa) -> tuple[np.ndarray, ...]:
     """
     a = segs["a"][:, :3].astype(np.float64)
     d = segs["b"][:, :3].astype(np.float64) - a
-    length = np.linalg.norm(d, axis=1)
+    length = np.sqrt(np.einsum("ij,ij->i", d, d))
     ok = length > 0
     u = np.zeros_like(d)
     u[ok] = d[ok] / length[ok, None]
@@ -154,25 +154,27 @@ def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
     margin = radius * 1.001 + 1e-5
     ids, a, u, length, flux = clip_segments(segs, np.asarray(view_lo) - margin,
                                             np.asarray(view_hi) + margin, kappa)
+    ends = a + length[:, None] * u
     if frame is None:
-        ends = np.concatenate([a, a + length[:, None] * u]) if len(a) else np.zeros((1, 3))
-        frame = PluckerFrame.for_box(ends.min(axis=0), ends.max(axis=0))
+        frame = (PluckerFrame.for_box(np.minimum(a.min(axis=0), ends.min(axis=0)),
+                                      np.maximum(a.max(axis=0), ends.max(axis=0)))
+                 if len(a) else PluckerFrame.for_box(np.zeros(3), np.zeros(3)))
     u32 = u.astype(np.float32)
     pts = plucker(a, u32.astype(np.float64), frame).astype(np.float32)   # (u32, m32)
     pts[:, :3] = u32
     extra = (a - frame.centre) / frame.scale * spatial_split if spatial_split > 0 else None
     tree = build_linetree(pts * canonical_signs(u32)[:, None], leaf_size, extra)
     o = tree.order
+    a, ends, pts = np.take(a, o, axis=0), np.take(ends, o, axis=0), np.take(pts, o, axis=0)
     lines = np.zeros(len(o), LSG_LINE)
-    lines["a"][:, :3] = a[o]
+    lines["a"][:, :3] = a
     lines["a"][:, 3] = length[o]
-    lines["u"][:, :3] = pts[o, :3]
+    lines["u"][:, :3] = pts[:, :3]
     lines["flux"][:, :3] = flux[o]
     points = np.zeros((len(o), 8), np.float32)
-    points[:, :6] = pts[o]
+    points[:, :6] = pts
     max_m1 = float(np.abs(pts[:, 3:]).sum(axis=1).max()) if len(pts) else 0.0
-    ends = a[o] + length[o, None] * u[o]
-    boxes = node_boxes(tree, np.minimum(a[o], ends), np.maximum(a[o], ends))
+    boxes = node_boxes(tree, np.minimum(a, ends).T, np.maximum(a, ends).T)
     n = len(segs)
     nbytes = int(segs.nbytes + 80 * n + 96 * len(o) + 56 * len(o) + lines.nbytes + points.nbytes
                  + tree.nbytes + boxes.nbytes)

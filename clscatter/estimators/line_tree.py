@@ -52,8 +52,9 @@ The tree (:func:`build_linetree`, paper section 4.3)
 
     Build cost: one ``argsort`` of all N points per kd level (node index + the value on
     the node's split axis, scaled into [0, 1), as one float64 key, so every node of a
-    level is split at once); ``np.minimum.reduceat`` for the boxes. No Python loop runs
-    over points or nodes.
+    level is split at once); ``np.minimum.reduceat`` for the boxes, over coordinates
+    stored as rows so that each node's run is contiguous. No Python loop runs over
+    points or nodes.
 """
 from __future__ import annotations
 
@@ -141,43 +142,43 @@ def build_linetree(points, leaf_size: int = 4, split_extra=None) -> LineTree:
     extent among all 6 + k), which do not enter the boxes."""
     pts = np.ascontiguousarray(points, np.float32)
     n = len(pts)
-    if split_extra is not None and n:
-        pts = np.concatenate([pts, np.asarray(split_extra, np.float32).reshape(n, -1)], axis=1)
-    width = pts.shape[1]
     if n == 0:
         nodes = np.zeros(1, LINE_NODE)
         nodes["lo"], nodes["hi"] = 1e30, -1e30     # empty box: always culled
         return LineTree(nodes, np.zeros((1, 2), np.int32), np.zeros(0, np.int64), 0)
+    cols = [pts] if split_extra is None else [pts, np.asarray(split_extra, np.float32).reshape(n, -1)]
+    # coordinates as rows (width, n): per-node reductions and moves run along memory
+    cur = np.ascontiguousarray(np.concatenate(cols, axis=1).T)
     levels = tree_levels(n, leaf_size)
     order = np.arange(n, dtype=np.int64)
-    cur = pts.copy()                     # the points in the current order
+    ar = np.arange(n, dtype=np.int64)
     # ---- kd levels: split every node of a level at its median, all at once ----
     for k in range(3 * levels):
         parts = 2 ** k
         starts = _ranges(n, parts)
-        lo = np.minimum.reduceat(cur, starts, axis=0).astype(np.float64)
-        hi = np.maximum.reduceat(cur, starts, axis=0).astype(np.float64)
-        ext = hi - lo
-        axis = np.argmax(ext, axis=1)                                # split axis per node
-        node = np.repeat(np.arange(parts), np.diff(np.append(starts, n)))
-        val = cur.ravel()[np.arange(n) * width + axis[node]].astype(np.float64)
-        span = ext[np.arange(parts), axis]
-        rel = (val - lo[np.arange(parts), axis][node]) / np.where(span > 0, span, 1.0)[node]
+        lo = np.minimum.reduceat(cur, starts, axis=1).astype(np.float64)   # (width, parts)
+        ext = np.maximum.reduceat(cur, starts, axis=1).astype(np.float64) - lo
+        j = np.arange(parts)
+        axis = np.argmax(ext, axis=0)                                # split axis per node
+        node = np.repeat(j, np.diff(np.append(starts, n)))
+        span = ext[axis, j]
+        inv = 0.5 / np.where(span > 0, span, 1.0)
+        val = cur.ravel()[axis[node] * n + ar]
         # node index + position inside the node in [0, 0.5]: one sortable key; the sort
         # moves points only within their node, so later gathers stay cache-local
-        perm = np.argsort(node + 0.5 * np.clip(rel, 0.0, 1.0))
-        cur = np.take(cur, perm, axis=0)
+        perm = np.argsort(node + np.clip((val - lo[axis, j][node]) * inv[node], 0.0, 0.5))
+        cur = np.take(cur, perm, axis=1)
         order = np.take(order, perm)
     # ---- 8-ary levels: boxes of every node, breadth-first ----
-    sorted_pts = cur[:, :6]
+    sorted_pts = cur[:6]
     total = (8 ** (levels + 1) - 1) // 7
     nodes = np.zeros(total, LINE_NODE)
     for lvl in range(levels + 1):
         parts = 8 ** lvl
         starts = _ranges(n, parts)
         off = (parts - 1) // 7
-        nodes["lo"][off:off + parts] = np.minimum.reduceat(sorted_pts, starts, axis=0)
-        nodes["hi"][off:off + parts] = np.maximum.reduceat(sorted_pts, starts, axis=0)
+        nodes["lo"][off:off + parts] = np.minimum.reduceat(sorted_pts, starts, axis=1).T
+        nodes["hi"][off:off + parts] = np.maximum.reduceat(sorted_pts, starts, axis=1).T
     starts = _ranges(n, 8 ** levels)
     ranges = np.stack([starts, np.append(starts[1:], n)], axis=1).astype(np.int32)
     return LineTree(nodes, ranges, order, levels)
@@ -185,10 +186,12 @@ def build_linetree(points, leaf_size: int = 4, split_extra=None) -> LineTree:
 
 def node_boxes(tree: LineTree, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """3-D bounding boxes of every node's segments, ``(nodes, 2, 4)`` float32 (lo, hi;
-    w unused), breadth-first like ``tree.nodes``: ``lo``/``hi`` (N, 3) are each segment's
-    own box in tree order. The boxes are rounded outwards to float32, so every segment the
-    kernel reads lies inside its nodes' boxes; an empty node's box is empty (lo > hi)."""
-    n = len(lo)
+    w unused), breadth-first like ``tree.nodes``: ``lo``/``hi`` are each segment's own
+    box in tree order, as rows (3, N). The boxes are rounded outwards to float32, so every
+    segment the kernel reads lies inside its nodes' boxes; an empty node's box is empty
+    (lo > hi)."""
+    lo, hi = np.ascontiguousarray(lo), np.ascontiguousarray(hi)
+    n = lo.shape[1]
     total = len(tree.nodes)
     out = np.zeros((total, 2, 4), np.float32)
     out[:, 0, :3], out[:, 1, :3] = 1e30, -1e30
@@ -201,9 +204,9 @@ def node_boxes(tree: LineTree, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         nonempty = np.diff(np.append(starts, n)) > 0
         rows = off + np.flatnonzero(nonempty)
         s = starts[nonempty]
-        out[rows, 0, :3] = np.nextafter(np.minimum.reduceat(lo, s, axis=0).astype(np.float32),
+        out[rows, 0, :3] = np.nextafter(np.minimum.reduceat(lo, s, axis=1).T.astype(np.float32),
                                         np.float32(-np.inf))
-        out[rows, 1, :3] = np.nextafter(np.maximum.reduceat(hi, s, axis=0).astype(np.float32),
+        out[rows, 1, :3] = np.nextafter(np.maximum.reduceat(hi, s, axis=1).T.astype(np.float32),
                                         np.float32(np.inf))
     return out
 
