@@ -11,8 +11,9 @@ and the stages from ``--stats``, ``peak_bytes`` (the engine's peak: device buffe
 host working sets the methods report), the process's max RSS, and relMSE
 (``clscatter.io.image.relmse``) against a converged reference.
 
-* **Table 1.** ``auto`` and ``lsg`` under ``--max-memory 2G``, and ``vpm`` over a sweep of
-  photon counts; VPM's time and memory at LSG's error are interpolated log-log along
+* **Table 1.** ``auto`` and ``lsg`` under ``--max-memory 2G``, ``lsg`` also in progressive
+  passes (each pass gathers one of a pixel's camera samples, the samples taking turns, and
+  builds its tree over its own rays only), and ``vpm`` over a sweep of photon counts; VPM's time and memory at LSG's error are interpolated log-log along
   VPM's Pareto front (least cost for an error). ``lsg`` and ``vpm`` compute the same light
   (direct light and volumetric caustics; neither computes caustics on the floor), so both
   are measured against a converged ``lsg`` (many progressive passes of many rays);
@@ -31,7 +32,8 @@ references with 8 passes of 4 M rays, VPM up to 16 M photons, up to 1.1 M triang
 hours on a 2-core CPU. ``--parts`` runs some of the parts (table, rays, pixels,
 triangles); the JSON is rewritten after each, so a run cut off keeps what it finished.
 The device is the engine's choice (``$CLSCATTER_DEVICE`` picks one) and is recorded.
-``--reference-seconds S`` runs the lsg row first and gives the references as many passes
+``--no-auto`` leaves out the ``auto`` row and its reference. ``--reference-seconds S``
+runs the lsg row first and gives the references as many passes
 as fit in about S seconds each (at least 2); ``--deadline`` skips VPM runs that would not
 fit in the run's time.
 Writes OUT/bench_paper_scale.json and .png (``--out``, default bench_out/paper_scale/),
@@ -83,15 +85,17 @@ FULL = {
     "rays": [250_000, 500_000, 1_000_000, 2_000_000, 4_000_000],
     "pixels": [(128, 128), (256, 256), (512, 512)],
     "triangles": [4_000, 17_000, None, "x4", "x16"],     # None: the bunny as it is
+    "lsg_passes": [(4, 250_000), (4, 500_000), (8, 500_000)],   # (passes, rays a pass)
 }
 QUICK = {
     "size": (128, 128), "spp": 1, "light_rays": 100_000,
     "ref_lsg": {"light_rays": 400_000, "passes": 8},
     "ref_auto": {"light_rays": 400_000, "raymap_photons": 400_000, "raymarch_steps": 128},
-    "vpm_photons": [100_000, 200_000, 400_000],
+    "vpm_photons": [50_000, 100_000, 200_000, 400_000],
     "rays": [25_000, 50_000, 100_000, 200_000],
     "pixels": [(64, 64), (128, 128), (256, 256)],
     "triangles": [4_000, 17_000, None, "x4"],
+    "lsg_passes": [(4, 25_000)],
 }
 
 # the parts of a run: Table 1 and the three growth sweeps of LSG
@@ -293,6 +297,8 @@ def main(argv=None) -> dict:
                          "from the lsg row's time (0: the mode's passes)")
     ap.add_argument("--deadline", type=float, default=None,
                     help="seconds for the whole run: VPM runs that would not fit are skipped")
+    ap.add_argument("--no-auto", action="store_true",
+                    help="leave out the table's auto row (and its reference)")
     ap.add_argument("--name", default="paper_scale",
                     help="docs/bench/NAME.{json,png} that the results are copied to")
     args = ap.parse_args(argv)
@@ -357,6 +363,18 @@ def main(argv=None) -> dict:
         lsg_main = lsg_row()
         table.append(lsg_main)
         save()
+        for passes, rays in cfg["lsg_passes"]:
+            rec, img = run(base, f"lsg_{passes}x{rays}", "lsg",
+                           [f"render.lsg.passes={passes}", f"render.lsg.light_rays={rays}"])
+            if rec is None:
+                print(f"lsg_{passes}x{rays}: refused: {img}", flush=True)
+                result.setdefault("refused", []).append({"run": f"lsg_{passes}x{rays}", "message": img})
+                continue
+            rec.update(relmse=relmse(img, ref_lsg), reference="lsg", x=passes * rays,
+                       setting=f"{passes} passes of {rays:,} lighting rays")
+            table.append(rec)
+            _log(rec, f", relMSE {rec['relmse']:.2e}")
+            save()
         last = None                      # (photons, seconds) of the last VPM run
         for p in cfg["vpm_photons"]:
             if last is not None and last[1] * p / last[0] > left():
@@ -375,6 +393,7 @@ def main(argv=None) -> dict:
             last = (p, rec["wall_seconds"])
             _log(rec, f", relMSE {rec['relmse']:.2e}")
             save()
+    if "table" in parts and not args.no_auto:
         sets = [f"render.lsg.light_rays={ra['light_rays']}",
                 f"render.raymap.photons={ra['raymap_photons']}",
                 f"render.raymarch.steps={ra['raymarch_steps']}"]
@@ -395,8 +414,11 @@ def main(argv=None) -> dict:
 
     # ---- growth of LSG ----
     sweeps = result["sweeps"] = {}
-    result["lsg_front"] = [{k: lsg_main[k] for k in ("relmse", "render_seconds", "peak_bytes")}
-                           | {"x": cfg["light_rays"]}] if lsg_main else []
+    front_keys = ("relmse", "render_seconds", "peak_bytes", "x")
+    in_passes = [{k: r[k] for k in front_keys} for r in result.get("table", [])
+                 if r["method"] == "lsg" and "x" in r]          # the rows run in passes
+    result["lsg_front"] = ([{k: lsg_main[k] for k in front_keys[:3]} | {"x": cfg["light_rays"]}]
+                           if lsg_main else []) + in_passes
 
     def finish(name: str, rows: list) -> None:
         xs = [r["x"] for r in rows]
@@ -421,8 +443,7 @@ def main(argv=None) -> dict:
                 _log(rec, f", relMSE {rec['relmse']:.2e}")
             rec["x"] = r
             rows.append(rec)
-        result["lsg_front"] = [{k: r[k] for k in ("relmse", "render_seconds", "peak_bytes", "x")}
-                               for r in rows]
+        result["lsg_front"] = [{k: r[k] for k in front_keys} for r in rows] + in_passes
         finish("lighting rays", rows)
     if "pixels" in parts:
         rows = []
@@ -473,6 +494,14 @@ def derive(result: dict) -> None:
         eq[f"vpm_{cost}_upper_bound"] = upper
         eq[f"ratio_{cost}"] = None if c is None else c / lsg_main[cost]
     eq["vpm_least_relmse"] = min(r["relmse"] for r in vpm)
+    eq["rows"] = []                      # every lsg row: VPM's cost at its error, as a ratio
+    for r in (r for r in table if r["method"] == "lsg"):
+        row = {"setting": r["setting"], "relmse": r["relmse"]}
+        for cost in ("render_seconds", "peak_bytes"):
+            c, upper = cost_at(pareto([(v["relmse"], v[cost]) for v in vpm]), r["relmse"])
+            row[f"ratio_{cost}"] = None if c is None else c / r[cost]
+            row[f"vpm_{cost}_upper_bound"] = upper
+        eq["rows"].append(row)
     eq["vpm_reaches_lsg_error"] = eq["vpm_least_relmse"] <= lsg_main["relmse"]
     result["equal_error"] = eq
     fronts = [{"method": "lsg", **r} for r in result["lsg_front"]] + \
@@ -502,6 +531,11 @@ def summary(result: dict) -> None:
             flag = " (VPM: upper bound)" if eq[f"vpm_{cost}_upper_bound"] else ""
             print(f"\nVPM / LSG {unit} at LSG's relMSE {eq['relmse']:.2e}: "
                   f"{eq[f'ratio_{cost}']:.2f}x{flag}")
+        for r in eq["rows"]:
+            ratio = r[f"ratio_{cost}"]
+            print(f"  lsg {r['setting']} (relMSE {r['relmse']:.2e}): VPM / LSG {unit} "
+                  + ("not reached" if ratio is None else f"{ratio:.2f}x")
+                  + (" (VPM: upper bound)" if r[f"vpm_{cost}_upper_bound"] else ""))
         for r in result.get("equal_error_fronts", {}).get(cost, []):
             flag = " (lsg: upper bound)" if r["lsg_upper_bound"] else (
                 " (vpm: upper bound)" if r["vpm_upper_bound"] else "")
