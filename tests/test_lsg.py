@@ -437,6 +437,27 @@ def test_sample_groups_taking_turns_match_the_closed_form(engine):
     assert 0.9 * per_pass < st["pair_tests_bruteforce"] < 1.1 * per_pass
 
 
+def test_samples_take_turns_only_where_the_radius_spans_them(engine):
+    """The automatic radius decides whether a pixel's camera samples take turns: on
+    caustic_sphere at 48x36, 4 spp, 2500 rays a pass give a radius of about 0.63 pixel
+    footprints (the samples share their lighting segments: G = 4), 10000 rays a radius of
+    about 0.16 (each sample gathers its own segments: G = 1, every sample every pass);
+    a fixed radius keeps view_samples' groups."""
+    from clscatter.scene.loader import load_scene
+    base = ["camera.resolution=[48,36]", "camera.spp=4", "render.time_budget=0",
+            "render.lsg.passes=4"]
+    for rays, groups in ((2500, 4), (10000, 1)):
+        st = render(load_scene("builtin:caustic_sphere", base + [f"render.lsg.light_rays={rays}"]),
+                    "lsg", engine=engine, show_progress=False).stats
+        span = st["lsg_auto_radius"]["radius"] / st["lsg_auto_radius"]["footprint"]
+        assert (span >= 0.5) == (groups == 4), span
+        assert st["lsg_sample_groups"] == groups and st["lsg_passes"] == 4
+    st = render(load_scene("builtin:caustic_sphere", base + ["render.lsg.light_rays=10000",
+                                                             "render.lsg.radius=0.001"]),
+                "lsg", engine=engine, show_progress=False).stats
+    assert st["lsg_sample_groups"] == 4
+
+
 def test_point_light_unbounded_matches_airlight_quadrature(engine):
     """LSG's direct lighting rays alone (no objects) against analytic.airlight_point.
 

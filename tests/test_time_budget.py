@@ -230,16 +230,19 @@ def test_error_estimate_tracks_the_error_against_a_long_run(engine, name, method
     the rays), after 4 and after 16 passes, on built-in caustic scenes: under auto the blur
     dominates the error (caustic_sphere), under lsg the noise does (at 4 spp, where LSG's
     passes gather one sample of each pixel in turn and the estimate compares whole rounds
-    of 4 passes: after 8 and 32 passes, two halves of rounds)."""
+    of 4 passes: after 8 and 32 passes, two halves of rounds; with 2500 rays a pass, so that
+    the automatic radius spans more than half a pixel and the samples do take turns)."""
     from clscatter.io.image import relmse
     base = ["camera.resolution=[48,36]", f"camera.spp={spp}", "render.time_budget=0"]
-    long = render(load_scene(f"builtin:{name}", base + ["render.lsg.light_rays=20000",
+    rays = 5000 if spp == 1 else 2500
+    long = render(load_scene(f"builtin:{name}", base + [f"render.lsg.light_rays={4 * rays}",
                                                          "render.lsg.passes=48"]),
                   method, engine=engine, show_progress=False).image
     for passes in ((4, 16) if spp == 1 else (8, 32)):
         r = render(load_scene(f"builtin:{name}", base + [
-            "render.lsg.light_rays=5000", f"render.lsg.passes={passes}",
+            f"render.lsg.light_rays={rays}", f"render.lsg.passes={passes}",
             "render.lsg.light_seed=3"]), method, engine=engine, show_progress=False)
+        assert r.stats["lsg_sample_groups"] == (1 if spp == 1 else 4)
         ratio = r.stats["error_estimate"] / relmse(r.image, long)
         assert 0.5 <= ratio <= 2.0, (passes, r.stats["error_estimate"], ratio)
 

@@ -49,6 +49,11 @@ PILOT_RESIZE_MAX = 32.0
 #: most passes under an error target (the target or a deadline should end them first; a
 #: target the estimate cannot reach ends here, with a note)
 MAX_PASSES = 1024
+#: camera samples take turns pass by pass only while the automatic radius is at least this
+#: many pixel footprints: a pixel's jittered samples lie about half a footprint apart, so
+#: with a smaller radius they gather mostly different lighting segments, and gathering
+#: one of them a pass would cost as much error as it saves gather time
+SAMPLES_SHARE_RADIUS = 0.5
 
 
 def _chunk_rays(counts: np.ndarray, k: int, n: int) -> int:
@@ -223,7 +228,8 @@ class LineSpaceGathering(Method):
         Param("min_sin", 1e-6, "sin(theta) below this counts as parallel", lo=0, hi=1, hi_open=True),
         Param("segments_per_launch", 65536, "view segments per kernel launch (progress)", lo=1),
         Param("view_samples", 1, "camera samples of each pixel a pass gathers, the pixel's samples "
-              "taking turns pass by pass (0: all of them in every pass)", lo=0),
+              "taking turns pass by pass while the automatic radius spans half a pixel "
+              "(0: all of them in every pass)", lo=0),
         Param("min_light_depth", 0, "gather only lighting segments with at least this many "
               "specular bounces (1: caustics only, as auto uses it beside a direct method)", lo=0),
         Param("interior", True, "also gather inside glass that scatters (a dielectric's "
@@ -280,6 +286,7 @@ class LineSpaceGathering(Method):
         p = self.params
         stats.set(view_segments=int(len(views)), lsg_targeted=self.targeted())
         self._rays = self._rays_cap = self.traced_rays(ps)
+        self._groups_cap = MAX_PASSES            # lowered by the automatic radius's pilot
         self._pass_rays: list[int] = []
         inside = self._interior_views(ctx)
         self._interior = inside is not None
@@ -453,17 +460,28 @@ class LineSpaceGathering(Method):
             if len(lit) >= min(64, max(1, len(views) // 4)) or len(segs) == 0:
                 break
             r0 *= 2.0
-        # a pass gathers one group of each pixel's camera samples (_sample_groups)
-        measured = (pilot, traced + gathered * stride / self._sample_groups(ps, prog)[0])
-        if prog is not None and prog.budgeted:
-            n_rays = self._sized_rays(pilot, measured[1], prog, limit=PILOT_RESIZE_MAX)
-        self._rays = n_rays
-        count = float(np.median(gat.valid_per_view[lit])) * n_rays / pilot if len(lit) else 0.0
-        gat.reset()
         if len(lit) == 0:                       # no light reaches any view segment
+            gat.reset()
+            groups = self._sample_groups(ps, prog)[0]
+            measured = (pilot, traced + gathered * stride / groups)
+            if prog is not None and prog.budgeted:
+                self._rays = self._sized_rays(pilot, measured[1], prog, limit=PILOT_RESIZE_MAX)
             return AutoRadius(r0, r0, pilot, 0.0, float(np.median(foot)), 0), measured
+        median = float(np.median(gat.valid_per_view[lit]))
+        gat.reset()
         f = float(np.median(foot[lit]))
-        r = max(r0 * self.params["auto_count"] / count, f / 16)
+        # a pass gathers one group of each pixel's camera samples (_sample_groups) while
+        # the radius spans half a pixel's footprint; below that, G = 1
+        for groups in dict.fromkeys((self._sample_groups(ps, prog)[0], 1)):
+            measured = (pilot, traced + gathered * stride / groups)
+            if prog is not None and prog.budgeted:
+                n_rays = self._sized_rays(pilot, measured[1], prog, limit=PILOT_RESIZE_MAX)
+            count = median * n_rays / pilot
+            r = max(r0 * self.params["auto_count"] / count, f / 16)
+            if r >= SAMPLES_SHARE_RADIUS * f:
+                break
+        self._rays = n_rays
+        self._groups_cap = groups
         return AutoRadius(float(r), float(r0), pilot, count, f, int(len(lit))), measured
 
     def _sized_rays(self, rays: int, seconds: float, prog, limit: float = 0.0) -> int:
@@ -486,6 +504,7 @@ class LineSpaceGathering(Method):
         spp = int(ps.scene.camera.spp)
         vs = int(self.params["view_samples"])
         groups = 1 if vs <= 0 else -(-spp // vs)
+        groups = min(groups, self._groups_cap)
         return max(1, min(groups, prog.max_passes if prog is not None else 1)), spp
 
     def _select(self, segs: np.ndarray) -> np.ndarray:
