@@ -22,6 +22,7 @@ from clscatter.estimators.segment_tree import (
     LEAF,
     SegmentTree,
     TreeParams,
+    _group_starts,
     leaf_ranges,
 )
 
@@ -110,6 +111,29 @@ def test_knn_matches_brute_force(engine, metric, domain, incoming):
     if metric in ("segment", "hemidisc"):
         # pruning works: far fewer references tested than segments
         assert work[:, 1].mean() < 0.25 * len(a)
+
+
+def test_grouped_refinement_answers_as_per_query(engine, monkeypatch):
+    """Coherent queries (a grid on a floor in row order, as a batch of diffuse hits comes)
+    refine the lazy tree in groups of up to 16 of one grid cell: the K nearest are the same
+    as with one query at a time (sorted distances equal), and the groups are formed."""
+    import clscatter.estimators.knn_queries as kq
+    a, b, d = _segments(4000, seed=5)
+    gx, gz = np.meshgrid(np.linspace(-0.4, 0.4, 48), np.linspace(-0.4, 0.4, 12))
+    x = np.stack([gx.ravel(), np.full(gx.size, -0.2), gz.ravel()], axis=1)
+    n = np.tile([0.0, 1.0, 0.0], (len(x), 1))
+    out = {}
+    for group in (1, 16):
+        monkeypatch.setattr(kq, "REFINE_GROUP", group)
+        rm = RayMap(engine, a, b, d, np.ones_like(a), SMALL, lazy=True)
+        idx, dist, _ = knn(rm, x, n, 16, "hemidisc", "hemisphere", 0.2, True, lazy_radius=0.05)
+        out[group] = (np.sort(dist, axis=1), rm.tree.n)
+        rm.release()
+    assert np.array_equal(out[1][0], out[16][0])
+    assert (out[1][0] >= 0).sum() > 0.8 * 16 * len(x)
+    starts = _group_starts(x, 0.1, 16)             # cells of 0.1: runs of 6 grid points
+    assert len(x) / 7 < len(starts) < len(x) / 5
+    assert np.array_equal(_group_starts(x[:40], 0.0, 16), [0, 16, 32])
 
 
 def test_lru_bound_collapses_and_answers_unchanged(engine):

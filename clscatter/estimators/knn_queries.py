@@ -21,6 +21,8 @@ DOMAINS = {"none": 0, "sphere": 1, "hemisphere": 2}
 QUERIES = {"disc": 0, "hemisphere": 1, "sphere": 2, "box": 3}
 HEAP_SIZES = (16, 64, 256, 1024)     # RM_K variants built on demand
 END_LEAF_SIZE = 8                    # end points per leaf of their balanced tree (8-16)
+#: consecutive queries of a batch that refine the lazy tree as one (SegmentTree.refine)
+REFINE_GROUP = 16
 
 
 def _f4(v: np.ndarray) -> np.ndarray:
@@ -68,7 +70,7 @@ class RayMap:
     def prepare(self, x: np.ndarray, n: np.ndarray | None, radius) -> None:
         """Lazy refinement for a batch (no-op for a static tree), then upload if changed."""
         if self.lazy:
-            self.tree.refine(x, n, radius)
+            self.tree.refine(x, n, radius, group=REFINE_GROUP)
         key = self.tree.version
         if key != self._tree_key:
             if self._tree_buf is not None:

@@ -60,6 +60,9 @@ RM_NODE = np.dtype([("lo", np.float32, 4), ("hi", np.float32, 4), ("aux", np.flo
 register_struct("raymap.h", "RMNode", RM_NODE)
 NODE_BYTES = RM_NODE.itemsize          # 64
 REF_BYTES = 4
+#: queries refining as one group use their first normal where every normal of the group
+#: lies within about 2.6 degrees of it (none otherwise)
+GROUP_NORMAL_COS = 0.999
 
 # compact node of a balanced point tree (point_tree.h PointNode): its points' bounds
 POINT_NODE = register_struct("point_tree.h", "PointNode",
@@ -161,6 +164,19 @@ def _level_boxes(pos: np.ndarray, levels: int) -> tuple[np.ndarray, np.ndarray]:
         lv_min.append(lv_min[-1].reshape(-1, 2, 3).min(axis=1))
         lv_max.append(lv_max[-1].reshape(-1, 2, 3).max(axis=1))
     return np.concatenate(lv_min[::-1]), np.concatenate(lv_max[::-1])
+
+
+def _group_starts(x: np.ndarray, cell: float, group: int) -> np.ndarray:
+    """Where the groups of consecutive points ``x`` begin: a new group at every change of
+    grid cell (side ``cell``) and after every ``group`` points of one run."""
+    n = len(x)
+    if not cell > 0 or not np.isfinite(cell):
+        return np.arange(0, n, group)
+    key = np.floor(x / cell).astype(np.int64)
+    run0 = np.flatnonzero(np.r_[True, np.any(key[1:] != key[:-1], axis=1)])
+    run = np.cumsum(np.r_[True, np.any(key[1:] != key[:-1], axis=1)]) - 1
+    pos = np.arange(n) - run0[run]
+    return np.flatnonzero(pos % group == 0)
 
 
 class SegmentTree:
@@ -501,25 +517,44 @@ class SegmentTree:
             self._thaw()
 
     # ---- lazy construction driven by a batch of queries ----
-    def refine(self, x: np.ndarray, normals: np.ndarray | None, radius: np.ndarray | float) -> None:
+    def refine(self, x: np.ndarray, normals: np.ndarray | None, radius: np.ndarray | float,
+               group: int = 1) -> None:
         """Lazy construction (Sec. 6.1) for one batch of queries: walk the boxes
         ``x +- radius`` down the tree, split every reached leaf that meets the criteria,
         continue into the new children; stamp every reached node with this batch's
         number (the LRU clock, Sec. 6.4). ``normals``: the queries' normals (they place
-        directional nodes and let covered queries skip the infeasible child), or None."""
+        directional nodes and let covered queries skip the infeasible child), or None.
+
+        ``group`` > 1: up to ``group`` consecutive queries in one cell of a grid of twice
+        their median radius walk as one, their boxes' union with their common normal (none
+        where their normals differ; :func:`_group_starts`). The queries of a batch come in
+        pixel order, so a group's boxes overlap and the walk visits up to ``group`` times
+        fewer (query, node) pairs for a slightly larger refined region; what a query finds
+        does not depend on the tree, only the work it takes does."""
         self._spatial_only("refine")
         self.now += 1
         x = np.asarray(x, np.float64).reshape(-1, 3)
         r = np.broadcast_to(np.asarray(radius, np.float64), (len(x),))
         qlo, qhi = x - r[:, None], x + r[:, None]
-        q = np.arange(len(x))
-        node = np.zeros(len(x), np.int64)
-        inside = np.flatnonzero(np.all((qhi >= self.lo[0]) & (qlo <= self.hi[0]), axis=1))
-        q, node = q[inside], node[inside]
         if normals is not None:
             normals = np.asarray(normals, np.float64).reshape(-1, 3)
+        group = max(1, int(group))
+        if group > 1 and len(x) > 1:
+            starts = _group_starts(x, 2.0 * float(np.median(r)), group)
+            qlo = np.minimum.reduceat(qlo, starts, axis=0)
+            qhi = np.maximum.reduceat(qhi, starts, axis=0)
+            if normals is not None:
+                first = np.repeat(normals[starts], np.diff(np.append(starts, len(x))), axis=0)
+                near = np.einsum("ij,ij->i", normals, first) >= GROUP_NORMAL_COS
+                normals = np.where(np.logical_and.reduceat(near, starts)[:, None],
+                                   normals[starts], np.nan)
+        q = np.arange(len(qlo))
+        node = np.zeros(len(qlo), np.int64)
+        inside = np.flatnonzero(np.all((qhi >= self.lo[0]) & (qlo <= self.hi[0]), axis=1))
+        q, node = q[inside], node[inside]
         try:
-            self._refine_pairs(q, node, qlo.ravel(), qhi.ravel(), normals)
+            self._refine_pairs(q, node, np.ascontiguousarray(qlo).ravel(),
+                               np.ascontiguousarray(qhi).ravel(), normals)
         finally:
             self._thaw()
         self.peak_bytes = max(self.peak_bytes, self.nbytes)
