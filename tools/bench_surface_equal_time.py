@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Benchmark: the ray map against the photon map at equal time, on a floor caustic with no
-edge and on a caustic whose peak lies on a table's free edge.
+edge, on a caustic whose peak lies on a table's free edge, and on a narrow plank.
 
 Both surface density estimators run progressive passes (fresh rays each pass, radii
 shrinking by the progressive photon mapping rule) under the same time budget
@@ -9,8 +9,11 @@ comparison is at equal time by construction. Scenes: ``floor`` is the glass ball
 ``builtin:caustic_sphere`` over its open floor, seen from close by (the caustic spans tens
 of pixels); ``edge`` is the same ball lit from straight above, over a table top at its
 focus whose free edge runs under the ball's centre, so the caustic's peak straddles the
-edge (half on the table top, the rest falls past it to the floor). 160x120, 4 spp
-(stratified), so that a pixel's own sampling adds little to the error.
+edge (half on the table top, the rest falls past it to the floor); ``strip`` is the same
+ball and light over a plank ``STRIP_WIDTH`` wide at the focus, running under the ball's
+centre, so that every lit point of the plank lies near one of its two free edges (where a
+photon map's disc overhangs the surface). 160x120, 4 spp (stratified), so that a pixel's
+own sampling adds little to the error.
 
 The reference is independent of both estimators: the tests' NumPy light tracer
 (``tests/caustic_tracer.py``: exact sphere, Snell, Fresnel, internal reflections) lands
@@ -21,7 +24,7 @@ no blur, no boundary bias). Compared are the pixels whose view misses the ball
 against the other) is reported beside. Each run is a fresh render in this
 process; the error is relMSE (``clscatter.io.image.relmse``) of the surface caustic (the
 pass's own image, direct light excluded) over those pixels and over the pixels within 3
-of the table edge's image (``edge`` only).
+of the images of the free edges (``edge`` and ``strip``).
 
 Writes bench_out/surface_equal_time/bench.json (and docs/bench/surface_equal_time.json
 unless ``--no-copy``) and prints a markdown table.
@@ -63,6 +66,10 @@ from clscatter.scene.builtin import BUILTIN  # noqa: E402
 OUT = REPO / "bench_out" / "surface_equal_time"
 TABLE_TOP = 0.45         # near the ball's focus; the edge is the line x = 0, z in [-1.5, 1.5]
 TABLE = ([-1.8, TABLE_TOP - 0.06, -1.5], [0.0, TABLE_TOP, 1.5])
+STRIP_WIDTH = 0.12       # the plank: x in [-STRIP_WIDTH / 2, STRIP_WIDTH / 2]
+PLANK = ([-STRIP_WIDTH / 2, TABLE_TOP - 0.06, -1.5], [STRIP_WIDTH / 2, TABLE_TOP, 1.5])
+#: the free edges' x in each scene (lines at y = TABLE_TOP along z)
+EDGES = {"edge": (0.0,), "strip": (-STRIP_WIDTH / 2, STRIP_WIDTH / 2)}
 ALBEDO = 0.55            # builtin:caustic_sphere's floor
 #: close to the caustic, from the table's side of its edge (the edge face turned away)
 CAMERA = {"origin": [-0.3, 1.1, 2.4], "target": [0.0, 0.4, 0.0], "fov": 36.0}
@@ -74,9 +81,12 @@ def scenes(size: tuple[int, int]) -> dict[str, dict]:
     floor.pop("medium", None)
     edge = copy.deepcopy(floor)
     edge["lights"][0]["position"] = [0.0, 3.25, 0.0]
+    strip = copy.deepcopy(edge)
     edge["objects"].append({"shape": "box", "min": TABLE[0], "max": TABLE[1],
                             "material": "floor"})
-    return {"floor": floor, "edge": edge}
+    strip["objects"].append({"shape": "box", "min": PLANK[0], "max": PLANK[1],
+                             "material": "floor"})
+    return {"floor": floor, "edge": edge, "strip": strip}
 
 
 def reference(d: dict, photons: int, chunk: int = 1_000_000) -> tuple[np.ndarray, float]:
@@ -103,12 +113,12 @@ def compared(d: dict) -> np.ndarray:
     return ct.pixels_missing_sphere(cam, ball)
 
 
-def edge_mask(d: dict, shape: tuple[int, int]) -> np.ndarray:
-    """Pixels within 3 of the image of the table's free edge (x = 0, y = TABLE_TOP)."""
+def edge_mask(d: dict, shape: tuple[int, int], edges=(0.0,)) -> np.ndarray:
+    """Pixels within 3 of the images of the free edges (x in ``edges``, y = TABLE_TOP)."""
     c = ct.from_scene_dict(d)[2]
     mask = np.zeros(shape, bool)
-    for z in np.linspace(-1.5, 1.5, 400):
-        at = c.project([0.0, TABLE_TOP, z])
+    for x, z in ((x, z) for x in edges for z in np.linspace(-1.5, 1.5, 400)):
+        at = c.project([x, TABLE_TOP, z])
         if at is None:
             continue
         r0, c0 = int(at[1]), int(at[0])
@@ -134,16 +144,19 @@ def main() -> None:
                     help="the tracer's photons for the reference")
     ap.add_argument("--equal-passes", type=int, default=8,
                     help="passes of the equal-work runs (no budget)")
+    ap.add_argument("--scenes", default="floor,edge,strip",
+                    help="comma-separated scenes to run, of floor, edge, strip")
     ap.add_argument("--no-copy", action="store_true")
     args = ap.parse_args()
     size = tuple(int(x) for x in args.size.split("x"))
     engine = get_engine(None)
     OUT.mkdir(parents=True, exist_ok=True)
     rows = []
-    for name, d in scenes(size).items():
+    wanted = [x.strip() for x in args.scenes.split(",") if x.strip()]
+    for name, d in ((k, v) for k, v in scenes(size).items() if k in wanted):
         ref, noise = reference(d, args.ref_photons)
         keep = compared(d)
-        mask = edge_mask(d, ref.shape[:2]) & keep if name == "edge" else None
+        mask = edge_mask(d, ref.shape[:2], EDGES[name]) & keep if name in EDGES else None
         print(f"{name}: reference noise {noise:.2g}", file=sys.stderr)
         # equal time (each budget), then equal work (--equal-passes passes, no budget)
         runs = [(b, 1024) for b in args.budgets] + [(0.0, args.equal_passes)]
