@@ -103,12 +103,15 @@ def test_extra_coordinates_steer_the_splits_but_stay_out_of_the_boxes():
     assert all(len(np.unique(row)) > 1 for row in plain)
 
 
-def test_build_is_vectorised_and_quick_for_large_sets():
+def test_build_is_vectorised_and_quick_for_large_sets(monkeypatch):
     """200k points in a few kd levels with no per-point Python: the Python and C calls the
-    build makes (counted with ``sys.setprofile``, not timed) grow with the levels, not the
-    points or the nodes (measured 762 calls for 25k points, 943 for 200k points and 37k
-    nodes)."""
+    build makes (counted with ``sys.setprofile``, not timed; all levels on one thread) grow
+    with the levels, not the points or the nodes (measured 762 calls for 25k points, 943
+    for 200k points and 37k nodes)."""
     from call_count import count_calls
+
+    import clscatter.estimators.line_tree as lt
+    monkeypatch.setattr(lt, "PARALLEL_MIN_POINTS", 1 << 40)
 
     def calls(n):
         pts = np.random.default_rng(1).normal(size=(n, 6)).astype(np.float32)
@@ -118,6 +121,27 @@ def test_build_is_vectorised_and_quick_for_large_sets():
     large, t = calls(200_000)
     assert large < 5_000 and large < 1.5 * small, (small, large)
     assert t.levels == 5          # 8^5 * 4 <= 200000 < 8^6 * 4
+
+
+def test_subtrees_on_threads_build_the_same_tree(monkeypatch):
+    """Above PARALLEL_MIN_POINTS the subtrees below kd level PARALLEL_LEVELS are built on
+    threads: the same node boxes and leaf ranges as the build on one thread, and every
+    leaf holds the same points (their order inside a leaf may differ)."""
+    import clscatter.estimators.line_tree as lt
+    rng = np.random.default_rng(7)
+    pts = rng.normal(size=(20_000, 6)).astype(np.float32)
+    extra = rng.uniform(-1, 1, (20_000, 3)).astype(np.float32)
+    trees = {}
+    for least in (1 << 40, 1000):
+        monkeypatch.setattr(lt, "PARALLEL_MIN_POINTS", least)
+        trees[least] = build_linetree(pts, 4, extra)
+    one, many = trees[1 << 40], trees[1000]
+    assert many.levels == one.levels == 4          # 8^4 * 4 <= 20000 < 8^5 * 4
+    assert np.array_equal(one.nodes, many.nodes)
+    assert np.array_equal(one.leaf_ranges, many.leaf_ranges)
+    for a, b in one.leaf_ranges:
+        assert set(one.order[a:b]) == set(many.order[a:b])
+    assert np.array_equal(np.sort(many.order), np.arange(len(pts)))
 
 
 # --------------------------------------------------------------------------------------

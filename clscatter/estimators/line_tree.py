@@ -58,6 +58,7 @@ The tree (:func:`build_linetree`, paper section 4.3)
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -134,12 +135,49 @@ def _ranges(n: int, parts: int) -> np.ndarray:
     return (np.arange(parts, dtype=np.int64) * n) // parts
 
 
+#: kd levels split over all points at once before the nodes of the level below are built
+#: apart, each on a thread of its own (NumPy's sorts and gathers release the GIL); a fixed
+#: number, so the tree is the same on every machine
+PARALLEL_LEVELS = 3
+#: points from which the subtrees are built on threads
+PARALLEL_MIN_POINTS = 1 << 17
+
+
+def _kd_levels(cur: np.ndarray, order: np.ndarray, n: int, node: int, k_from: int,
+               k_to: int, offset: int) -> tuple[np.ndarray, np.ndarray]:
+    """Split kd levels ``k_from .. k_to - 1`` of the points ``cur`` (coordinates as rows,
+    (width, m)), which are kd node ``node`` of level ``k_from``: the points
+    ``[offset, offset + m)`` of all ``n``. Every node of a level is split at its median
+    at once; returns the points and their input indices (``order``) in the new order."""
+    m = cur.shape[1]
+    ar = np.arange(m, dtype=np.int64)
+    for k in range(k_from, k_to):
+        parts = 1 << (k - k_from)
+        j = np.arange(parts)
+        starts = ((node * parts + j) * n) // (1 << k) - offset       # this slice's nodes
+        lo = np.minimum.reduceat(cur, starts, axis=1).astype(np.float64)   # (width, parts)
+        ext = np.maximum.reduceat(cur, starts, axis=1).astype(np.float64) - lo
+        axis = np.argmax(ext, axis=0)                                # split axis per node
+        owner = np.repeat(j, np.diff(np.append(starts, m)))
+        span = ext[axis, j]
+        inv = 0.5 / np.where(span > 0, span, 1.0)
+        val = cur.ravel()[axis[owner] * m + ar]
+        # node index + position inside the node in [0, 0.5]: one sortable key; the sort
+        # moves points only within their node, so later gathers stay cache-local
+        perm = np.argsort(owner + np.clip((val - lo[axis, j][owner]) * inv[owner], 0.0, 0.5))
+        cur = np.take(cur, perm, axis=1)
+        order = np.take(order, perm)
+    return cur, order
+
+
 def build_linetree(points, leaf_size: int = 4, split_extra=None) -> LineTree:
     """Balanced median-split kd-tree over ``points`` (N, 6), collapsed to a perfect 8-ary
     tree. ``points`` should be the float32 values the kernel reads: the boxes are computed
     from them exactly, so every stored point lies inside its nodes' boxes.
     ``split_extra`` (N, k): more coordinates a node may be split on (the axis of largest
-    extent among all 6 + k), which do not enter the boxes."""
+    extent among all 6 + k), which do not enter the boxes. From
+    :data:`PARALLEL_MIN_POINTS` points on, the subtrees below kd level
+    :data:`PARALLEL_LEVELS` are built on threads."""
     pts = np.ascontiguousarray(points, np.float32)
     n = len(pts)
     if n == 0:
@@ -151,24 +189,19 @@ def build_linetree(points, leaf_size: int = 4, split_extra=None) -> LineTree:
     cur = np.ascontiguousarray(np.concatenate(cols, axis=1).T)
     levels = tree_levels(n, leaf_size)
     order = np.arange(n, dtype=np.int64)
-    ar = np.arange(n, dtype=np.int64)
     # ---- kd levels: split every node of a level at its median, all at once ----
-    for k in range(3 * levels):
-        parts = 2 ** k
-        starts = _ranges(n, parts)
-        lo = np.minimum.reduceat(cur, starts, axis=1).astype(np.float64)   # (width, parts)
-        ext = np.maximum.reduceat(cur, starts, axis=1).astype(np.float64) - lo
-        j = np.arange(parts)
-        axis = np.argmax(ext, axis=0)                                # split axis per node
-        node = np.repeat(j, np.diff(np.append(starts, n)))
-        span = ext[axis, j]
-        inv = 0.5 / np.where(span > 0, span, 1.0)
-        val = cur.ravel()[axis[node] * n + ar]
-        # node index + position inside the node in [0, 0.5]: one sortable key; the sort
-        # moves points only within their node, so later gathers stay cache-local
-        perm = np.argsort(node + np.clip((val - lo[axis, j][node]) * inv[node], 0.0, 0.5))
-        cur = np.take(cur, perm, axis=1)
-        order = np.take(order, perm)
+    top = 3 * levels if n < PARALLEL_MIN_POINTS else min(3 * levels, PARALLEL_LEVELS)
+    cur, order = _kd_levels(cur, order, n, 0, 0, top, 0)
+    if top < 3 * levels:                 # the subtrees below, one thread each
+        from concurrent.futures import ThreadPoolExecutor
+        parts = 1 << top
+        bounds = _ranges(n, parts).tolist() + [n]
+        def subtree(c: int) -> None:
+            a, b = bounds[c], bounds[c + 1]
+            cur[:, a:b], order[a:b] = _kd_levels(cur[:, a:b], order[a:b], n, c, top,
+                                                 3 * levels, a)
+        with ThreadPoolExecutor(min(parts, os.cpu_count() or 1)) as pool:
+            list(pool.map(subtree, range(parts)))
     # ---- 8-ary levels: boxes of every node, breadth-first ----
     sorted_pts = cur[:6]
     total = (8 ** (levels + 1) - 1) // 7
