@@ -1,11 +1,13 @@
 """Every method under a second OpenCL implementation: Oclgrind, a strict simulator that
 also reports invalid memory accesses and data races. Each method renders a tiny built-in
-scene (12 x 9, 1 spp) with the simulator as its only device; any report, or a failed or
-non-finite render, fails. The set-up installs Oclgrind (Debian's ``oclgrind``); without it
+scene (12 x 9, 1 spp; epipolar with a 64-texel shadow map and 32 light rays a slice, so
+that its sweep still runs) with the simulator as its only device; any report, or a failed
+or non-finite render, fails. The set-up installs Oclgrind (Debian's ``oclgrind``); without it
 these tests are skipped, except where the set-up installs it (under CI, or as root with
 apt-get): there its absence fails them."""
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -19,7 +21,8 @@ from setup_installs import setup_installs_here
 TINY = ["camera.resolution=[12,9]", "camera.spp=1", "render.lsg.light_rays=2000",
         "render.vpm.photons=5000", "render.raymap.photons=2000", "render.photonmap.photons=2000",
         "render.voxel.resolution=8", "render.voxel.photons=256",
-        "render.voxel.outer_resolution=8"]
+        "render.voxel.outer_resolution=8", "render.epipolar.shadow_map=64",
+        "render.epipolar.light_rays=32"]
 METHODS = ["raymarch", "epipolar", "lsg", "vpm", "raymap", "photonmap", "voxel"]
 # what Oclgrind prints when it finds a defect
 REPORTS = ("Invalid read", "Invalid write", "data race", "Uninitialized", "error:",
@@ -43,7 +46,8 @@ def oclgrind():
 def test_method_runs_clean_under_oclgrind(method, tmp_path):
     out = tmp_path / "img.npy"
     args = ["oclgrind", "--data-races", sys.executable, "-m", "clscatter", "render",
-            scene_for(method), "--method", method, "--no-progress", "-o", str(out)]
+            scene_for(method), "--method", method, "--no-progress", "-o", str(out),
+            "--stats", str(tmp_path / "stats.json")]
     for kv in TINY:
         args += ["--set", kv]
     env = {**os.environ, "CLSCATTER_CACHE_DIR": str(tmp_path / "cache")}
@@ -58,3 +62,7 @@ def test_method_runs_clean_under_oclgrind(method, tmp_path):
     assert not found, "\n".join(found[:20])
     img = np.load(out)
     assert img.shape == (9, 12, 3) and np.isfinite(img).all()
+    stats = json.loads((tmp_path / "stats.json").read_text())
+    assert stats["method"].split("+")[0] == method      # (raymap, photonmap: + the medium)
+    if method == "epipolar":         # its own kernels ran: no light fell back to ray marching
+        assert stats["epipolar_fallback"] == [] and stats["svd_terms"] >= 1

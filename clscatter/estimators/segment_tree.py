@@ -173,9 +173,8 @@ def _group_starts(x: np.ndarray, cell: float, group: int) -> np.ndarray:
     if not cell > 0 or not np.isfinite(cell):
         return np.arange(0, n, group)
     key = np.floor(x / cell).astype(np.int64)
-    run0 = np.flatnonzero(np.r_[True, np.any(key[1:] != key[:-1], axis=1)])
-    run = np.cumsum(np.r_[True, np.any(key[1:] != key[:-1], axis=1)]) - 1
-    pos = np.arange(n) - run0[run]
+    new_run = np.r_[True, np.any(key[1:] != key[:-1], axis=1)]
+    pos = np.arange(n) - np.flatnonzero(new_run)[np.cumsum(new_run) - 1]
     return np.flatnonzero(pos % group == 0)
 
 
