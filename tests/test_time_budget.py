@@ -139,6 +139,43 @@ def test_budgeted_lsg_keeps_its_budget_on_a_fake_clock(caustic, monkeypatch):
     assert s["lsg_error_estimate"] is not None and s["lsg_error_estimate"] > 0
 
 
+def test_budgeted_samples_take_turns_where_passes_over_all_would_share(engine, monkeypatch):
+    """caustic_sphere at 48x36, 4 spp, 20,000 rays a pass: without a budget the radius is a
+    small part of a pixel and every pass gathers every sample (G = 1). Under a budget where
+    a pass over every sample fits about 1,300 rays (a fake clock; a gather's cost grows like
+    rays^(5/6) times the view segments it gathers), the radius of such passes would span
+    the samples, so they take turns (G = 4), each pass then tracing more rays."""
+    scene = load_scene(CAUSTIC, ["camera.resolution=[48,36]", "camera.spp=4"])
+    ps = prepare_scene(scene, engine)
+    paths = trace_view_paths(ps, Stats(), False)
+    rays_full = 20_000
+    try:
+        free = Stats()
+        with PassContext(ps, paths, free, False) as ctx:
+            LineSpaceGathering({"light_rays": rays_full, "passes": 8}).render(ctx)
+        assert free.to_dict()["lsg_sample_groups"] == 1
+        clock = FakeClock()
+        real_add = line_gather.Gatherer.add
+
+        def costly_add(self, segs, *a, **kw):
+            share = self.active / max(self.n, 1)
+            clock.now += 10.0 * share * (max(len(segs), 1) / (3.0 * rays_full)) ** (5 / 6)
+            return real_add(self, segs, *a, **kw)
+
+        monkeypatch.setattr(line_gather.Gatherer, "add", costly_add)
+        tight = Stats()
+        with PassContext(ps, paths, tight, False, deadline=clock() + 8.0, clock=clock) as ctx:
+            LineSpaceGathering({"light_rays": rays_full, "passes": 8}).render(ctx)
+        s = tight.to_dict()
+        assert s["lsg_sample_groups"] == 4, s["lsg_auto_radius"]
+        auto = s["lsg_auto_radius"]
+        assert auto["radius"] < 0.5 * auto["footprint"]   # the passes' own radius: smaller
+        assert min(s["lsg_pass_rays"][1:]) > 2000
+    finally:
+        paths.release()
+        ps.release()
+
+
 def test_budget_first_pass_over_budget_gives_a_note(caustic, monkeypatch):
     """A budget smaller than the smallest pass: one pass runs and one note says so, naming
     what to lower; a first pass within 20% of the budget says nothing."""

@@ -49,10 +49,13 @@ PILOT_RESIZE_MAX = 32.0
 #: most passes under an error target (the target or a deadline should end them first; a
 #: target the estimate cannot reach ends here, with a note)
 MAX_PASSES = 1024
-#: camera samples take turns pass by pass only while the automatic radius is at least this
-#: many pixel footprints: a pixel's jittered samples lie about half a footprint apart, so
-#: with a smaller radius they gather mostly different lighting segments, and gathering
-#: one of them a pass would cost as much error as it saves gather time
+#: camera samples take turns pass by pass unless passes over every sample would have an
+#: automatic radius below this many pixel footprints: a pixel's jittered samples lie about
+#: half a footprint apart, so with a smaller radius they gather mostly different lighting
+#: segments, and gathering one of them a pass would cost as much error as it saves gather
+#: time (under a time budget passes of one sample trace more rays, so their radius is
+#: smaller: it is the radius of passes over every sample that tells whether the samples
+#: share their lighting segments)
 SAMPLES_SHARE_RADIUS = 0.5
 
 
@@ -162,7 +165,12 @@ class LineSpaceGathering(Method):
     passes have run, the medium term of a pixel comes from the samples gathered so far
     (edges of objects are antialiased as the passes go on); ``view_samples = 0`` gathers
     every sample in every pass. The error estimate compares whole rounds of G passes (two
-    groups differ by their samples as well as by their rays).
+    groups differ by their samples as well as by their rays). The samples share their
+    lighting segments only where the radius spans them: when passes over every sample
+    would have an automatic radius below half the median pixel footprint of the lit view
+    segments (:data:`SAMPLES_SHARE_RADIUS`; many rays, fine pixels), each sample gathers
+    lighting segments of its own, a pass of one group would lose as much in noise as it
+    saves in gather time, and every pass gathers every sample (G = 1).
 
     *Inside glass* (a dielectric's ``interior_sigma_s``, ``interior_sigma_a``,
     ``interior_g``: a homogeneous medium inside the closed object). Every straight piece of
@@ -470,16 +478,24 @@ class LineSpaceGathering(Method):
         median = float(np.median(gat.valid_per_view[lit]))
         gat.reset()
         f = float(np.median(foot[lit]))
-        # a pass gathers one group of each pixel's camera samples (_sample_groups) while
-        # the radius spans half a pixel's footprint; below that, G = 1
-        for groups in dict.fromkeys((self._sample_groups(ps, prog)[0], 1)):
+        def option(groups: int) -> tuple:
+            """(measured, rays, count, radius) of passes gathering 1 / groups of the samples"""
             measured = (pilot, traced + gathered * stride / groups)
+            n = n_rays
             if prog is not None and prog.budgeted:
-                n_rays = self._sized_rays(pilot, measured[1], prog, limit=PILOT_RESIZE_MAX)
-            count = median * n_rays / pilot
-            r = max(r0 * self.params["auto_count"] / count, f / 16)
-            if r >= SAMPLES_SHARE_RADIUS * f:
-                break
+                n = self._sized_rays(pilot, measured[1], prog, limit=PILOT_RESIZE_MAX)
+            count = median * n / pilot
+            return measured, n, count, max(r0 * self.params["auto_count"] / count, f / 16)
+
+        # a pass gathers one group of each pixel's camera samples (_sample_groups) unless a
+        # pass over every sample would have a radius below half a pixel's footprint: then
+        # the samples gather lighting segments of their own and G = 1
+        groups = self._sample_groups(ps, prog)[0]
+        measured, n_rays, count, r = option(1)
+        if groups > 1 and r >= SAMPLES_SHARE_RADIUS * f:
+            measured, n_rays, count, r = option(groups)
+        else:
+            groups = 1
         self._rays = n_rays
         self._groups_cap = groups
         return AutoRadius(float(r), float(r0), pilot, count, f, int(len(lit))), measured
