@@ -110,8 +110,8 @@ def test_build_is_vectorised_and_quick_for_large_sets(monkeypatch):
     for 200k points and 37k nodes)."""
     from call_count import count_calls
 
-    import clscatter.estimators.line_tree as lt
-    monkeypatch.setattr(lt, "PARALLEL_MIN_POINTS", 1 << 40)
+    import clscatter.estimators.median_split as ms
+    monkeypatch.setattr(ms, "PARALLEL_MIN_POINTS", 1 << 40)
 
     def calls(n):
         pts = np.random.default_rng(1).normal(size=(n, 6)).astype(np.float32)
@@ -127,13 +127,13 @@ def test_subtrees_on_threads_build_the_same_tree(monkeypatch):
     """Above PARALLEL_MIN_POINTS the subtrees below kd level PARALLEL_LEVELS are built on
     threads: the same node boxes and leaf ranges as the build on one thread, and every
     leaf holds the same points (their order inside a leaf may differ)."""
-    import clscatter.estimators.line_tree as lt
+    import clscatter.estimators.median_split as ms
     rng = np.random.default_rng(7)
     pts = rng.normal(size=(20_000, 6)).astype(np.float32)
     extra = rng.uniform(-1, 1, (20_000, 3)).astype(np.float32)
     trees = {}
     for least in (1 << 40, 1000):
-        monkeypatch.setattr(lt, "PARALLEL_MIN_POINTS", least)
+        monkeypatch.setattr(ms, "PARALLEL_MIN_POINTS", least)
         trees[least] = build_linetree(pts, 4, extra)
     one, many = trees[1 << 40], trees[1000]
     assert many.levels == one.levels == 4          # 8^4 * 4 <= 20000 < 8^5 * 4

@@ -263,6 +263,27 @@ def test_balanced_tree_invariants_and_rm_node_queries(engine):
         assert set(ei[ed < ed[-1] - 1e-5]) <= set(idx[q]) if len(ei) else (idx[q] == -1).all()
 
 
+def test_balanced_tree_on_threads_is_the_same_tree(monkeypatch):
+    """The balanced point tree shares the line tree's median splits (median_split): built
+    with its subtrees on threads it has the same boxes, split axes and leaf point sets as
+    built on one thread."""
+    import clscatter.estimators.median_split as ms
+    p = np.random.default_rng(26).uniform(-0.5, 0.5, (20_000, 3)).astype(np.float32)
+    trees = {}
+    for least in (1 << 40, 1000):
+        monkeypatch.setattr(ms, "PARALLEL_MIN_POINTS", least)
+        trees[least] = SegmentTree.balanced(p, 8)
+    one, many = trees[1 << 40], trees[1000]
+    assert one.levels == many.levels == 11
+    n = one.n
+    assert np.array_equal(one.lo[:n], many.lo[:n]) and np.array_equal(one.hi[:n], many.hi[:n])
+    assert np.array_equal(one.axis[:n], many.axis[:n])
+    r = leaf_ranges(len(p), one.levels)
+    for a, b in zip(r[:-1], r[1:]):
+        assert set(one.order[a:b]) == set(many.order[a:b])
+    many.check()
+
+
 @pytest.mark.parametrize("k", [1, 24, 300])
 def test_kth_end_distance_matches_brute_force(engine, k):
     """rm_kth_end (the balanced point tree's k-nearest query over the segments' end points)

@@ -50,18 +50,18 @@ The tree (:func:`build_linetree`, paper section 4.3)
     its 12-float 6-D box; leaves also get an index range into the points, which are
     sorted by leaf.
 
-    Build cost: one ``argsort`` of all N points per kd level (node index + the value on
-    the node's split axis, scaled into [0, 1), as one float64 key, so every node of a
-    level is split at once); ``np.minimum.reduceat`` for the boxes, over coordinates
-    stored as rows so that each node's run is contiguous. No Python loop runs over
-    points or nodes.
+    Build cost: the kd levels are :func:`~.median_split.median_levels` (one ``argsort``
+    of all N points per kd level, subtrees on threads for large N), shared with the
+    balanced point tree; ``np.minimum.reduceat`` for the 8-ary boxes. No Python loop runs
+    over points or nodes.
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 import numpy as np
+
+from .median_split import level_starts, median_levels
 
 # ``LineNode`` in cl_kernels/lsg.h: 12 floats of 6-D bounds
 LINE_NODE = np.dtype([("lo", np.float32, 6), ("hi", np.float32, 6)], align=True)
@@ -130,54 +130,12 @@ def tree_levels(n: int, leaf_size: int) -> int:
     return levels
 
 
-def _ranges(n: int, parts: int) -> np.ndarray:
-    """Start indices ``j n // parts`` (int64), j = 0..parts-1."""
-    return (np.arange(parts, dtype=np.int64) * n) // parts
-
-
-#: kd levels split over all points at once before the nodes of the level below are built
-#: apart, each on a thread of its own (NumPy's sorts and gathers release the GIL); a fixed
-#: number, so the tree is the same on every machine
-PARALLEL_LEVELS = 3
-#: points from which the subtrees are built on threads
-PARALLEL_MIN_POINTS = 1 << 17
-
-
-def _kd_levels(cur: np.ndarray, order: np.ndarray, n: int, node: int, k_from: int,
-               k_to: int, offset: int) -> tuple[np.ndarray, np.ndarray]:
-    """Split kd levels ``k_from .. k_to - 1`` of the points ``cur`` (coordinates as rows,
-    (width, m)), which are kd node ``node`` of level ``k_from``: the points
-    ``[offset, offset + m)`` of all ``n``. Every node of a level is split at its median
-    at once; returns the points and their input indices (``order``) in the new order."""
-    m = cur.shape[1]
-    ar = np.arange(m, dtype=np.int64)
-    for k in range(k_from, k_to):
-        parts = 1 << (k - k_from)
-        j = np.arange(parts)
-        starts = ((node * parts + j) * n) // (1 << k) - offset       # this slice's nodes
-        lo = np.minimum.reduceat(cur, starts, axis=1).astype(np.float64)   # (width, parts)
-        ext = np.maximum.reduceat(cur, starts, axis=1).astype(np.float64) - lo
-        axis = np.argmax(ext, axis=0)                                # split axis per node
-        owner = np.repeat(j, np.diff(np.append(starts, m)))
-        span = ext[axis, j]
-        inv = 0.5 / np.where(span > 0, span, 1.0)
-        val = cur.ravel()[axis[owner] * m + ar]
-        # node index + position inside the node in [0, 0.5]: one sortable key; the sort
-        # moves points only within their node, so later gathers stay cache-local
-        perm = np.argsort(owner + np.clip((val - lo[axis, j][owner]) * inv[owner], 0.0, 0.5))
-        cur = np.take(cur, perm, axis=1)
-        order = np.take(order, perm)
-    return cur, order
-
-
 def build_linetree(points, leaf_size: int = 4, split_extra=None) -> LineTree:
     """Balanced median-split kd-tree over ``points`` (N, 6), collapsed to a perfect 8-ary
     tree. ``points`` should be the float32 values the kernel reads: the boxes are computed
     from them exactly, so every stored point lies inside its nodes' boxes.
     ``split_extra`` (N, k): more coordinates a node may be split on (the axis of largest
-    extent among all 6 + k), which do not enter the boxes. From
-    :data:`PARALLEL_MIN_POINTS` points on, the subtrees below kd level
-    :data:`PARALLEL_LEVELS` are built on threads."""
+    extent among all 6 + k), which do not enter the boxes."""
     pts = np.ascontiguousarray(points, np.float32)
     n = len(pts)
     if n == 0:
@@ -185,34 +143,19 @@ def build_linetree(points, leaf_size: int = 4, split_extra=None) -> LineTree:
         nodes["lo"], nodes["hi"] = 1e30, -1e30     # empty box: always culled
         return LineTree(nodes, np.zeros((1, 2), np.int32), np.zeros(0, np.int64), 0)
     cols = [pts] if split_extra is None else [pts, np.asarray(split_extra, np.float32).reshape(n, -1)]
-    # coordinates as rows (width, n): per-node reductions and moves run along memory
-    cur = np.ascontiguousarray(np.concatenate(cols, axis=1).T)
     levels = tree_levels(n, leaf_size)
-    order = np.arange(n, dtype=np.int64)
-    # ---- kd levels: split every node of a level at its median, all at once ----
-    top = 3 * levels if n < PARALLEL_MIN_POINTS else min(3 * levels, PARALLEL_LEVELS)
-    cur, order = _kd_levels(cur, order, n, 0, 0, top, 0)
-    if top < 3 * levels:                 # the subtrees below, one thread each
-        from concurrent.futures import ThreadPoolExecutor
-        parts = 1 << top
-        bounds = _ranges(n, parts).tolist() + [n]
-        def subtree(c: int) -> None:
-            a, b = bounds[c], bounds[c + 1]
-            cur[:, a:b], order[a:b] = _kd_levels(cur[:, a:b], order[a:b], n, c, top,
-                                                 3 * levels, a)
-        with ThreadPoolExecutor(min(parts, os.cpu_count() or 1)) as pool:
-            list(pool.map(subtree, range(parts)))
+    # ---- kd levels: every node of a level split at its median at once ----
+    cur, order, _ = median_levels(np.concatenate(cols, axis=1).T, 3 * levels)
     # ---- 8-ary levels: boxes of every node, breadth-first ----
     sorted_pts = cur[:6]
     total = (8 ** (levels + 1) - 1) // 7
     nodes = np.zeros(total, LINE_NODE)
     for lvl in range(levels + 1):
-        parts = 8 ** lvl
-        starts = _ranges(n, parts)
-        off = (parts - 1) // 7
-        nodes["lo"][off:off + parts] = np.minimum.reduceat(sorted_pts, starts, axis=1).T
-        nodes["hi"][off:off + parts] = np.maximum.reduceat(sorted_pts, starts, axis=1).T
-    starts = _ranges(n, 8 ** levels)
+        starts = level_starts(n, 3 * lvl)
+        off = (8 ** lvl - 1) // 7
+        nodes["lo"][off:off + len(starts)] = np.minimum.reduceat(sorted_pts, starts, axis=1).T
+        nodes["hi"][off:off + len(starts)] = np.maximum.reduceat(sorted_pts, starts, axis=1).T
+    starts = level_starts(n, 3 * levels)
     ranges = np.stack([starts, np.append(starts[1:], n)], axis=1).astype(np.int32)
     return LineTree(nodes, ranges, order, levels)
 
@@ -231,9 +174,8 @@ def node_boxes(tree: LineTree, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     if n == 0:
         return out
     for lvl in range(tree.levels + 1):
-        parts = 8 ** lvl
-        starts = _ranges(n, parts)
-        off = (parts - 1) // 7
+        starts = level_starts(n, 3 * lvl)
+        off = (8 ** lvl - 1) // 7
         nonempty = np.diff(np.append(starts, n)) > 0
         rows = off + np.flatnonzero(nonempty)
         s = starts[nonempty]

@@ -49,6 +49,7 @@ import numpy as np
 
 from ..device.structs import register_struct
 from ..geometry import slab_interval
+from .median_split import level_starts, median_levels
 
 # node kinds (RM_LEAF ... in raymap.h)
 LEAF, SPATIAL, DIRECTIONAL = 0, 1, 2
@@ -106,47 +107,13 @@ def clip_interval(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray
 def leaf_ranges(n: int, levels: int) -> np.ndarray:
     """Start of every leaf's range of a balanced tree of ``n`` points, plus n: leaf j holds
     sorted points [r[j], r[j + 1])."""
-    j = np.arange((1 << levels) + 1, dtype=np.int64)
-    return (j * n) >> levels
+    return np.append(level_starts(n, levels), n)
 
 
 def balanced_levels(n: int, leaf_size: int) -> int:
     """Depth of the leaves of a balanced tree of ``n`` points: the largest with at least
     ``leaf_size`` points per leaf (0: the root alone)."""
     return max(0, math.floor(math.log2(max(n / max(1, int(leaf_size)), 1.0))))
-
-
-def _median_order(pos: list[np.ndarray], levels: int) -> tuple[np.ndarray, list[np.ndarray]]:
-    """The balanced build's sort: per level, every node's points ordered along the widest
-    axis of their bounds (one float64 argsort per level, key = node index + coordinate
-    scaled into [0, 1) within the node; no Python loop over nodes or points). ``pos``: the
-    points' three coordinate columns, permuted in place of the list. Returns the order and
-    each level's split axes."""
-    n = len(pos[0])
-    order = np.arange(n, dtype=np.int32 if n < 2 ** 31 else np.int64)
-    axes = []
-    for level in range(levels):
-        bounds = leaf_ranges(n, level)
-        starts, sizes = bounds[:-1], np.diff(bounds)
-        lo = np.stack([np.minimum.reduceat(p, starts) for p in pos], axis=1)
-        ext = np.stack([np.maximum.reduceat(p, starts) for p in pos], axis=1) - lo
-        axis = np.argmax(ext, axis=1).astype(np.int8)
-        axes.append(axis)
-        nodes = np.arange(len(starts))
-        lo_ax = lo[nodes, axis].astype(np.float64)
-        inv = 1.0 / (np.maximum(ext[nodes, axis].astype(np.float64), 1e-30) * (1 + 1e-6))
-        ax = np.repeat(axis, sizes)
-        key = np.where(ax == 0, pos[0], np.where(ax == 1, pos[1], pos[2])).astype(np.float64)
-        del ax
-        key -= np.repeat(lo_ax, sizes)
-        key *= np.repeat(inv, sizes)
-        key += np.repeat(nodes.astype(np.float64), sizes)
-        perm = np.argsort(key)
-        del key
-        pos[:] = [p[perm] for p in pos]
-        order = order[perm]
-        del perm
-    return order, axes
 
 
 def _level_boxes(pos: np.ndarray, levels: int) -> tuple[np.ndarray, np.ndarray]:
@@ -233,19 +200,20 @@ class SegmentTree:
         """A balanced tree over ``points`` (N, 3), kept in their float type (the photon
         maps' float32 positions: no float64 copy). ``levels`` is the largest with at least
         ``leaf_size`` points per leaf; no points make one empty root (box +EMPTY..-EMPTY,
-        farther than any query). Working set while sorting: the coordinate columns twice,
-        the float64 sort key and the permutation (about 40 bytes per point); kept: the
-        node arrays and the references."""
+        farther than any query). The levels are :func:`~.median_split.median_levels`, as
+        the line tree's. Working set while sorting: the coordinate rows twice, the float64
+        sort key and the permutation (about 40 bytes per point); kept: the node arrays and
+        the references."""
         pts = np.asarray(points)
         if pts.dtype not in (np.float32, np.float64):
             pts = pts.astype(np.float64)
         pts = pts.reshape(-1, 3)
         n, leaf_size = len(pts), max(1, int(leaf_size))
         levels = balanced_levels(n, leaf_size)
-        cols = [np.ascontiguousarray(pts[:, k]) for k in range(3)]
-        order, axes = _median_order(cols, levels)
-        box_lo, box_hi = _level_boxes(np.stack(cols, axis=1), levels)
-        del cols
+        rows, order, axes = median_levels(pts.T, levels,
+                                          np.int32 if n < 2 ** 31 else np.int64)
+        box_lo, box_hi = _level_boxes(np.ascontiguousarray(rows.T), levels)
+        del rows
         tree = cls.__new__(cls)
         tree.a = tree.b = pts
         tree.dirs = None
