@@ -468,32 +468,36 @@ class LineSpaceGathering(Method):
             if len(lit) >= min(64, max(1, len(views) // 4)) or len(segs) == 0:
                 break
             r0 *= 2.0
-        if len(lit) == 0:                       # no light reaches any view segment
-            gat.reset()
-            groups = self._sample_groups(ps, prog)[0]
+        def sized(groups: int) -> tuple[tuple[int, float], int]:
+            """(what the pilot measured for a pass over 1 / groups of the samples, the rays
+            such a pass traces: under a deadline, as many as fit)"""
             measured = (pilot, traced + gathered * stride / groups)
             if prog is not None and prog.budgeted:
-                self._rays = self._sized_rays(pilot, measured[1], prog, limit=PILOT_RESIZE_MAX)
+                return measured, self._sized_rays(pilot, measured[1], prog, limit=PILOT_RESIZE_MAX)
+            return measured, n_rays
+
+        groups = self._sample_groups(ps, prog)[0]
+        if len(lit) == 0:                       # no light reaches any view segment
+            gat.reset()
+            measured, self._rays = sized(groups)
             return AutoRadius(r0, r0, pilot, 0.0, float(np.median(foot)), 0), measured
         median = float(np.median(gat.valid_per_view[lit]))
         gat.reset()
         f = float(np.median(foot[lit]))
-        def option(groups: int) -> tuple:
-            """(measured, rays, count, radius) of passes gathering 1 / groups of the samples"""
-            measured = (pilot, traced + gathered * stride / groups)
-            n = n_rays
-            if prog is not None and prog.budgeted:
-                n = self._sized_rays(pilot, measured[1], prog, limit=PILOT_RESIZE_MAX)
+
+        def radius(n: int) -> tuple[float, float]:
+            """(pairs a lit view segment gathers at r0 with n rays, the radius for n rays)"""
             count = median * n / pilot
-            return measured, n, count, max(r0 * self.params["auto_count"] / count, f / 16)
+            return count, max(r0 * self.params["auto_count"] / count, f / 16)
 
         # a pass gathers one group of each pixel's camera samples (_sample_groups) unless a
         # pass over every sample would have a radius below half a pixel's footprint: then
         # the samples gather lighting segments of their own and G = 1
-        groups = self._sample_groups(ps, prog)[0]
-        measured, n_rays, count, r = option(1)
+        measured, n_rays = sized(1)
+        count, r = radius(n_rays)
         if groups > 1 and r >= SAMPLES_SHARE_RADIUS * f:
-            measured, n_rays, count, r = option(groups)
+            measured, n_rays = sized(groups)
+            count, r = radius(n_rays)
         else:
             groups = 1
         self._rays = n_rays
