@@ -1,7 +1,8 @@
 """Every method under a second OpenCL implementation: Oclgrind, a strict simulator that
 also reports invalid memory accesses and data races. Each method renders a tiny built-in
 scene (12 x 9, 1 spp; epipolar with a 64-texel shadow map and 32 light rays a slice, so
-that its sweep still runs) with the simulator as its only device; any report, or a failed
+that its sweep still runs; the surface estimators in two passes, so that the second's
+splat runs) with the simulator as its only device; any report, or a failed
 or non-finite render, fails. The set-up installs Oclgrind (Debian's ``oclgrind``); without it
 these tests are skipped, except where the set-up installs it (under CI, or as root with
 apt-get): there its absence fails them."""
@@ -20,6 +21,7 @@ from setup_installs import setup_installs_here
 
 TINY = ["camera.resolution=[12,9]", "camera.spp=1", "render.lsg.light_rays=2000",
         "render.vpm.photons=5000", "render.raymap.photons=2000", "render.photonmap.photons=2000",
+        "render.raymap.passes=2", "render.photonmap.passes=2",
         "render.voxel.resolution=8", "render.voxel.photons=256",
         "render.voxel.outer_resolution=8", "render.epipolar.shadow_map=64",
         "render.epipolar.light_rays=32"]
@@ -64,5 +66,7 @@ def test_method_runs_clean_under_oclgrind(method, tmp_path):
     assert img.shape == (9, 12, 3) and np.isfinite(img).all()
     stats = json.loads((tmp_path / "stats.json").read_text())
     assert stats["method"].split("+")[0] == method      # (raymap, photonmap: + the medium)
+    if method in ("raymap", "photonmap"):         # the K-nearest pass and a splatted one
+        assert stats[f"{method}_passes"] == 2
     if method == "epipolar":         # its own kernels ran: no light fell back to ray marching
         assert stats["epipolar_fallback"] == [] and stats["svd_terms"] >= 1

@@ -33,7 +33,9 @@ Beside the equal-time runs, both run ``--equal-passes`` passes with no budget (e
 the estimators' own accuracy), with the seconds per pass of each stage (the lighting
 rays; the diffuse hits and the pieces' bookkeeping; ``build``: the tree's root or the photons' balanced
 tree; ``radius``: how far the ray map's lazy tree refines in the first pass; ``refine``: the
-lazy refinement on the host; ``estimate``: the queries on the device).
+lazy refinement on the host; ``estimate``: the first pass's K-nearest queries on the device
+and every pass's weighing of the hits; ``splat``: the later passes' fixed-radius estimates
+from the segments' side, with the hits' tree built once).
 
     .venv/bin/python tools/bench_surface_equal_time.py [--budgets 4 8 16] [--size 160x120]
 """
@@ -169,7 +171,7 @@ def main() -> None:
                        "stage_seconds": {"light_paths": stages.get("light_paths", 0.0),
                                          **{k: stages.get(f"{method}_{k}", 0.0) for k in
                                             ("trace", "build", "radius", "refine",
-                                             "estimate")}},
+                                             "estimate", "splat")}},
                        "seconds": st["stages"].get(f"{method}_estimate", 0.0),
                        "passes": st.get(f"{method}_passes"),
                        "relmse": relmse(img[keep], ref[keep]), "reference_noise": noise,
@@ -197,14 +199,15 @@ def main() -> None:
               f"{r['pass_seconds_total']:.2f} | {r['relmse']:.2g} | {edge} | "
               f"{r['reference_noise']:.1g} |")
     print("\n| scene | method | seconds per pass: lighting rays | diffuse hits and pieces | "
-          "build | radius | refine | queries |")
-    print("|---|---|---|---|---|---|---|---|")
+          "build | radius | refine | queries | splats |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         if r["budget_seconds"] == 0:
             per = {k: v / max(r["passes"] or 1, 1) for k, v in r["stage_seconds"].items()}
             print(f"| {r['scene']} | {r['method']} | {per['light_paths']:.3f} | "
                   f"{per['trace']:.3f} | {per['build']:.3f} | "
-                  f"{per['radius']:.3f} | {per['refine']:.3f} | {per['estimate']:.3f} |")
+                  f"{per['radius']:.3f} | {per['refine']:.3f} | {per['estimate']:.3f} | "
+                  f"{per.get('splat', 0.0):.3f} |")
 
 
 if __name__ == "__main__":

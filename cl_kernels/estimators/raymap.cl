@@ -8,6 +8,8 @@
  *                  host removes repeats)
  * rm_kth_end       the K-th nearest ray end point of every query (the reach of the lazy
  *                  refinement, ray_density.lazy_radius), over a balanced point tree
+ * rm_splat         fixed-radius estimates the other way round: every segment adds its
+ *                  weighted flux to the hits whose domain it qualifies for (below)
  * rm_density       irradiance estimates on surfaces (Havran et al. 2005, eq. 1):
  *                  E(x) = sum_i w(t_i) Phi_i / (pi R^2)
  *                  over the K nearest incoming rays (ray map: RM_HEMIDISC, weights from the
@@ -23,6 +25,7 @@
 #include "common.h"
 #include "raymap.h"
 #include "point_tree.h"
+#include "fixed_sum.h"
 
 /* this work-item's heap (raymap.h, RM_HEAP): scratch_d/x hold RM_K entries per work-item
  * when RM_K > 256 and are unused (1 element) otherwise; a private hx also holds the table
@@ -241,4 +244,92 @@ __kernel void rm_weigh_hits(__global const DiffuseHit *hits, __global const floa
     float4 v = hits[i].weight * e[i];
     v.w = 0.0f;
     out[i] = v;
+}
+
+/* ---- Fixed-radius estimates by splatting (clscatter/estimators/disc_splat.py) ----
+ *
+ * With a fixed radius R_q per hit, eq. (1) is a sum over the segments that qualify for
+ * hit q (rm_qualify: incoming, within the domain of radius R_q, metric <= R_q), so it can
+ * be formed from the segments' side: one work-item per segment walks a balanced tree over
+ * the hits (point_tree.h's layout: a perfect binary tree breadth-first, leaf j holding the
+ * hits [j n >> levels, (j + 1) n >> levels) in tree order), whose node boxes bound every
+ * hit's ball x_q +- R_q, and adds w Phi to each hit it qualifies for. hx[i].w holds R_i.
+ *
+ * The sums are exact (fixed_sum.h): the result does not depend on the order the
+ * work-items add in. The host picks fixed_scale so that no sum reaches 2^62. */
+
+/* Does the segment [a, b] meet the box? (slab test; a point when a == b) */
+int rm_seg_meets_box(float4 a, float4 b, __global const PointNode *nd) {
+    float t0 = 0.0f, t1 = 1.0f;
+    float av[3] = {a.x, a.y, a.z}, dv[3] = {b.x - a.x, b.y - a.y, b.z - a.z};
+    for (int i = 0; i < 3; ++i) {
+        float lo = nd->bmin[i], hi = nd->bmax[i];
+        if (fabs(dv[i]) < 1e-30f) {
+            if (av[i] < lo || av[i] > hi) return 0;
+        } else {
+            float ta = (lo - av[i]) / dv[i], tb = (hi - av[i]) / dv[i];
+            t0 = fmax(t0, fmin(ta, tb));
+            t1 = fmin(t1, fmax(ta, tb));
+        }
+    }
+    return t0 <= t1;
+}
+
+__kernel void rm_splat(__global const PointNode *nodes, int levels, int num_hits,
+                       __global const float4 *hx, __global const float4 *hn,
+                       __global const float4 *seg_a, __global const float4 *seg_b,
+                       __global const float4 *seg_d, __global const float4 *seg_flux,
+                       int first, int num_segs, int metric, int plane_weights,
+                       int epanechnikov, float fixed_scale, volatile __global uint *acc,
+                       __global int *out_work) {
+    int s = first + get_global_id(0);
+    if (s >= num_segs) return;
+    float4 a = seg_a[s], b = seg_b[s], d = seg_d[s], flux = seg_flux[s];
+    int domain = metric == RM_HEMIDISC ? RM_DOM_HEMISPHERE : RM_DOM_SPHERE;
+    int first_leaf = (1 << levels) - 1;
+    int work[2] = {0, 0};
+    int node = 0;
+    while (1) {
+        work[0] += 1;
+        if (rm_seg_meets_box(a, b, &nodes[node])) {
+            if (node < first_leaf) {
+                node = 2 * node + 1;                     /* descend to the left child */
+                continue;
+            }
+            long j = node - first_leaf;
+            int lo = (int)((j * num_hits) >> levels), hi = (int)(((j + 1) * num_hits) >> levels);
+            work[1] += hi - lo;
+            for (int i = lo; i < hi; ++i) {
+                float4 x = hx[i], n = hn[i];
+                float R = x.w, v;
+                x.w = 0.0f;
+                if (!rm_qualify(x, n, a, b, d, metric, domain, R, 1, T_INF, &v)) continue;
+                float dist = plane_weights ? rm_plane_dist(x, n, a, d) : v;
+                float t = fmin(dist / R, 1.0f);
+                float wq = (epanechnikov ? 2.0f * (1.0f - t * t) : 1.0f) * fixed_scale;
+                fixed_add(acc, 3 * i, wq * flux.x);
+                fixed_add(acc, 3 * i + 1, wq * flux.y);
+                fixed_add(acc, 3 * i + 2, wq * flux.z);
+            }
+        }
+        /* next node: climb while this is a right child, then the right sibling */
+        while (node != 0 && (node & 1) == 0) node = (node - 1) >> 1;
+        if (node == 0) break;
+        node += 1;
+    }
+    out_work[2 * s] = work[0];
+    out_work[2 * s + 1] = work[1];
+}
+
+/* The estimates of rm_splat's sums: E = sum / (fixed_scale pi R^2), written to the hit's
+ * place in the caller's order (ids: tree order -> caller's index). */
+__kernel void rm_splat_finish(__global const uint *acc, __global const float4 *hx,
+                              __global const int *ids, int num_hits, float inv_scale,
+                              __global float4 *out_e) {
+    int i = get_global_id(0);
+    if (i >= num_hits) return;
+    float R = hx[i].w;
+    float norm = R > 0.0f ? 1.0f / (PI_F * R * R) : 0.0f;
+    out_e[ids[i]] = (float4)(fixed_read(acc, 3 * i), fixed_read(acc, 3 * i + 1),
+                             fixed_read(acc, 3 * i + 2), 0.0f) * inv_scale * norm;
 }

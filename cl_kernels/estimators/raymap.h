@@ -166,37 +166,45 @@ void rm_heap_push(RM_HEAP float *hd, RM_HEAP int *hx, int *count, int k, float v
     knn_heap_insert(hd, hx, count, k, v, idx);
 }
 
-/* Test one candidate segment s (incoming, domain, metric <= r) and keep it in the heap
- * if it qualifies (rm_leaf; rm_knn_list in raymap.cl over host-built candidate lists).
- * The domain's distance is computed once and reused by the metric it bounds (RM_SEGMENT
- * in a sphere, RM_HEMIDISC in a hemisphere); a hemisphere-disc candidate whose
- * hemisphere distance alone reaches a full heap's root is refused before its plane
- * distance (the heap would refuse it: the metric is at least that distance). */
+/* Does segment (a, b, d) qualify for the query (x, n): incoming when asked, within the
+ * domain of radius r, metric <= r? If so *v is its metric value. The domain's distance is
+ * computed once and reused by the metric it bounds (RM_SEGMENT in a sphere, RM_HEMIDISC
+ * in a hemisphere). `cut` (T_INF: none) is a bound the caller refuses anything at or past
+ * (a full heap's root): a hemisphere-disc candidate whose hemisphere distance alone
+ * reaches it is refused before its plane distance (the metric is at least that). Shared
+ * by the K-nearest searches (rm_candidate) and the fixed-radius splat (rm_splat). */
+int rm_qualify(float4 x, float4 n, float4 a, float4 b, float4 d, int metric, int domain,
+               float r, int incoming, float cut, float *v) {
+    if (incoming && dot3(d, n) >= 0.0f) return 0;
+    float dom = 0.0f;
+    if (domain == RM_DOM_SPHERE) {
+        dom = rm_seg_dist(x, a, b);
+        if (dom > r) return 0;
+    } else if (domain == RM_DOM_HEMISPHERE) {
+        dom = rm_hemi_dist(x, n, a, b);
+        if (dom > r) return 0;
+    }
+    if (domain == RM_DOM_SPHERE && metric == RM_SEGMENT) {
+        *v = dom;
+    } else if (domain == RM_DOM_HEMISPHERE && metric == RM_HEMIDISC) {
+        if (cut < T_INF && !(dom < cut)) return 0;
+        *v = fmax(rm_plane_dist(x, n, a, d), dom);
+    } else {
+        *v = rm_metric(metric, x, n, a, b, d);
+    }
+    return *v <= r;                                      /* also drops T_INF and NaN */
+}
+
+/* Test one candidate segment s (rm_qualify) and keep it in the heap if it qualifies
+ * (rm_leaf; rm_knn_list in raymap.cl over host-built candidate lists). */
 void rm_candidate(int s, __global const float4 *seg_a, __global const float4 *seg_b,
                   __global const float4 *seg_d, float4 x, float4 n, int k, int metric,
                   int domain, float r, int incoming, RM_HEAP float *hd, RM_HEAP int *hx,
                   int *count) {
-    float4 a = seg_a[s], b = seg_b[s], d = seg_d[s];
-    if (incoming && dot3(d, n) >= 0.0f) return;
-    float dom = 0.0f;
-    if (domain == RM_DOM_SPHERE) {
-        dom = rm_seg_dist(x, a, b);
-        if (dom > r) return;
-    } else if (domain == RM_DOM_HEMISPHERE) {
-        dom = rm_hemi_dist(x, n, a, b);
-        if (dom > r) return;
-    }
     float v;
-    if (domain == RM_DOM_SPHERE && metric == RM_SEGMENT) {
-        v = dom;
-    } else if (domain == RM_DOM_HEMISPHERE && metric == RM_HEMIDISC) {
-        if (*count == k && !(dom < hd[0])) return;
-        v = fmax(rm_plane_dist(x, n, a, d), dom);
-    } else {
-        v = rm_metric(metric, x, n, a, b, d);
-    }
-    if (!(v <= r)) return;                               /* also drops T_INF and NaN */
-    rm_heap_push(hd, hx, count, k, v, s);
+    if (rm_qualify(x, n, seg_a[s], seg_b[s], seg_d[s], metric, domain, r, incoming,
+                   *count == k ? hd[0] : T_INF, &v))
+        rm_heap_push(hd, hx, count, k, v, s);
 }
 
 /* Test the references of one leaf and keep the qualifying ones in the heap. */

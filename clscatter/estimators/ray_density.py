@@ -29,6 +29,7 @@ from ..io.stats import Stats, progress
 from ..transport import primitives as prim
 from ..transport.light_paths import trace_light_paths
 from ..transport.view_paths import trace_diffuse_hits_on_device
+from .disc_splat import HitDiscs, splat_on_device
 from .knn_queries import RayMap, _f4, heap_define, heap_scratch, kth_end_distance
 from .segment_tree import TreeParams
 
@@ -63,8 +64,10 @@ def caustic_pieces(ps, rays: int, stats: Stats | None = None, show_progress: boo
     return p[p["depth"] >= min_depth]
 
 
-def build_map(engine, pieces: np.ndarray, estimator: str, settings: DensitySettings) -> RayMap:
-    """The ray map (segments) or photon map (diffuse end points) of ``pieces``."""
+def map_segments(pieces: np.ndarray, estimator: str) -> tuple[np.ndarray, ...]:
+    """What the ray map (segments) or the photon map (the pieces ending on diffuse
+    surfaces) of ``pieces`` holds: ``(a, b, d, flux)`` (float64, unit directions d; the
+    photon map's are read as the points b)."""
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator must be one of {ESTIMATORS}")
     if estimator == "photonmap":
@@ -74,8 +77,14 @@ def build_map(engine, pieces: np.ndarray, estimator: str, settings: DensitySetti
     d = b - a
     length = np.linalg.norm(d, axis=1, keepdims=True)
     d = np.where(length > 0, d / np.where(length > 0, length, 1.0), 0.0)
-    return RayMap(engine, a, b, d, pieces["flux"][:, :3].astype(np.float64), settings.tree,
-                  points=estimator == "photonmap", lazy=settings.lazy)
+    return a, b, d, pieces["flux"][:, :3].astype(np.float64)
+
+
+def build_map(engine, pieces: np.ndarray, estimator: str, settings: DensitySettings) -> RayMap:
+    """The ray map (segments) or photon map (diffuse end points) of ``pieces``."""
+    a, b, d, flux = map_segments(pieces, estimator)
+    return RayMap(engine, a, b, d, flux, settings.tree, points=estimator == "photonmap",
+                  lazy=settings.lazy)
 
 
 def lazy_radius(rmap: RayMap, x: np.ndarray, k: int, max_radius: float) -> np.ndarray:
@@ -213,32 +222,47 @@ def read_hits(ps, dev) -> np.ndarray:
 
 def pass_image(ps, dev, hits: np.ndarray, pieces: np.ndarray, estimator: str,
                settings: DensitySettings, stats: Stats, show_progress: bool = False,
-               radii: np.ndarray | None = None, out_r=None) -> np.ndarray:
+               radii: np.ndarray | None = None, out_r=None,
+               discs: HitDiscs | None = None) -> np.ndarray:
     """One estimate's image (H, W, 3, finite): the map of ``pieces``, every hit of ``dev``
     (``hits`` on the host) estimated (``radii``, ``out_r``: :func:`estimate_on_device`),
-    weighed and summed per pixel; the map's statistics set under ``estimator``."""
+    weighed and summed per pixel; the map's statistics set under ``estimator``. With
+    ``radii`` and ``discs`` (the hits' tree, :class:`~.disc_splat.HitDiscs`) the fixed-radius
+    estimate is splatted from the segments (:func:`~.disc_splat.splat_on_device`, the stage
+    ``<estimator>_splat``) and no map is built."""
     eng = ps.engine
     nh = dev.count
-    with stats.stage(f"{estimator}_build"):
-        rmap = build_map(eng, pieces, estimator, settings)
-    e_buf = w_buf = v_buf = None
+    rmap = e_buf = w_buf = v_buf = None
     try:
+        if discs is not None and radii is not None:
+            with stats.stage(f"{estimator}_splat"):
+                e_buf, (visited, tested) = splat_on_device(
+                    discs, *map_segments(pieces, estimator), radii, estimator, settings.kernel,
+                    settings.k)
+                eng.finish()
+            tree_stats = {}
+        else:
+            with stats.stage(f"{estimator}_build"):
+                rmap = build_map(eng, pieces, estimator, settings)
+            with stats.stage(f"{estimator}_estimate"):
+                e_buf, w_buf = estimate_on_device(rmap, hits["p"][:, :3], hits["n"][:, :3],
+                                                  estimator, settings, show_progress, stats,
+                                                  radii=radii, out_r=out_r)
+                visited, tested = prim.int_totals(eng, w_buf, nh, 2)
+            t = rmap.tree
+            tree_stats = {f"{estimator}_tree_nodes": int(t.n),
+                          f"{estimator}_tree_refs": int(t.num_refs),
+                          f"{estimator}_index_peak_bytes": int(t.peak_bytes),
+                          f"{estimator}_collapses": int(t.collapses)}
+            eng.note_host(t.nbytes + pieces.nbytes + hits.nbytes)
         with stats.stage(f"{estimator}_estimate"):
-            e_buf, w_buf = estimate_on_device(rmap, hits["p"][:, :3], hits["n"][:, :3],
-                                              estimator, settings, show_progress, stats,
-                                              radii=radii, out_r=out_r)
-            visited, tested = prim.int_totals(eng, w_buf, nh, 2)
             v_buf = eng.empty(16 * nh)
             ps.call("raymap", "rm_weigh_hits", nh, hits=dev.buf, e=e_buf, n=nh, out=v_buf)
             img = dev.accumulate(v_buf)
-        t = rmap.tree
-        stats.set(**{f"{estimator}_tree_nodes": int(t.n), f"{estimator}_tree_refs": int(t.num_refs),
-                     f"{estimator}_index_peak_bytes": int(t.peak_bytes),
-                     f"{estimator}_collapses": int(t.collapses),
-                     f"{estimator}_nodes_visited": int(visited),
-                     f"{estimator}_refs_tested": int(tested)})
-        eng.note_host(t.nbytes + pieces.nbytes + hits.nbytes)
+        stats.set(**tree_stats, **{f"{estimator}_nodes_visited": int(visited),
+                                   f"{estimator}_refs_tested": int(tested)})
     finally:
-        rmap.release()
+        if rmap is not None:
+            rmap.release()
         eng.free(*(b for b in (e_buf, w_buf, v_buf) if b is not None))
     return np.where(np.isfinite(img), img, 0.0).astype(np.float32)

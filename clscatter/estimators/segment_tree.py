@@ -116,17 +116,18 @@ def balanced_levels(n: int, leaf_size: int) -> int:
     return max(0, math.floor(math.log2(max(n / max(1, int(leaf_size)), 1.0))))
 
 
-def _level_boxes(pos: np.ndarray, levels: int) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds of every node of a balanced tree over ``pos`` (sorted by leaf), breadth-first:
-    the leaves' by one reduction, then pairwise up to the root."""
-    n = len(pos)
+def level_boxes(lo: np.ndarray, hi: np.ndarray, levels: int) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of every node of a balanced tree whose items (sorted by leaf) have the boxes
+    ``[lo, hi]`` (N, 3; points: ``lo is hi``), breadth-first: the leaves' by one
+    reduction, then pairwise up to the root."""
+    n = len(lo)
     if n:
         starts = leaf_ranges(n, levels)[:-1]
-        lv_min = [np.minimum.reduceat(pos, starts, axis=0)]
-        lv_max = [np.maximum.reduceat(pos, starts, axis=0)]
+        lv_min = [np.minimum.reduceat(lo, starts, axis=0)]
+        lv_max = [np.maximum.reduceat(hi, starts, axis=0)]
     else:
-        lv_min = [np.full((1, 3), EMPTY, pos.dtype)]
-        lv_max = [np.full((1, 3), -EMPTY, pos.dtype)]
+        lv_min = [np.full((1, 3), EMPTY, lo.dtype)]
+        lv_max = [np.full((1, 3), -EMPTY, hi.dtype)]
     while len(lv_min[-1]) > 1:
         lv_min.append(lv_min[-1].reshape(-1, 2, 3).min(axis=1))
         lv_max.append(lv_max[-1].reshape(-1, 2, 3).max(axis=1))
@@ -212,8 +213,9 @@ class SegmentTree:
         levels = balanced_levels(n, leaf_size)
         rows, order, axes = median_levels(pts.T, levels,
                                           np.int32 if n < 2 ** 31 else np.int64)
-        box_lo, box_hi = _level_boxes(np.ascontiguousarray(rows.T), levels)
-        del rows
+        sorted_pts = np.ascontiguousarray(rows.T)
+        box_lo, box_hi = level_boxes(sorted_pts, sorted_pts, levels)
+        del rows, sorted_pts
         tree = cls.__new__(cls)
         tree.a = tree.b = pts
         tree.dirs = None

@@ -17,8 +17,9 @@ mapping's rule for a 2-D kernel (Hachisuka et al. 2008; Knaus and Zwicker 2011,
 ``r_{i+1}^2 = r_i^2 (i + alpha) / (i + 1)``). A pass's expected count within its disc
 falls like ``i^(alpha - 1)`` while the mean of ``n`` passes has variance falling like
 ``n^-alpha`` and a blur (bias ~ r^2) falling like ``n^(alpha - 1)``: the mean converges.
-Their heap holds ``2 k`` rays (:data:`LATER_HEAP`), far more than the ``k s_i^2`` a disc
-holds in expectation; where more lie within, the nearest ``2 k`` are the estimate.
+These fixed-radius passes need no nearest-neighbour search: every segment adds itself to
+the hits whose disc it qualifies for (:mod:`.disc_splat`, over a tree of the hits built
+once), so a hit gathers every ray within its radius.
 """
 from __future__ import annotations
 
@@ -29,13 +30,11 @@ import numpy as np
 
 from ..io.stats import Stats
 from ..transport.view_paths import trace_diffuse_hits_on_device
-from .knn_queries import HEAP_SIZES
+from .disc_splat import HitDiscs
 from .ray_density import DensitySettings, caustic_pieces, pass_image, read_hits
 
 #: the base radius is at least the pixel footprint divided by this
 FOOTPRINT_FRACTION = 16.0
-#: later passes gather up to this many times k rays (the heap bounds a fixed-radius disc)
-LATER_HEAP = 2
 #: under a deadline a pass has at least this many rays (or all of them, if fewer) and at
 #: most RESIZE times (or 1 / RESIZE of) the rays of the pass its cost was measured on
 MIN_PASS_RAYS = 2000
@@ -163,46 +162,55 @@ def _run_passes(ps, dev, hits, estimator: str, rays: int, settings: DensitySetti
     pass has rays, each is a first pass (it sets the radii); then fixed radii ``s_i B``."""
     total = None
     base = None
+    discs = None               # the hits' tree for the later passes' splats, built once
     scales: list[float] = []
     first = settings if radius <= 0 else replace(settings, max_radius=radius)
-    later = replace(settings, k=min(LATER_HEAP * settings.k, HEAP_SIZES[-1]))
     foot = footprints(ps, hits["p"])
     i = 0
     # every pass traces the same rays (progressive photon mapping's radius rule assumes
     # passes alike): under a deadline, as many as the first pass's share of it allows
     share = max(prog.pass_seconds(), prog.remaining() / MAX_SPLIT)
     n = sized_rays(rays, first_cost, share) if prog.budgeted else rays
-    while True:
-        expected = None
-        if prog.budgeted and out.seconds:
-            expected = out.seconds[-1]
-        elif prog.budgeted and first_cost is not None:
-            expected = first_cost[1] * n / max(first_cost[0], 1)
-        if not prog.more(expected):
-            break
-        t0 = prog.clock()
-        s = float(ppm_scales(alpha, i + 1)[-1])
-        with stats.stage(f"{estimator}_trace"):
-            pieces = caustic_pieces(ps, n, stats, show_progress, seed_offset=i + (seed << 16))
-        stats.add(f"{estimator}_rays_stored", int(len(pieces)))
-        opening = base is None          # the k-nearest pass: another estimator than the rest
-        if len(pieces) == 0:
-            own = np.zeros_like(out.image)
-        elif base is None:
-            own, base, out.radius = _first_pass(ps, dev, hits, pieces, estimator, first, stats,
-                                                show_progress, foot, radius)
-        else:
-            own = pass_image(ps, dev, hits, pieces, estimator, later, stats, show_progress,
-                             radii=(base * s).astype(np.float32))
-        out.seconds.append(prog.clock() - t0)
-        out.rays.append(int(n))
-        scales.append(s)
-        # the error estimate compares passes of one estimator: the k-nearest opening pass
-        # (a different kernel and radius rule) is left out of it
-        prog.add(None if opening else own, out.seconds[-1],
-                 radius=None if base is None else s * max(out.radius, 1e-30))
-        total = own.astype(np.float64) if total is None else total + own
-        i += 1
+    try:
+        while True:
+            expected = None
+            if prog.budgeted and out.seconds:
+                expected = out.seconds[-1]
+            elif prog.budgeted and first_cost is not None:
+                expected = first_cost[1] * n / max(first_cost[0], 1)
+            if not prog.more(expected):
+                break
+            t0 = prog.clock()
+            s = float(ppm_scales(alpha, i + 1)[-1])
+            with stats.stage(f"{estimator}_trace"):
+                pieces = caustic_pieces(ps, n, stats, show_progress,
+                                        seed_offset=i + (seed << 16))
+            stats.add(f"{estimator}_rays_stored", int(len(pieces)))
+            opening = base is None      # the k-nearest pass: another estimator than the rest
+            if len(pieces) == 0:
+                own = np.zeros_like(out.image)
+            elif base is None:
+                own, base, out.radius = _first_pass(ps, dev, hits, pieces, estimator, first,
+                                                    stats, show_progress, foot, radius)
+            else:
+                if discs is None:
+                    with stats.stage(f"{estimator}_splat"):
+                        discs = HitDiscs.build(ps.engine, hits["p"][:, :3], hits["n"][:, :3])
+                own = pass_image(ps, dev, hits, pieces, estimator, settings, stats,
+                                 show_progress, radii=(base * s).astype(np.float32),
+                                 discs=discs)
+            out.seconds.append(prog.clock() - t0)
+            out.rays.append(int(n))
+            scales.append(s)
+            # the error estimate compares passes of one estimator: the k-nearest opening pass
+            # (a different kernel and radius rule) is left out of it
+            prog.add(None if opening else own, out.seconds[-1],
+                     radius=None if base is None else s * max(out.radius, 1e-30))
+            total = own.astype(np.float64) if total is None else total + own
+            i += 1
+    finally:
+        if discs is not None:
+            discs.release()
     n = max(len(out.seconds), 1)
     if total is not None:
         out.image = (total / n).astype(np.float32) if n > 1 else total.astype(np.float32)
