@@ -173,16 +173,18 @@ def test_light_segments_inside_glass_carry_refracted_attenuated_flux(engine):
     np.testing.assert_allclose(below["flux"][:, :3], np.tile(want, (len(below), 1)), rtol=1e-4)
 
 
-def test_gather_kernel_gathers_only_its_region(engine):
-    """``lsg_gather`` with region 2: view segments tagged 2 get the float64 reference's
-    estimate with the region's coefficients, the others (tagged 0 and 1) exactly 0."""
+@pytest.mark.parametrize("queries", ["views", "lights"])
+def test_gather_kernel_gathers_only_its_region(engine, queries):
+    """``lsg_gather`` (``lsg_scatter`` from the lighting side) with region 2: view segments
+    tagged 2 get the float64 reference's estimate with the region's coefficients, the
+    others (tagged 0 and 1) exactly 0."""
     rng = np.random.default_rng(5)
     lights, views = _random_set("random", rng, nl=1500, nv=120)
     tags = rng.integers(0, 3, len(views))
     views["a"][:, 3] = tags
     med = _medium(sigma_s=(0.7, 0.2, 0.4), sigma_a=(0.0, 0.5, 0.1), g=-0.2)
     from clscatter.estimators.line_gather import Gatherer
-    gat = Gatherer(engine, views, med, 0.03, region=2)
+    gat = Gatherer(engine, views, med, 0.03, region=2, queries=queries)
     try:
         gat.add(lights)
         vals = gat.values()
@@ -196,7 +198,7 @@ def test_gather_kernel_gathers_only_its_region(engine):
     scale = np.abs(ref[mine]).max()
     np.testing.assert_allclose(vals[mine, :3], ref[mine], rtol=1e-4, atol=1e-5 * scale)
     # region 0 (the default) is what every existing caller gets: the tag-0 views only
-    v0, _ = _gather(engine, lights, views, 0.03, med)
+    v0, _ = _gather(engine, lights, views, 0.03, med, queries=queries)
     assert np.all(v0[tags != 0] == 0)
 
 

@@ -213,12 +213,16 @@ CASES = [("random", 0.03, None), ("near_parallel", 0.004, None),
          ("near_parallel", 0.004, PluckerFrame(np.array([-60.0, 10.0, 25.0]), 0.5))]
 
 
+@pytest.mark.parametrize("queries", ["views", "lights"])
 @pytest.mark.parametrize("kind, r, frame", CASES)
-def test_tree_gather_finds_exactly_the_exhaustive_pairs(engine, kind, r, frame):
+def test_tree_gather_finds_exactly_the_exhaustive_pairs(engine, kind, r, frame, queries):
+    """Queries from either side (a tree over the lighting segments walked per view
+    segment, or over the view segments walked per lighting segment) find exactly the
+    pairs of the exhaustive test, each once, and the same estimate."""
     rng = np.random.default_rng(len(kind) * 7 + (frame is not None))
     lights, views = _random_set(kind, rng)
     med = _medium()
-    v_tree, res_tree = _gather(engine, lights, views, r, med, frame=frame)
+    v_tree, res_tree = _gather(engine, lights, views, r, med, frame=frame, queries=queries)
     v_all, res_all = _gather(engine, lights, views, r, med, bruteforce=True, frame=frame)
     s_tree = set(map(tuple, res_tree.pairs.tolist()))
     s_all = set(map(tuple, res_all.pairs.tolist()))
@@ -251,13 +255,16 @@ def test_plucker_only_tree_finds_the_same_pairs(engine, kind, r):
     np.testing.assert_allclose(v_plk, v_space, rtol=2e-5, atol=1e-6 * np.abs(v_space).max())
 
 
+@pytest.mark.parametrize("queries", ["views", "lights"])
 @pytest.mark.parametrize("kind, r", [("random", 0.03), ("near_parallel", 0.004),
                                      ("near_intersecting", 0.01)])
-def test_gather_kernel_matches_numpy_reference(engine, kind, r):
+def test_gather_kernel_matches_numpy_reference(engine, kind, r, queries):
+    """lsg_gather (a query per view segment) and lsg_scatter (a query per lighting
+    segment) against the float64 NumPy reference of the same pairs and estimate."""
     rng = np.random.default_rng(11 + len(kind))
     lights, views = _random_set(kind, rng, nl=1500, nv=120)
     med = _medium()
-    vals, res = _gather(engine, lights, views, r, med)
+    vals, res = _gather(engine, lights, views, r, med, queries=queries)
     ref, pairs = reference_gather(_as_dict(lights, "light"), _as_dict(views, "view"), r,
                                   med["kappa"], med["sigma_s"], float(med["g"]))
     got = set(map(tuple, res.pairs.tolist()))
@@ -275,6 +282,28 @@ def test_gather_kernel_matches_numpy_reference(engine, kind, r):
     # ends come from differences of O(1) numbers, ~1e-7 absolute, i.e. 1e-5 of a short chord
     np.testing.assert_allclose(vals[:, :3], ref, rtol=1e-4, atol=1e-5 * scale)
     assert abs(vals[:, :3].sum() / ref.sum() - 1) < 1e-5
+
+
+def test_light_queries_do_not_depend_on_the_order_of_adding(engine):
+    """The lighting side adds every pair into its view's exact fixed-point sum: the
+    lighting segments in reverse order give bit-equal estimates and the same per-view
+    valid counts."""
+    rng = np.random.default_rng(9)
+    lights, views = _random_set("random", rng, nl=400, nv=900)
+    med = _medium()
+    gat = Gatherer(engine, views, med, 0.03, queries="lights")
+    rev = Gatherer(engine, views, med, 0.03, queries="lights")
+    try:
+        res = gat.add(lights)
+        rev.add(lights[::-1].copy())
+        assert res.valid_pairs > 200
+        assert np.array_equal(gat.values(), rev.values())
+        assert np.array_equal(gat.valid_per_view, rev.valid_per_view)
+        assert gat.valid_per_view.sum() == res.valid_pairs
+    finally:
+        gat.release()
+        rev.release()
+    assert gat.last_queries == "lights"
 
 
 def test_clipping_keeps_every_pair_and_the_estimate(engine):
@@ -612,7 +641,8 @@ def test_leaf_point_counts_match_a_numpy_walk_of_the_tree(engine):
     assert res.pair_tests <= res.leaf_points < 0.8 * res_all.leaf_points
 
 
-def test_gatherer_image_and_counters_stay_on_the_device(engine):
+@pytest.mark.parametrize("queries", ["views", "lights"])
+def test_gatherer_image_and_counters_stay_on_the_device(engine, queries):
     """The per-view estimate summed into pixels on the device (Gatherer.image, what renders
     use) equals the host sum of Gatherer.values by pixel, and the per-add counters
     (totals of the device's per-view counts) equal a pair-by-pair count: several adds,
@@ -625,7 +655,7 @@ def test_gatherer_image_and_counters_stay_on_the_device(engine):
     dev = paths.on_device(engine, 7, 5)                # sorted by pixel, stably
     views = paths.segments
     gat = Gatherer(engine, views, _medium(), 0.04, per_launch=64, views_buf=dev.buf,
-                   record_pairs=len(views) * len(lights))
+                   record_pairs=len(views) * len(lights), queries=queries)
     try:
         first = gat.add(lights[:1200])
         second = gat.add(lights[1200:])
@@ -644,7 +674,8 @@ def test_gatherer_image_and_counters_stay_on_the_device(engine):
     assert np.abs(host).max() > 0
 
 
-def test_sample_groups_gather_their_views_scaled_to_the_pixel(engine):
+@pytest.mark.parametrize("queries", ["views", "lights"])
+def test_sample_groups_gather_their_views_scaled_to_the_pixel(engine, queries):
     """Gatherer.select (the kernel's view_index/scale): a group gathers exactly its view
     segments (sample k % groups == group), each times spp over the group's samples, and
     nothing elsewhere; the mean over the groups is the full gather (float tolerance), with
@@ -657,7 +688,7 @@ def test_sample_groups_gather_their_views_scaled_to_the_pixel(engine):
         views["sample"] = rng.integers(0, 50 * spp, len(views))
         k = views["sample"] % spp
         full, res_full = _gather(engine, lights, views, 0.03, med)
-        gat = Gatherer(engine, views, med, 0.03)
+        gat = Gatherer(engine, views, med, 0.03, queries=queries)
         try:
             parts, valid = [], 0
             for g in range(groups):
@@ -779,3 +810,43 @@ def test_continue_across_faces_moves_only_segments_crossing_a_face():
     assert np.array_equal(segs["flux"][:, :3], np.ones((5, 3)))   # input untouched
     med["bounded"] = 0
     assert continue_across_faces(segs, med, r) is segs
+
+
+def test_light_queries_render_like_view_queries_and_keep_their_tree(engine, monkeypatch):
+    """``render.lsg.queries = "lights"`` renders the image of ``"views"`` (the same pairs;
+    float summation order only: rtol 1e-4) over two passes; its tree over the view
+    segments is built once per group of camera samples in the first render, and a warm
+    light move in a session builds none and equals a fresh render of the moved light."""
+    from clscatter.estimators import line_gather
+    from clscatter.pipeline.session import RenderSession
+    from clscatter.scene import load_scene as load
+    sets = ["camera.resolution=[32,24]", "camera.spp=2", "render.lsg.light_rays=4000",
+            "render.lsg.passes=2", "render.seed=3"]
+    builds = []
+    orig = line_gather.build_view_tree
+
+    def counting(*a, **k):
+        builds.append(1)
+        return orig(*a, **k)
+
+    monkeypatch.setattr(line_gather, "build_view_tree", counting)
+    lights = sets + ['render.lsg.queries="lights"']
+    views_img = render(load("builtin:caustic_sphere", sets), method="lsg", engine=engine,
+                       show_progress=False).image
+    assert not builds
+    with RenderSession.from_source("builtin:caustic_sphere", lights, engine=engine,
+                                   method="lsg") as s:
+        first = s.render(show_progress=False)
+        built = len(builds)
+        assert 1 <= built <= first.stats["lsg_sample_groups"] + 1     # (+ the pilot's)
+        np.testing.assert_allclose(first.image, views_img, rtol=1e-4,
+                                   atol=1e-5 * float(views_img.max()))
+        s.set(["lights[0].position=[0.6,3.2,0.4]"])
+        warm = s.render(show_progress=False)
+        assert "view_paths" not in warm.stats["stages_run"]
+        fresh = render(load("builtin:caustic_sphere", s.current_overrides()), method="lsg",
+                       engine=engine, show_progress=False)
+    assert len(builds) == 2 * built        # none for the warm move; the fresh render its own
+    assert warm.image.max() > 0 and not np.allclose(warm.image, first.image, rtol=1e-3)
+    np.testing.assert_allclose(warm.image, fresh.image, rtol=1e-5,
+                               atol=1e-6 * float(fresh.image.max()))

@@ -26,6 +26,8 @@ TINY = ["camera.resolution=[12,9]", "camera.spp=1", "render.lsg.light_rays=2000"
         "render.voxel.outer_resolution=8", "render.epipolar.shadow_map=64",
         "render.epipolar.light_rays=32"]
 METHODS = ["raymarch", "epipolar", "lsg", "vpm", "raymap", "photonmap", "voxel"]
+# every method at its defaults, and lsg once more with its queries from the lighting side
+RUNS = [(m, []) for m in METHODS] + [("lsg", ['render.lsg.queries="lights"'])]
 # what Oclgrind prints when it finds a defect
 REPORTS = ("Invalid read", "Invalid write", "data race", "Uninitialized", "error:",
            "Undefined external function", "Work-group divergence", "out-of-bounds")
@@ -44,13 +46,14 @@ def oclgrind():
         pytest.skip(NO_OCLGRIND)
 
 
-@pytest.mark.parametrize("method", METHODS)
-def test_method_runs_clean_under_oclgrind(method, tmp_path):
+@pytest.mark.parametrize("method, extra", RUNS,
+                         ids=[m + ("-lights" if e else "") for m, e in RUNS])
+def test_method_runs_clean_under_oclgrind(method, extra, tmp_path):
     out = tmp_path / "img.npy"
     args = ["oclgrind", "--data-races", sys.executable, "-m", "clscatter", "render",
             scene_for(method), "--method", method, "--no-progress", "-o", str(out),
             "--stats", str(tmp_path / "stats.json")]
-    for kv in TINY:
+    for kv in TINY + extra:
         args += ["--set", kv]
     env = {**os.environ, "CLSCATTER_CACHE_DIR": str(tmp_path / "cache")}
     env.pop("CLSCATTER_DEVICE", None)

@@ -1,21 +1,26 @@
 #!/usr/bin/env python3
-"""Benchmark: where LSG's gather spends its work, and what the line tree's leaf size and
-its spatial splits are worth, on the glass-ball caustic (``tools/scenes/glass_ball_fog.toml``).
+"""Benchmark: where LSG's gather spends its work, what the line tree's leaf size and its
+spatial splits are worth, and which side should walk the tree, on the glass-ball caustic
+(``tools/scenes/glass_ball_fog.toml``).
 
 Each run is ``clscatter render --method lsg`` in a fresh process with the caustic
-lighting segments only (``min_light_depth = 1``), one pass of ``--rays`` lighting rays at
-``--size``, with ``render.lsg.leaf_size`` set to each of ``--leaf-sizes`` and
+lighting segments only (``min_light_depth = 1``), one pass of each of ``--rays`` lighting
+rays at ``--size``, with ``render.lsg.leaf_size`` set to each of ``--leaf-sizes``,
 ``render.lsg.spatial_split`` to each of ``--spatial-splits`` (0: the paper's tree, split
-on the Plücker coordinates only); the settings take turns ``--repeats`` times, so drift
+on the Plücker coordinates only) and ``render.lsg.queries`` to each of ``--queries``
+(``views``: a tree over the lighting segments, a query per view segment; ``lights``: a
+tree over the view segments, a query per lighting segment; its tree seconds are the view
+tree's, built once per render); the settings take turns ``--repeats`` times, so drift
 on a shared machine falls on all alike. Recorded from
 ``--stats`` for every run: the gather's and the tree build's seconds, the view and kept
 lighting segments, the pairs an exhaustive gather would test, the points in the leaves
 the walk reached (the culling of the tree: Plücker slabs and the nodes' 3-D boxes), the
 exact pair tests and the valid pairs. Prints a markdown table of the medians and writes
-bench_out/lsg_gather.json (and docs/bench/lsg_gather.json unless ``--no-copy``).
+bench_out/<record>.json (and docs/bench/<record>.json unless ``--no-copy``; ``--record``,
+default ``lsg_gather``).
 
     .venv/bin/python tools/bench_lsg_gather.py [--size 160 120] [--rays 50000]
-        [--leaf-sizes 4 16] [--spatial-splits 0 8] [--repeats 2] [--no-copy]
+        [--leaf-sizes 4 16] [--spatial-splits 0 8] [--queries views] [--repeats 2] [--no-copy]
 """
 from __future__ import annotations
 
@@ -34,7 +39,8 @@ KEYS = ("gather_seconds", "tree_build_seconds", "view_segments", "lsg_light_segm
         "pair_tests_bruteforce", "lsg_leaf_points_tested", "pair_tests", "valid_pairs")
 
 
-def run(scene: Path, size: tuple[int, int], rays: int, leaf: int, split: float) -> dict:
+def run(scene: Path, size: tuple[int, int], rays: int, leaf: int, split: float,
+        queries: str = "views") -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         st = Path(tmp) / "stats.json"
         cmd = [sys.executable, "-m", "clscatter", "render", str(scene), "--method", "lsg",
@@ -42,7 +48,8 @@ def run(scene: Path, size: tuple[int, int], rays: int, leaf: int, split: float) 
                "--time-budget", "0", "--set", f"camera.resolution=[{size[0]},{size[1]}]",
                "--set", "render.lsg.min_light_depth=1", "--set", f"render.lsg.light_rays={rays}",
                "--set", f"render.lsg.leaf_size={leaf}",
-               "--set", f"render.lsg.spatial_split={split}"]
+               "--set", f"render.lsg.spatial_split={split}",
+               "--set", f"render.lsg.queries=\"{queries}\""]
         proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
         if proc.returncode != 0:
             raise SystemExit(proc.stderr.strip())
@@ -54,22 +61,26 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", default=str(ROOT / "tools" / "scenes" / "glass_ball_fog.toml"))
     ap.add_argument("--size", type=int, nargs=2, default=[160, 120])
-    ap.add_argument("--rays", type=int, default=50_000)
+    ap.add_argument("--rays", type=int, nargs="+", default=[50_000])
     ap.add_argument("--leaf-sizes", type=int, nargs="+", default=[4, 16])
     ap.add_argument("--spatial-splits", type=float, nargs="+", default=[0.0, 8.0])
+    ap.add_argument("--queries", nargs="+", default=["views"], choices=["views", "lights"])
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--no-copy", action="store_true")
+    ap.add_argument("--record", default="lsg_gather",
+                    help="name of the JSON written (bench_out/ and docs/bench/)")
     args = ap.parse_args()
-    configs = [(ls, sp) for ls in args.leaf_sizes for sp in args.spatial_splits]
+    configs = [(n, ls, sp, q) for n in args.rays for ls in args.leaf_sizes
+               for sp in args.spatial_splits for q in args.queries]
     runs: dict[tuple, list[dict]] = {c: [] for c in configs}
     for _ in range(args.repeats):
-        for ls, sp in configs:
-            runs[ls, sp].append(run(Path(args.scene), tuple(args.size), args.rays, ls, sp))
-            print(f"leaf_size {ls}, spatial_split {sp:g}: gather "
-                  f"{runs[ls, sp][-1]['gather_seconds']:.2f} s", file=sys.stderr)
+        for n, ls, sp, q in configs:
+            runs[n, ls, sp, q].append(run(Path(args.scene), tuple(args.size), n, ls, sp, q))
+            print(f"rays {n}, leaf_size {ls}, spatial_split {sp:g}, queries {q}: gather "
+                  f"{runs[n, ls, sp, q][-1]['gather_seconds']:.2f} s", file=sys.stderr)
     rows = []
-    for (ls, sp), rs in runs.items():
-        row = {"leaf_size": ls, "spatial_split": sp,
+    for (n, ls, sp, q), rs in runs.items():
+        row = {"rays": n, "leaf_size": ls, "spatial_split": sp, "queries": q,
                **{k: rs[0][k] for k in KEYS if "seconds" not in k}}
         for k in ("gather_seconds", "tree_build_seconds"):
             row[k] = statistics.median(r[k] for r in rs)
@@ -78,18 +89,20 @@ def main() -> None:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
                             capture_output=True, text=True).stdout.strip()
     record = {"scene": Path(args.scene).name, "size": args.size, "rays": args.rays,
+              "queries": args.queries,
               "commit": commit, "machine": platform.processor() or platform.machine(),
               "rows": rows}
-    out = ROOT / "bench_out" / "lsg_gather.json"
+    out = ROOT / "bench_out" / f"{args.record}.json"
     out.parent.mkdir(exist_ok=True)
     out.write_text(json.dumps(record, indent=1))
     if not args.no_copy:
-        shutil.copy(out, ROOT / "docs" / "bench" / "lsg_gather.json")
-    print("| leaf_size | spatial_split | gather s (median) | tree s | leaf points tested | "
-          "exact pair tests | valid pairs | exhaustive pairs |")
-    print("|---|---|---|---|---|---|---|---|")
+        shutil.copy(out, ROOT / "docs" / "bench" / f"{args.record}.json")
+    print("| rays | leaf_size | spatial_split | queries | gather s (median) | tree s | "
+          "leaf points tested | exact pair tests | valid pairs | exhaustive pairs |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['leaf_size']} | {r['spatial_split']:g} | {r['gather_seconds']:.2f} | "
+        print(f"| {r['rays']:,} | {r['leaf_size']} | {r['spatial_split']:g} | {r['queries']} | "
+              f"{r['gather_seconds']:.2f} | "
               f"{r['tree_build_seconds']:.2f} | "
               f"{r['lsg_leaf_points_tested']:,} | {r['pair_tests']:,} | {r['valid_pairs']:,} | "
               f"{r['pair_tests_bruteforce']:,} |")

@@ -1,5 +1,8 @@
 /* lsg.cl: line space gathering (Sun et al. 2010, sections 3-4).
  *
+ * lsg_scatter (below) forms the same pairs with the roles swapped: a tree over the view
+ * segments, one work-item per lighting segment.
+ *
  * lsg_gather: one work-item per view segment. The view line is the 6-D hyperplane
  * w = (m_v, u_v) (moment in the Plücker frame); a stackless depth-first walk of the
  * perfect 8-ary tree (clscatter/estimators/line_tree.py) visits every node whose box meets the
@@ -34,6 +37,7 @@
  */
 #include "common.h"
 #include "lsg.h"
+#include "fixed_sum.h"
 
 typedef struct {
     float4 a, u;      /* view segment start, unit direction (normalised frame) */
@@ -41,16 +45,17 @@ typedef struct {
     int index;        /* global view segment index */
 } ViewQuery;
 
-/* Exact test of one pair: count, record, and return its estimate (0 beyond r). */
-float4 test_pair(__global const LsgLine *L, int line_id, const ViewQuery *q, float r,
+/* Exact test of one pair (lighting segment L, view segment q): count, record, and
+ * return its estimate (0 beyond r). */
+float4 test_pair(LsgLine L, int line_id, const ViewQuery *q, float r,
                  float min_sin, float4 kappa, float g, int4 *cnt,
                  __global int2 *pairs, volatile __global int *pair_count, int max_pairs) {
-    float4 la = L->a;
+    float4 la = L.a;
     float llen = la.w;
     la.w = 0.0f;
     float s, t;
     cnt->x += 1;
-    if (seg_seg_dist2(la, L->u, llen, q->a, q->u, q->len, &s, &t) >= r * r) return (float4)(0.0f);
+    if (seg_seg_dist2(la, L.u, llen, q->a, q->u, q->len, &s, &t) >= r * r) return (float4)(0.0f);
     cnt->y += 1;
     if (max_pairs > 0) {
         int k = atomic_inc(pair_count);
@@ -108,6 +113,59 @@ int seg_near_box(const ViewQuery *q, float4 lo, float4 hi, float r) {
     return t0 <= t1 + 1e-5f * (1.0f + q->len);
 }
 
+/* The query's line as the 6-D hyperplane w = (m, u) in the Plücker frame (its moment m
+ * taken there); returns the plane test's threshold (lsg_threshold). */
+float query_plane(const ViewQuery *q, float4 pl_centre, float pl_inv_scale, float radius,
+                  float max_m1, float *w) {
+    float4 m = cross3((q->a - pl_centre) * pl_inv_scale, q->u);
+    w[0] = m.x; w[1] = m.y; w[2] = m.z;
+    w[3] = q->u.x; w[4] = q->u.y; w[5] = q->u.z;
+    return lsg_threshold(radius, pl_inv_scale, m, max_m1);
+}
+
+/* P . w for a stored Plücker point: +-d' sin(theta) of the two lines */
+float plane_side(float8 P, const float *w) {
+    return P.s0 * w[0] + P.s1 * w[1] + P.s2 * w[2] + P.s3 * w[3] + P.s4 * w[4] + P.s5 * w[5];
+}
+
+/* Does the walk enter node g: its 6-D box meets the slab |P . w| <= thr and the query
+ * segment passes within r of its segments' 3-D box? */
+int node_visited(__global const LineNode *nodes, __global const float4 *boxes, int g,
+                 const float *w, float thr, const ViewQuery *q, float r) {
+    return node_near(&nodes[g], w, thr) && seg_near_box(q, boxes[2 * g], boxes[2 * g + 1], r);
+}
+
+/* The node after g's subtree in depth-first order (climb while g is the last of its 8
+ * siblings, then its next sibling); 0 when the walk is over. */
+int next_node(int g) {
+    while (g != 0 && (g & 7) == 0) g = (g - 1) >> 3;
+    return g == 0 ? 0 : g + 1;
+}
+
+/* The stackless depth-first walk of the perfect 8-ary tree (children 8g+1..8g+8, parent
+ * (g-1)/8): from node *at (0 to start), the next leaf it enters (its index among the
+ * leaves), or -1 when the walk is over; *at is left where the walk resumes. */
+int walk_to_leaf(__global const LineNode *nodes, __global const float4 *boxes,
+                 int first_leaf, int *at, const float *w, float thr, const ViewQuery *q,
+                 float r) {
+    int g = *at;
+    while (g >= 0) {
+        if (node_visited(nodes, boxes, g, w, thr, q, r)) {
+            if (g < first_leaf) {
+                g = 8 * g + 1;                        /* descend to the first child */
+                continue;
+            }
+            int next = next_node(g);
+            *at = next == 0 ? -1 : next;
+            return g - first_leaf;
+        }
+        g = next_node(g);
+        if (g == 0) break;
+    }
+    *at = -1;
+    return -1;
+}
+
 __kernel void lsg_gather(__global const LineNode *nodes, __global const float4 *boxes,
                          __global const int2 *leaf_ranges,
                          int first_leaf, __global const LsgLine *lines,
@@ -132,41 +190,98 @@ __kernel void lsg_gather(__global const LineNode *nodes, __global const float4 *
             /* the reference: every pair, no culling */
             cnt.z = num_lines;
             for (int i = 0; i < num_lines; ++i)
-                acc += test_pair(&lines[i], line_ids[i], &q, radius, min_sin, kappa, g, &cnt,
+                acc += test_pair(lines[i], line_ids[i], &q, radius, min_sin, kappa, g, &cnt,
                                  pairs, pair_count, max_pairs);
         } else {
-            /* the view line as a hyperplane in the Plücker frame: w = (m_v, u_v) */
-            float4 mv = cross3((q.a - pl_centre) * pl_inv_scale, q.u);
-            float w[6] = {mv.x, mv.y, mv.z, q.u.x, q.u.y, q.u.z};
-            float thr = lsg_threshold(radius, pl_inv_scale, mv, max_m1);
-            /* stackless depth-first walk: children 8g+1..8g+8, parent (g-1)/8 */
-            int gnode = 0;
-            while (1) {
-                if (node_near(&nodes[gnode], w, thr)
-                    && seg_near_box(&q, boxes[2 * gnode], boxes[2 * gnode + 1], radius)) {
-                    if (gnode < first_leaf) {
-                        gnode = 8 * gnode + 1;        /* descend to the first child */
-                        continue;
-                    }
-                    int2 rg = leaf_ranges[gnode - first_leaf];
-                    cnt.z += rg.y - rg.x;         /* points the hierarchy did not cull */
-                    for (int i = rg.x; i < rg.y; ++i) {
-                        float8 P = points[i];
-                        float side = P.s0 * w[0] + P.s1 * w[1] + P.s2 * w[2]  /* +-d' sin theta */
-                                   + P.s3 * w[3] + P.s4 * w[4] + P.s5 * w[5];
-                        if (fabs(side) > thr) continue;
-                        acc += test_pair(&lines[i], line_ids[i], &q, radius, min_sin, kappa, g,
-                                         &cnt, pairs, pair_count, max_pairs);
-                    }
+            float w[6];
+            float thr = query_plane(&q, pl_centre, pl_inv_scale, radius, max_m1, w);
+            int at = 0, leaf;
+            while ((leaf = walk_to_leaf(nodes, boxes, first_leaf, &at, w, thr, &q, radius)) >= 0) {
+                int2 rg = leaf_ranges[leaf];
+                cnt.z += rg.y - rg.x;             /* points the hierarchy did not cull */
+                for (int i = rg.x; i < rg.y; ++i) {
+                    if (fabs(plane_side(points[i], w)) > thr) continue;
+                    acc += test_pair(lines[i], line_ids[i], &q, radius, min_sin, kappa, g,
+                                     &cnt, pairs, pair_count, max_pairs);
                 }
-                /* next node: climb while this is the last of its 8 siblings */
-                while (gnode != 0 && (gnode & 7) == 0) gnode = (gnode - 1) >> 3;
-                if (gnode == 0) break;
-                gnode += 1;
             }
         }
         acc *= medium->sigma_s * (views[vi].weight * scale);
     }
     out[vi] += acc;
     counts[vi] += cnt;
+}
+
+/* lsg_scatter: the same pairs and estimates formed from the lighting side (a Gatherer
+ * with queries = "lights", clscatter/estimators/line_gather.py). The perfect 8-ary tree
+ * is built over the VIEW segments' Plücker points (once per set of view segments: every
+ * pass and every light move reuses it) and one work-item per lighting segment walks it
+ * with its own line as the hyperplane w = (m_l, u_l): the side relation is symmetric, so
+ * the culling is the same test with the roles swapped. views[i] is the view segment at
+ * tree position i (its record as lsg_gather reads it, so load_query gives the same
+ * floats) and view_ids[i] its index. Each valid pair's estimate (test_pair, as
+ * lsg_gather forms it) times the view segment's factor sigma_s (weight scale) goes into
+ * that view's exact fixed-point sum at tree position i (fixed_sum.h, in units of
+ * 1 / fixed_scale, cleared by the host before a chunk; lsg_scatter_finish adds the sums
+ * into out[]), and the
+ * view's valid-pair count (counts[view].y) is raised atomically; the lighting segment's
+ * own (tests, valid pairs, points in the visited leaves, 0) go to light_counts. */
+__kernel void lsg_scatter(__global const LineNode *nodes, __global const float4 *boxes,
+                          __global const int2 *leaf_ranges, int first_leaf,
+                          __global const ViewSegment *views, __global const float8 *points,
+                          __global const int *view_ids, float max_m1,
+                          __global const LsgLine *lights, __global const int *light_ids,
+                          int light_offset, int num_lights, float scale,
+                          float4 pl_centre, float pl_inv_scale, float radius, float min_sin,
+                          __global const Medium *medium, float fixed_scale,
+                          volatile __global uint *acc, volatile __global int *counts,
+                          __global int4 *light_counts,
+                          __global int2 *pairs, volatile __global int *pair_count, int max_pairs) {
+    int li = light_offset + get_global_id(0);
+    if (li >= num_lights) return;
+    LsgLine L = lights[li];
+    ViewQuery q;                                   /* the lighting segment walks the tree */
+    q.a = L.a;
+    q.a.w = 0.0f;
+    q.u = L.u;
+    q.len = L.a.w;
+    q.index = li;
+    int4 cnt = (int4)(0, 0, 0, 0);
+    if (q.len > 0.0f) {
+        float4 kappa = medium->kappa, sigma_s = medium->sigma_s;
+        float g = medium->g;
+        float w[6];
+        float thr = query_plane(&q, pl_centre, pl_inv_scale, radius, max_m1, w);
+        int at = 0, leaf;
+        while ((leaf = walk_to_leaf(nodes, boxes, first_leaf, &at, w, thr, &q, radius)) >= 0) {
+            int2 rg = leaf_ranges[leaf];
+            cnt.z += rg.y - rg.x;
+            for (int i = rg.x; i < rg.y; ++i) {
+                if (fabs(plane_side(points[i], w)) > thr) continue;
+                ViewQuery v;
+                if (!load_query(views, i, &v)) continue;
+                v.index = view_ids[i];
+                int before = cnt.y;
+                float4 e = test_pair(L, light_ids[li], &v, radius, min_sin, kappa, g, &cnt,
+                                     pairs, pair_count, max_pairs);
+                if (cnt.y == before) continue;
+                atomic_inc(&counts[4 * v.index + 1]);
+                e *= sigma_s * (views[i].weight * scale) * fixed_scale;
+                fixed_add(acc, 3 * i, e.x);
+                fixed_add(acc, 3 * i + 1, e.y);
+                fixed_add(acc, 3 * i + 2, e.z);
+            }
+        }
+    }
+    light_counts[li] = cnt;
+}
+
+/* out[view_ids[i]] += lsg_scatter's sum at tree position i (divided by fixed_scale:
+ * times inv_scale). */
+__kernel void lsg_scatter_finish(__global const uint *acc, __global const int *view_ids,
+                                 int num_views, float inv_scale, __global float4 *out) {
+    int i = get_global_id(0);
+    if (i >= num_views) return;
+    out[view_ids[i]] += (float4)(fixed_read(acc, 3 * i), fixed_read(acc, 3 * i + 1),
+                                 fixed_read(acc, 3 * i + 2), 0.0f) * inv_scale;
 }

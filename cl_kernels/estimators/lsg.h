@@ -87,10 +87,11 @@ float4 exp_segment_integral(float4 e0, float4 x, float D) {
 }
 
 /* The estimate of one pair (see the top of this file) without sigma_s and the view
- * segment's weight: p Phi int_chord exp(-kappa (s + t(s))) ds / (pi r^2). */
-float4 lsg_pair(__global const LsgLine *L, float4 va, float4 vu, float vlen,
+ * segment's weight: p Phi int_chord exp(-kappa (s + t(s))) ds / (pi r^2), for the
+ * lighting segment L = (a (w: length), u, flux) of LsgLine. */
+float4 lsg_pair(LsgLine L, float4 va, float4 vu, float vlen,
                 float r, float min_sin, float4 kappa, float g) {
-    float4 la = L->a, lu = L->u;
+    float4 la = L.a, lu = L.u;
     float llen = la.w;
     la.w = 0.0f;
     float4 w0 = la - va;
@@ -127,7 +128,7 @@ float4 lsg_pair(__global const LsgLine *L, float4 va, float4 vu, float vlen,
     float4 e0 = kappa * (s_lo + t_lo);
     float4 x = kappa * ((1.0f + cphi) * D);
     float ph = hg_phase(-cphi, g);            /* light direction vs towards the camera */
-    return L->flux * exp_segment_integral(e0, x, D) * (ph / (PI_F * r * r));
+    return L.flux * exp_segment_integral(e0, x, D) * (ph / (PI_F * r * r));
 }
 
 /* The plane-query threshold in the Plücker frame: r' = r / scale, widened for float32

@@ -3,7 +3,10 @@ estimator behind ``lsg`` and behind the voxel pipeline's light beyond its grid.
 
 Lighting segments are clipped to the region the view segments span, turned into Plücker
 points in a perfect 8-ary tree (:mod:`.line_tree`), and every view segment's plane query
-gathers the pairs within the radius on the device (``cl_kernels/lsg.cl``)."""
+gathers the pairs within the radius on the device (``cl_kernels/lsg.cl``), as in the
+paper; or, the roles swapped, the view segments are the tree (built once and kept over
+passes and light moves) and every lighting segment's plane query adds its pairs to the
+view segments it meets (:class:`Gatherer`'s ``queries``)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -15,6 +18,7 @@ from ..geometry import slab_interval
 from ..io.stats import Timer, progress
 from ..transport import primitives as prim
 from ..transport.view_paths import DeviceSegments
+from .fixed_sum import fixed_scale
 from .line_tree import (
     LINE_NODE,
     LineTree,
@@ -43,6 +47,12 @@ structs.register_struct("lsg.h", "LsgLine", LSG_LINE)
 # measured working set of every chunk is reported as lsg_chunk_bytes_max.
 BYTES_PER_SEGMENT = 512
 
+# Bytes one view segment costs in a kept view tree (queries from the lighting side): its
+# record (64), Plücker point (32), index (4) and fixed-point sums (24) on the device, a host
+# copy of the first three, and the build's float64 ends and boxes and per-level arrays
+# (rows of 9 floats twice, key, permutation: about 100) -- about 330.
+BYTES_PER_VIEW = 336
+
 # Weight of where a lighting segment starts (normalised frame, in [-1, 1]) against its
 # Plücker coordinates when the line tree chooses its splits (line_tree.build_linetree's
 # split_extra). With a few thousand segments a tree has too few levels to split six
@@ -55,6 +65,15 @@ SPATIAL_SPLIT = 8.0
 # walk over internal nodes, so leaves of tens of points are faster than leaves of a few
 # (tools/bench_lsg_gather.py).
 LEAF_SIZE = 16
+
+
+# Which side of the pairs walks a tree (Gatherer's ``queries``): "views", a tree over each
+# chunk's lighting segments and one query per view segment (the paper's way); "lights", a
+# tree over the view segments, built once and kept (every pass, chunk and light move
+# reuses it), and one query per lighting segment, which adds each pair to its view
+# segment's sum atomically. The two find the same pairs; on a CPU device the pairs' own
+# cost dominates both, and "lights" pays for its atomics (tools/bench_lsg_gather.py).
+QUERIES = ("views", "lights")
 
 
 def sample_groups(views: np.ndarray, groups: int, spp: int) -> np.ndarray:
@@ -144,16 +163,25 @@ def continue_across_faces(segs: np.ndarray, medium: np.ndarray, radius: float) -
     return out
 
 
+def clip_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa
+               ) -> tuple[np.ndarray, ...]:
+    """Lighting segments clipped to the view segments' box grown by ``radius`` (no pair
+    closer than r lies outside it): :func:`clip_segments`' ``(ids, a, u, length, flux)``."""
+    margin = radius * 1.001 + 1e-5
+    return clip_segments(segs, np.asarray(view_lo) - margin, np.asarray(view_hi) + margin,
+                         kappa)
+
+
 def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
                   leaf_size: int = LEAF_SIZE,
                   frame: PluckerFrame | None = None,
-                  spatial_split: float = SPATIAL_SPLIT) -> PreparedLines:
-    """Clip lighting segments to the view segments' box grown by ``radius`` (no pair closer
-    than r lies outside it), form canonical Plücker points and build the 8-ary tree (its
-    splits steered by where the segments start, times ``spatial_split``)."""
-    margin = radius * 1.001 + 1e-5
-    ids, a, u, length, flux = clip_segments(segs, np.asarray(view_lo) - margin,
-                                            np.asarray(view_hi) + margin, kappa)
+                  spatial_split: float = SPATIAL_SPLIT,
+                  clipped: tuple[np.ndarray, ...] | None = None) -> PreparedLines:
+    """Clip lighting segments (:func:`clip_lines`; ``clipped``: that done already), form
+    canonical Plücker points and build the 8-ary tree (its splits steered by where the
+    segments start, times ``spatial_split``)."""
+    ids, a, u, length, flux = (clipped if clipped is not None
+                               else clip_lines(segs, view_lo, view_hi, radius, kappa))
     ends = a + length[:, None] * u
     if frame is None:
         frame = (PluckerFrame.for_box(np.minimum(a.min(axis=0), ends.min(axis=0)),
@@ -180,6 +208,68 @@ def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
                  + tree.nbytes + boxes.nbytes)
     return PreparedLines(lines, points, ids[o].astype(np.int32), tree, boxes, frame, max_m1,
                          nbytes)
+
+
+@dataclass
+class ViewTree:
+    """View segments in the order of a line tree over their Plücker points, on the device:
+    what a query per lighting segment walks (``lsg_scatter``). ``bufs``: the view records
+    in tree order (``views``), their Plücker points, their indices (``ids``), the tree's
+    nodes, 3-D boxes and leaf ranges, and the fixed-point sums (``acc``, 3 per view)."""
+
+    tree: LineTree
+    frame: PluckerFrame
+    max_m1: float
+    count: int
+    weight_max: float          # the largest weight of a view segment in it (any channel)
+    bufs: dict
+    nbytes: int
+
+    def release(self, engine) -> None:
+        engine.free(*self.bufs.values())
+        self.bufs = {}
+
+
+def build_view_tree(engine: Engine, views: np.ndarray, idx: np.ndarray,
+                    leaf_size: int = LEAF_SIZE, spatial_split: float = SPATIAL_SPLIT) -> ViewTree:
+    """The :class:`ViewTree` of the view segments ``views[idx]`` (those of length 0 left
+    out); its splits are steered by the segments' midpoints, times ``spatial_split``."""
+    v = views[np.asarray(idx, np.int64)]
+    a = v["a"][:, :3].astype(np.float64)
+    b = v["b"][:, :3].astype(np.float64)
+    length = np.linalg.norm(b - a, axis=1)
+    keep = np.flatnonzero(length > 0)
+    v, a, b, length = v[keep], a[keep], b[keep], length[keep]
+    ids = np.asarray(idx, np.int64)[keep]
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    frame = (PluckerFrame.for_box(lo.min(axis=0), hi.max(axis=0)) if len(a)
+             else PluckerFrame.for_box(np.zeros(3), np.zeros(3)))
+    u32 = ((b - a) / np.maximum(length, 1e-300)[:, None]).astype(np.float32)
+    pts = plucker(a, u32.astype(np.float64), frame).astype(np.float32)
+    pts[:, :3] = u32
+    extra = (0.5 * (a + b) - frame.centre) / frame.scale * spatial_split if spatial_split > 0 \
+        else None
+    tree = build_linetree(pts * canonical_signs(u32)[:, None], leaf_size, extra)
+    o = tree.order
+    points = np.zeros((len(o), 8), np.float32)
+    points[:, :6] = pts[o]
+    boxes = node_boxes(tree, lo[o].T, hi[o].T)
+    n = len(o)
+    host = {"views": v[o], "points": points, "ids": ids[o].astype(np.int32),
+            "nodes": tree.nodes, "boxes": boxes, "ranges": tree.leaf_ranges}
+    bufs = {k: engine.to_device(x if len(x) else np.zeros(1, x.dtype)) for k, x in host.items()}
+    bufs["acc"] = engine.zeros(24 * max(n, 1))
+    max_m1 = float(np.abs(pts[:, 3:]).sum(axis=1).max()) if n else 0.0
+    w_max = float(np.max(v["weight"][:, :3])) if n else 0.0
+    return ViewTree(tree, frame, max_m1, n, max(w_max, 0.0), bufs,
+                    int(sum(x.nbytes for x in host.values()) + 24 * n))
+
+
+def phase_max(g: float) -> float:
+    """The largest value of the Henyey-Greenstein phase function with parameter ``g``:
+    ``(1 + |g|) / (4 pi (1 - |g|)^2)`` (forward for g > 0, backward for g < 0)."""
+    ag = min(abs(float(g)), 1.0 - 1e-4)
+    return (1.0 + ag) / (4.0 * np.pi * (1.0 - ag) ** 2)
 
 
 @dataclass
@@ -214,6 +304,16 @@ class Gatherer:
     :meth:`select` restricts the following :meth:`add` calls to a group of each pixel's
     camera samples (their estimate scaled to stand for the whole pixel).
 
+    ``queries`` (:data:`QUERIES`) picks the side that walks a tree in each :meth:`add`:
+    ``views`` builds the tree over the chunk's lighting segments and walks it once per
+    view segment (``lsg_gather``); ``lights`` walks a tree over the view segments
+    (:class:`ViewTree`, built at the first use and kept; with ``derived``, a
+    :meth:`~clscatter.transport.view_paths.DeviceSegments.derived` of the same view
+    segments, kept as long as they are) once per lighting segment (``lsg_scatter``); the
+    two find the same pairs and the same estimate (to float rounding: the lighting side's
+    sums are exact fixed-point ones). :attr:`last_queries` says which the last
+    :meth:`add` took.
+
     Per view segment, the estimate and the work counters (tests, valid pairs, leaf points)
     accumulate on the device; an :meth:`add` reads back the counters' totals only, and
     :meth:`image` sums the estimate into pixels there. The host needs the view segments
@@ -225,7 +325,11 @@ class Gatherer:
                  min_sin: float = 1e-6, leaf_size: int = LEAF_SIZE, per_launch: int = 65536,
                  record_pairs: int = 0, show_progress: bool = False, clip: bool = True,
                  frame: PluckerFrame | None = None, views_buf=None, region: int = 0,
-                 spatial_split: float = SPATIAL_SPLIT):
+                 spatial_split: float = SPATIAL_SPLIT, queries: str = "views",
+                 derived=None):
+        if queries not in QUERIES:
+            raise ValueError(f"queries must be one of {QUERIES}, not {queries!r}")
+        self.queries = queries
         self.eng = engine
         self.region = int(region)
         self.views = views
@@ -255,6 +359,11 @@ class Gatherer:
         self.pair_count = engine.empty(4)
         self._groups: dict[tuple[int, int, int], tuple[object, int, float]] = {}
         self._group: tuple[object, int, float] | None = None    # None: every view segment
+        self._group_key: tuple[int, int, int] | None = None
+        self._group_idx: dict[tuple[int, int, int], np.ndarray] = {}
+        self._view_trees: dict = {}          # group key (None: all) -> ViewTree
+        self._derived = derived              # keeps view trees beyond this gatherer
+        self.last_queries = ""               # the side the last add() queried from
 
     @property
     def active(self) -> int:
@@ -270,26 +379,42 @@ class Gatherer:
         group): every view segment, as before. The index lists are built once per group."""
         groups, spp = max(1, int(groups)), max(1, int(spp))
         if group is None or groups <= 1:
-            self._group = None
+            self._group = self._group_key = None
             return
         key = (int(group) % groups, groups, spp)
         if key not in self._groups:
             idx = np.flatnonzero(sample_groups(self.views, groups, spp) == key[0]).astype(np.int32)
             buf = self.eng.to_device(idx if len(idx) else np.zeros(1, np.int32))
             self._groups[key] = (buf, len(idx), spp / max(group_samples(key[0], groups, spp), 1))
-        self._group = self._groups[key]
+            self._group_idx[key] = idx
+        self._group, self._group_key = self._groups[key], key
 
     # ---- one chunk ----
     def add(self, segs: np.ndarray, bruteforce: bool = False) -> ChunkResult:
-        eng = self.eng
+        """Gather the lighting segments ``segs`` into every active view segment's estimate,
+        from the side ``queries`` says (``bruteforce``: every pair, a query per view segment
+        over a one-leaf tree)."""
         t_build, t_gather = Timer(), Timer()
+        kappa = self.medium["kappa"][0]
+        with t_build:
+            segs = continue_across_faces(segs, self.medium, self.radius)
+            clipped = clip_lines(segs, self.lo, self.hi, self.radius, kappa)
+        queries = "views" if bruteforce else self.queries
+        self.last_queries = queries
+        if queries == "lights" and self.active:
+            return self._add_from_lights(segs, clipped, t_build, t_gather)
+        return self._add_from_views(segs, clipped, bruteforce, t_build, t_gather)
+
+    def _add_from_views(self, segs, clipped, bruteforce: bool, t_build: Timer,
+                        t_gather: Timer) -> ChunkResult:
+        """A tree over the lighting segments, a query per view segment (``lsg_gather``)."""
+        eng = self.eng
         kappa = self.medium["kappa"][0]
         # bruteforce: a one-leaf tree (the lines in input order, clipped like the tree's)
         leaf = 1 << 62 if bruteforce else self.leaf_size
         with t_build:
-            segs = continue_across_faces(segs, self.medium, self.radius)
             prep = prepare_lines(segs, self.lo, self.hi, self.radius, kappa, leaf, self.frame,
-                                 self.spatial_split)
+                                 self.spatial_split, clipped)
         with t_gather:
             eng.note_host(prep.nbytes)
             lines_buf = eng.to_device(prep.lines)
@@ -303,7 +428,7 @@ class Gatherer:
                          + prep.tree.leaf_ranges.nbytes)
             # the host arrays that stay alive beside the new device buffers
             eng.note_host(prep.nbytes - prep.lines.nbytes - prep.points.nbytes)
-            eng.cl.enqueue_fill_buffer(eng.queue, self.pair_count, np.zeros(1, np.int32), 0, 4)
+            self._clear_pair_count()
             fr = prep.frame
             centre = structs.vec4(fr.centre)
             tests = valid = leaf = 0
@@ -330,15 +455,105 @@ class Gatherer:
                 totals = prim.int_totals(eng, self.counts_buf, self.n, 4)
                 tests, valid, leaf = (int(x) for x in (totals - self._totals)[:3])
                 self._totals = totals
-            pairs = None
-            if self.record:
-                got = int(eng.read(self.pair_count, 1, np.int32)[0])
-                if got > self.record:
-                    raise RuntimeError(f"{got} valid pairs exceed record_pairs={self.record}")
-                pairs = eng.read(self.pairs_buf, (got, 2), np.int32)
+            pairs = self._recorded_pairs()
             eng.free(lines_buf, points_buf, ids_buf, nodes_buf, boxes_buf, ranges_buf)
         return ChunkResult(tests, valid, len(prep.lines), int(prep.nbytes + dev_bytes),
                            t_build.seconds, t_gather.seconds, pairs, leaf)
+
+    def _add_from_lights(self, segs, clipped, t_build: Timer, t_gather: Timer) -> ChunkResult:
+        """A tree over the view segments (built at the first use for this group of camera
+        samples, then kept), a query per lighting segment (``lsg_scatter``)."""
+        eng = self.eng
+        ids, a, u, length, flux = clipped
+        with t_build:
+            vt = self._view_tree()
+        n = len(ids)
+        lines = np.zeros(n, LSG_LINE)
+        lines["a"][:, :3] = a
+        lines["a"][:, 3] = length
+        lines["u"][:, :3] = u.astype(np.float32)
+        lines["flux"][:, :3] = flux
+        nbytes = int(segs.nbytes + 80 * len(segs) + 2 * lines.nbytes + 24 * n)
+        tests = valid = leaf = 0
+        with t_gather:
+            eng.note_host(nbytes)
+            _, _, scale = self._group or (None, self.n, 1.0)
+            if n and vt.count:
+                sigma_s = float(np.max(self.medium["sigma_s"][0][:3]))
+                g = float(self.medium["g"][0])
+                bound = (float(np.sum(flux.max(axis=1) * length)) * phase_max(g)
+                         / (np.pi * self.radius ** 2) * sigma_s * vt.weight_max * scale)
+                fixed = fixed_scale(bound)
+                bufs = [eng.to_device(lines), eng.to_device(ids.astype(np.int32)),
+                        eng.zeros(16 * n)]
+                lines_buf, ids_buf, counts_buf = bufs
+                self._clear_pair_count()
+                eng.cl.enqueue_fill_buffer(eng.queue, vt.bufs["acc"], np.zeros(1, np.uint32),
+                                           0, 24 * max(vt.count, 1))
+                fr = vt.frame
+                tb = vt.bufs
+                try:
+                    with progress(n, "lsg gather", self.show_progress) as bar:
+                        for start in range(0, n, self.per_launch):
+                            m = min(self.per_launch, n - start)
+                            eng.call("lsg", "lsg_scatter", m, nodes=tb["nodes"],
+                                     boxes=tb["boxes"], leaf_ranges=tb["ranges"],
+                                     first_leaf=vt.tree.first_leaf, views=tb["views"],
+                                     points=tb["points"], view_ids=tb["ids"],
+                                     max_m1=vt.max_m1, lights=lines_buf, light_ids=ids_buf,
+                                     light_offset=start, num_lights=n, scale=scale,
+                                     pl_centre=structs.vec4(fr.centre),
+                                     pl_inv_scale=1.0 / fr.scale, radius=self.radius,
+                                     min_sin=self.min_sin, medium=self.medium_buf,
+                                     fixed_scale=fixed, acc=tb["acc"], counts=self.counts_buf,
+                                     light_counts=counts_buf, pairs=self.pairs_buf,
+                                     pair_count=self.pair_count, max_pairs=self.record)
+                            eng.finish()
+                            bar.update(m)
+                    eng.call("lsg", "lsg_scatter_finish", vt.count, acc=tb["acc"],
+                             view_ids=tb["ids"], num_views=vt.count, inv_scale=1.0 / fixed,
+                             out=self.out_buf)
+                    tests, valid, leaf = (int(x) for x in prim.int_totals(eng, counts_buf, n, 4)[:3])
+                    self._totals[1] += valid        # the views' valid counts rose by as many
+                finally:
+                    eng.free(*bufs)
+            pairs = self._recorded_pairs()
+        return ChunkResult(tests, valid, n, nbytes, t_build.seconds, t_gather.seconds, pairs,
+                           leaf)
+
+    def _view_tree(self) -> ViewTree:
+        """The :class:`ViewTree` of the active view segments of this gatherer's region:
+        built at its first use, kept by ``derived`` when given (it outlives the gatherer:
+        a later render over the same view segments, e.g. after a light move, reuses it)."""
+        key = self._group_key
+        if key not in self._view_trees:
+            def build() -> tuple[list, ViewTree]:
+                idx = self._group_idx[key] if key is not None else np.arange(self.n)
+                regions = np.rint(self.views["a"][idx, 3]).astype(np.int64)
+                vt = build_view_tree(self.eng, self.views, idx[regions == self.region],
+                                     self.leaf_size, self.spatial_split)
+                self.eng.note_host(vt.nbytes)
+                return list(vt.bufs.values()), vt
+            if self._derived is None:
+                self._view_trees[key] = build()[1]
+            else:
+                name = (f"lsg_view_tree region={self.region} group={key} "
+                        f"leaf={self.leaf_size} split={self.spatial_split:g}")
+                self._view_trees[key] = self._derived(name, build)
+        return self._view_trees[key]
+
+    def _clear_pair_count(self) -> None:
+        self.eng.cl.enqueue_fill_buffer(self.eng.queue, self.pair_count, np.zeros(1, np.int32),
+                                        0, 4)
+
+    def _recorded_pairs(self) -> np.ndarray | None:
+        """The valid pairs the last launch recorded (``record_pairs > 0``), else None."""
+        if not self.record:
+            return None
+        got = int(self.eng.read(self.pair_count, 1, np.int32)[0])
+        if got > self.record:
+            raise RuntimeError(f"{got} valid pairs exceed record_pairs={self.record}")
+        return self.eng.read(self.pairs_buf, (got, 2), np.int32)
 
     def reset(self) -> None:
         """Zero the accumulator and the per-view counters."""
@@ -369,6 +584,10 @@ class Gatherer:
                       self.out_buf, self.counts_buf, self.pairs_buf, self.pair_count,
                       *(g[0] for g in self._groups.values()))
         self._groups.clear()
+        if self._derived is None:
+            for vt in self._view_trees.values():
+                vt.release(self.eng)
+        self._view_trees.clear()
 
 
 def scene_materials(scene) -> list:

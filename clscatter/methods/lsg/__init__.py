@@ -11,7 +11,9 @@ import numpy as np
 from ...device import structs
 from ...estimators.line_gather import (
     BYTES_PER_SEGMENT,
+    BYTES_PER_VIEW,
     LEAF_SIZE,
+    QUERIES,
     SPATIAL_SPLIT,
     Gatherer,
     RegionGatherer,
@@ -233,6 +235,11 @@ class LineSpaceGathering(Method):
         Param("leaf_size", LEAF_SIZE, "least points per tree leaf (at most 8x)", lo=1),
         Param("spatial_split", SPATIAL_SPLIT, "weight of where lighting segments start against "
               "their Plücker coordinates when the tree splits (0: Plücker coordinates only)", lo=0),
+        Param("queries", "views", "which side walks the line tree: 'views' (a tree over each "
+              "chunk's lighting segments, a query per view segment, as in the paper) or "
+              "'lights' (a tree over the view segments, built once and kept while the view "
+              "paths are, a query per lighting segment); the same pairs either way",
+              choices=QUERIES),
         Param("min_sin", 1e-6, "sin(theta) below this counts as parallel", lo=0, hi=1, hi_open=True),
         Param("segments_per_launch", 65536, "view segments per kernel launch (progress)", lo=1),
         Param("view_samples", 1, "camera samples of each pixel a pass gathers, the pixel's samples "
@@ -261,12 +268,14 @@ class LineSpaceGathering(Method):
     @classmethod
     def estimate(cls, scene, params):
         """Working set: one chunk of lighting segments (bounded by ``max_bytes``; ~3
-        segments per ray at BYTES_PER_SEGMENT each) plus 80 bytes per view segment; work:
+        segments per ray at BYTES_PER_SEGMENT each) plus 80 bytes per view segment, and
+        BYTES_PER_VIEW more for the tree over them with ``queries = "lights"``; work:
         the segments traced over all passes times :data:`PAIRS_PER_SEGMENT`."""
         views = 2.0 * camera_samples(scene)
         rays = float(params["light_rays"])
         chunk = min(float(params["max_bytes"]), rays * 3 * BYTES_PER_SEGMENT)
-        return [Estimate("lsg", "render.lsg.light_rays", chunk + views * 80,
+        per_view = 80 + (BYTES_PER_VIEW if params["queries"] == "lights" else 0)
+        return [Estimate("lsg", "render.lsg.light_rays", chunk + views * per_view,
                          rays * 3 * params["passes"] * PAIRS_PER_SEGMENT + views * 200,
                          "pair tests (order of magnitude)")]
 
@@ -374,21 +383,23 @@ class LineSpaceGathering(Method):
         medium's (``dev``), and one per scattering dielectric over ``inside``, each with
         that region's coefficients."""
         p = self.params
-        def make(v, medium, buf, region):
+        def make(v, medium, segs, region):
+            buf = segs.buf
             return Gatherer(ps.engine, v, medium, radius, p["min_sin"], p["leaf_size"],
                             p["segments_per_launch"], show_progress=show_progress,
-                            views_buf=buf, region=region, spatial_split=p["spatial_split"])
+                            views_buf=buf, region=region, spatial_split=p["spatial_split"],
+                            queries=p["queries"], derived=segs.derived)
         if inside is None:
-            return make(views, ps.medium, dev.buf, 0)
+            return make(views, ps.medium, dev, 0)
         parts = []
         try:
             if dev is not None and len(views):
-                parts.append((make(views, ps.medium, dev.buf, 0), dev))
+                parts.append((make(views, ps.medium, dev, 0), dev))
             if inside.count:
                 host = ps.engine.read(inside.buf, inside.count, structs.VIEW_SEGMENT)
                 for region, medium in region_media(ps):
                     if np.any(structs.segment_regions(host) == region):
-                        parts.append((make(host, medium, inside.buf, region), inside))
+                        parts.append((make(host, medium, inside, region), inside))
         except BaseException:
             for g, _ in parts:
                 g.release()
@@ -432,7 +443,8 @@ class LineSpaceGathering(Method):
             p = self.params
             gat = Gatherer(ps.engine, views, ps.medium, gat.radius, p["min_sin"],
                            p["leaf_size"], p["segments_per_launch"],
-                           show_progress=gat.show_progress, spatial_split=p["spatial_split"])
+                           show_progress=gat.show_progress, spatial_split=p["spatial_split"],
+                           queries=p["queries"])
         try:
             return self._pilot(ps, gat, views, prog, pilot, stride)
         finally:
