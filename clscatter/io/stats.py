@@ -10,8 +10,8 @@ from typing import Any, Iterator
 
 
 class Timer:
-    """Wall-clock seconds of a ``with`` block (``.seconds`` after it ends): the one way a
-    stage is timed (:meth:`Stats.stage` uses it too)."""
+    """Wall-clock seconds of ``with`` blocks (``.seconds``: the total of the blocks that
+    ended): the one way a stage is timed (:meth:`Stats.stage` uses it too)."""
 
     def __init__(self) -> None:
         self.seconds = 0.0
@@ -22,7 +22,7 @@ class Timer:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self.seconds = time.perf_counter() - self._t
+        self.seconds += time.perf_counter() - self._t
 
 
 class Stats:
