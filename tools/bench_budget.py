@@ -20,7 +20,7 @@ blur parts) and the relMSE against the reference. Writes bench_out/budget/bench_
 (and a copy in docs/bench/budget.json unless ``--no-copy``) and prints a markdown table.
 
     .venv/bin/python tools/bench_budget.py [--scene S.toml] [--budgets 5 20] [--out DIR]
-        [--name NAME] [--no-copy]
+        [--name NAME] [--no-copy] [--set KEY=VALUE ...]
 
 The device is the engine's choice (``$CLSCATTER_DEVICE`` picks one) and is recorded.
 """
@@ -101,6 +101,8 @@ def main() -> None:
     ap.add_argument("--no-copy", action="store_true")
     ap.add_argument("--out", type=Path, default=None, help="results folder (default bench_out/budget)")
     ap.add_argument("--name", default="budget", help="docs/bench/NAME.json to copy the results to")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                    help="a scene override for every budgeted run (not the reference)")
     args = ap.parse_args()
     global OUT
     if args.out is not None:
@@ -108,16 +110,18 @@ def main() -> None:
     OUT.mkdir(parents=True, exist_ok=True)
     scene = Path(args.scene).resolve()
     ref = reference(scene, args.reference_rays, args.reference_passes)
-    rows = [row("auto (default budget)", 10.0, run(scene, "auto_default", []), ref)]
+    sets = [x for kv in args.sets for x in ("--set", kv)]
+    rows = [row("auto (default budget)", 10.0, run(scene, "auto_default", sets), ref)]
     for b in args.budgets:
         rows.append(row(f"auto --time-budget {b:g}", b,
-                        run(scene, f"auto_{b:g}", ["--time-budget", str(b)]), ref))
+                        run(scene, f"auto_{b:g}", ["--time-budget", str(b), *sets]), ref))
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
                             capture_output=True, text=True).stdout.strip()
     record = {"scene": scene.name, "commit": commit, "device": rows[0]["device"], "machine": platform.processor() or
               platform.machine(), "cpu_count": __import__("os").cpu_count(),
               "reference": {"lsg_light_rays": args.reference_rays,
-                            "lsg_passes": args.reference_passes}, "rows": rows}
+                            "lsg_passes": args.reference_passes}, "sets": args.sets,
+              "rows": rows}
     (OUT / "bench_budget.json").write_text(json.dumps(record, indent=1))
     if not args.no_copy:
         shutil.copy(OUT / "bench_budget.json", ROOT / "docs" / "bench" / f"{args.name}.json")
