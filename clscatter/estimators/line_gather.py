@@ -71,8 +71,10 @@ LEAF_SIZE = 16
 # chunk's lighting segments and one query per view segment (the paper's way); "lights", a
 # tree over the view segments, built once and kept (every pass, chunk and light move
 # reuses it), and one query per lighting segment, which adds each pair to its view
-# segment's sum atomically. The two find the same pairs; on a CPU device the pairs' own
-# cost dominates both, and "lights" pays for its atomics (tools/bench_lsg_gather.py).
+# segment's sum atomically. The two find the same pairs. On the glass ball (CPU device)
+# "lights" tests fewer leaf points and gathers in about 0.6x the time, but its tree over
+# the view segments costs more than a pass's tree over lighting segments, and whole
+# budgeted renders came out the same (tools/bench_lsg_gather.py, tools/bench_budget.py).
 QUERIES = ("views", "lights")
 
 
