@@ -96,20 +96,9 @@ int node_near(__global const LineNode *nd, const float *w, float thr) {
  * against the box grown by r (the set of points within r of the box lies inside it) and by
  * a rounding allowance: it never culls a pair closer than r. An empty box (lo > hi) fails. */
 int seg_near_box(const ViewQuery *q, float4 lo, float4 hi, float r) {
-    float t0 = 0.0f, t1 = q->len;
-    float a[3] = {q->a.x, q->a.y, q->a.z}, u[3] = {q->u.x, q->u.y, q->u.z};
-    float l[3] = {lo.x, lo.y, lo.z}, h[3] = {hi.x, hi.y, hi.z};
-    for (int i = 0; i < 3; ++i) {
-        float e = r * 1.0001f + 1e-5f * (1.0f + fabs(l[i]) + fabs(h[i]));
-        float bl = l[i] - e, bh = h[i] + e;
-        if (fabs(u[i]) < 1e-20f) {
-            if (a[i] < bl || a[i] > bh) return 0;
-        } else {
-            float ta = (bl - a[i]) / u[i], tb = (bh - a[i]) / u[i];
-            t0 = fmax(t0, fmin(ta, tb));
-            t1 = fmin(t1, fmax(ta, tb));
-        }
-    }
+    float4 e = r * 1.0001f + 1e-5f * (1.0f + fabs(lo) + fabs(hi));
+    float t0, t1;
+    ray_box(q->a, safe_inv_dir(q->u), lo - e, hi + e, 0.0f, q->len, &t0, &t1);
     return t0 <= t1 + 1e-5f * (1.0f + q->len);
 }
 

@@ -258,21 +258,12 @@ __kernel void rm_weigh_hits(__global const DiffuseHit *hits, __global const floa
  * The sums are exact (fixed_sum.h): the result does not depend on the order the
  * work-items add in. The host picks fixed_scale so that no sum reaches 2^62. */
 
-/* Does the segment [a, b] meet the box? (slab test; a point when a == b) */
+/* Does the segment [a, b] meet the node's box? (common.h's slab test; a point when a == b) */
 int rm_seg_meets_box(float4 a, float4 b, __global const PointNode *nd) {
-    float t0 = 0.0f, t1 = 1.0f;
-    float av[3] = {a.x, a.y, a.z}, dv[3] = {b.x - a.x, b.y - a.y, b.z - a.z};
-    for (int i = 0; i < 3; ++i) {
-        float lo = nd->bmin[i], hi = nd->bmax[i];
-        if (fabs(dv[i]) < 1e-30f) {
-            if (av[i] < lo || av[i] > hi) return 0;
-        } else {
-            float ta = (lo - av[i]) / dv[i], tb = (hi - av[i]) / dv[i];
-            t0 = fmax(t0, fmin(ta, tb));
-            t1 = fmin(t1, fmax(ta, tb));
-        }
-    }
-    return t0 <= t1;
+    float4 lo = (float4)(nd->bmin[0], nd->bmin[1], nd->bmin[2], 0.0f);
+    float4 hi = (float4)(nd->bmax[0], nd->bmax[1], nd->bmax[2], 0.0f);
+    float t0, t1;
+    return ray_box(a, safe_inv_dir(b - a), lo, hi, 0.0f, 1.0f, &t0, &t1);
 }
 
 __kernel void rm_splat(__global const PointNode *nodes, int levels, int num_hits,
