@@ -115,6 +115,9 @@ def test_progressive_passes_converge(ball, method):
     one, _ = _surface(ps, paths, method, {"photons": 2000, "passes": 1, "k": 16})
     many, st = _surface(ps, paths, method, {"photons": 2000, "passes": 16, "k": 16})
     assert st[f"{method}_passes"] == 16
+    # the 15 later passes splat: their work is counted apart from the K-nearest pass's
+    assert st[f"{method}_splat_hits_tested"] > 0 and st[f"{method}_refs_tested"] > 0
+    assert f"{method}_splat_hits_tested" not in _surface(ps, paths, method, {"photons": 2000})[1]
     assert err(many) <= 0.75 * err(one), (err(one), err(many))
     s16 = surface_passes.ppm_scales(2.0 / 3.0, 16)[-1]
     assert st[f"{method}_radius_last"] == pytest.approx(st[f"{method}_radius"] * s16, rel=1e-12)

@@ -240,7 +240,10 @@ def pass_image(ps, dev, hits: np.ndarray, pieces: np.ndarray, estimator: str,
                     discs, *map_segments(pieces, estimator), radii, estimator, settings.kernel,
                     settings.k)
                 eng.finish()
-            tree_stats = {}
+            # summed over the splatted passes (the search's own counts stay those of the
+            # K-nearest pass)
+            stats.add(f"{estimator}_splat_nodes_visited", int(visited))
+            stats.add(f"{estimator}_splat_hits_tested", int(tested))
         else:
             with stats.stage(f"{estimator}_build"):
                 rmap = build_map(eng, pieces, estimator, settings)
@@ -250,17 +253,17 @@ def pass_image(ps, dev, hits: np.ndarray, pieces: np.ndarray, estimator: str,
                                                   radii=radii, out_r=out_r)
                 visited, tested = prim.int_totals(eng, w_buf, nh, 2)
             t = rmap.tree
-            tree_stats = {f"{estimator}_tree_nodes": int(t.n),
-                          f"{estimator}_tree_refs": int(t.num_refs),
-                          f"{estimator}_index_peak_bytes": int(t.peak_bytes),
-                          f"{estimator}_collapses": int(t.collapses)}
+            stats.set(**{f"{estimator}_tree_nodes": int(t.n),
+                         f"{estimator}_tree_refs": int(t.num_refs),
+                         f"{estimator}_index_peak_bytes": int(t.peak_bytes),
+                         f"{estimator}_collapses": int(t.collapses),
+                         f"{estimator}_nodes_visited": int(visited),
+                         f"{estimator}_refs_tested": int(tested)})
             eng.note_host(t.nbytes + pieces.nbytes + hits.nbytes)
         with stats.stage(f"{estimator}_estimate"):
             v_buf = eng.empty(16 * nh)
             ps.call("raymap", "rm_weigh_hits", nh, hits=dev.buf, e=e_buf, n=nh, out=v_buf)
             img = dev.accumulate(v_buf)
-        stats.set(**tree_stats, **{f"{estimator}_nodes_visited": int(visited),
-                                   f"{estimator}_refs_tested": int(tested)})
     finally:
         if rmap is not None:
             rmap.release()

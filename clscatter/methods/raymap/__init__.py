@@ -49,11 +49,14 @@ class RayMapMethod(SurfaceDensityMethod):
 
     Statistics: ``raymap_rays_stored``, ``diffuse_hits``, ``raymap_tree_nodes``,
     ``raymap_tree_refs``, ``raymap_index_peak_bytes``, ``raymap_collapses``,
-    ``raymap_nodes_visited``, ``raymap_refs_tested``; stages ``raymap_trace`` (lighting
+    ``raymap_nodes_visited``, ``raymap_refs_tested`` (those of the K-nearest pass),
+    ``raymap_splat_nodes_visited``, ``raymap_splat_hits_tested`` (summed over the later,
+    splatted passes); stages ``raymap_trace`` (lighting
     rays and diffuse hits), ``raymap_build`` (the tree's root), ``raymap_radius`` (how far
     each batch of queries refines: the K-th nearest ray end point), ``raymap_refine`` (the
     lazy refinement on the host and the tree's upload), ``raymap_estimate`` (the queries
-    on the device); per pass ``raymap_radius`` (median first radius, normalised),
+    on the device), ``raymap_splat`` (the later passes' splats and the hits' tree); per
+    pass ``raymap_radius`` (median first radius, normalised),
     ``raymap_radius_world``, ``raymap_radius_last``, ``raymap_passes``,
     ``raymap_pass_seconds``, ``raymap_stopped_by``, ``raymap_error_estimate``,
     ``raymap_sized_from`` (under a deadline: ``session``, ``calibration`` or ``none``).
