@@ -384,10 +384,9 @@ class LineSpaceGathering(Method):
         that region's coefficients."""
         p = self.params
         def make(v, medium, segs, region):
-            buf = segs.buf
             return Gatherer(ps.engine, v, medium, radius, p["min_sin"], p["leaf_size"],
                             p["segments_per_launch"], show_progress=show_progress,
-                            views_buf=buf, region=region, spatial_split=p["spatial_split"],
+                            views_buf=segs.buf, region=region, spatial_split=p["spatial_split"],
                             queries=p["queries"], derived=segs.derived)
         if inside is None:
             return make(views, ps.medium, dev, 0)
