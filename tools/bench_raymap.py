@@ -27,8 +27,24 @@ visualisation), in one process:
 Times are the minimum over ``--repeats`` runs (the machine may be shared). Writes
 bench_out/raymap/bench_raymap.json and .png and copies both to docs/bench/raymap.{json,png}.
 
+``--boundary`` runs the **equal-time boundary study** instead: the paper's analytic bias
+scenes (``tests/bias_scenes.py``; parallel rays, exact irradiance 1 on the lit faces, the
+cosine of the slope on the wave), K = 200 nearest as in the paper, both estimators swept
+over the number of rays. A free edge (the convex step), a concave corner and a surface
+with no edge (the wave under parallel rays). Queries: points along the lit face towards
+the edge (or over one period of the wave), each at 48 places along the extruded axis.
+Reported per run: seconds to build the map and answer every query (ray generation, the
+stand-in for tracing, is left out: it costs the same per ray for both, so leaving it out
+favours the photon map, which gets more rays); the RMS of E / E_exact - 1 over the
+queries within 0.02 of the edge and over those farther (noise and bias, what one pixel
+shows) and the bias alone near the edge (the mean over the extruded axis). At each
+ray-map run the photon map's errors at the same time are interpolated (log-log) along its
+sweep. Writes bench_out/raymap/boundary.json and .png, copied to
+docs/bench/raymap_boundary.{json,png}.
+
     python3 tools/bench_raymap.py [--quick] [--scene caustic_sphere] [--size 160x120]
                                   [--repeats 1] [--no-copy]
+    python3 tools/bench_raymap.py --boundary [--repeats 2] [--no-copy]
 """
 from __future__ import annotations
 
@@ -99,7 +115,11 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--ref-factor", type=int, default=8)
     ap.add_argument("--no-copy", action="store_true")
+    ap.add_argument("--boundary", action="store_true",
+                    help="the equal-time study on the analytic edge, corner and wave")
     args = ap.parse_args()
+    if args.boundary:
+        return boundary_study(max(args.repeats, 2), not args.no_copy)
     w, h = (int(v) for v in args.size.split("x"))
     d = CAUSTIC_SCENES[args.scene]()
     d["camera"]["resolution"], d["camera"]["spp"] = [w, h], 1
@@ -253,6 +273,154 @@ def main() -> None:
         shutil.copy(OUT / "bench_raymap.json", DOCS / "raymap.json")
         shutil.copy(OUT / "bench_raymap.png", DOCS / "raymap.png")
     print(f"wrote {OUT / 'bench_raymap.json'}")
+
+
+BOUNDARY_RAYS = {"raymap": [50_000, 100_000, 200_000],
+                 "photonmap": [50_000, 100_000, 200_000, 400_000, 800_000, 1_600_000]}
+NEAR = 0.02          # "near the edge": within this distance (the corners' estimation radii)
+
+
+def boundary_scenes():
+    """name -> (ray generator (n, rng), query points (P, 3), normals (P, 3), exact
+    irradiance (P,), distance to the edge (P,): inf on the wave)."""
+    import bias_scenes as bs
+    s = np.linspace(0.0005, 0.15, 60)
+    up = np.tile([0.0, 1.0, 0.0], (len(s), 1))
+    xw = np.linspace(-0.25, 0.0, 41)                      # one period: crest, trough
+    nw = np.c_[-bs.wave_dy(xw), np.ones_like(xw), np.zeros_like(xw)]
+    nw /= np.linalg.norm(nw, axis=1, keepdims=True)
+    return {
+        "free edge (convex step)": (bs.convex_corner, np.c_[-s, 0 * s, 0 * s], up,
+                                    np.ones_like(s), s),
+        "concave corner": (bs.concave_corner, np.c_[s, 0 * s, 0 * s], up, np.ones_like(s), s),
+        "no edge (wave, parallel rays)": (lambda n, rng: bs.wave(n, rng, False),
+                                          np.c_[xw, bs.wave_y(xw), 0 * xw], nw, nw[:, 1],
+                                          np.full(len(xw), np.inf)),
+    }
+
+
+def boundary_run(eng, est: str, gen, n: int, seed: int, pts, nrm, exact, dist) -> dict:
+    """One estimate of ``est`` from ``n`` rays of ``gen`` at every query point, repeated at
+    48 places along z: seconds (map + queries) and the errors named in the module doc."""
+    from bias_scenes import Z
+    from clscatter.estimators.knn_queries import RayMap
+    zs = np.linspace(-0.7 * Z, 0.7 * Z, 48)               # the sources are finite in z
+    q = np.repeat(pts, len(zs), axis=0)
+    q[:, 2] = np.tile(zs, len(pts))
+    qn = np.repeat(nrm, len(zs), axis=0)
+    o, b, d, f, on = gen(n, np.random.default_rng(seed))
+    flux = np.full((len(o), 3), f)
+    s = DensitySettings(k=200, kernel="epanechnikov", max_radius=0.2, batch=4096)
+    t = time.perf_counter()
+    if est == "photonmap":
+        rm = RayMap(eng, b[on], b[on], d[on], flux[on], s.tree, points=True, lazy=True)
+    else:
+        rm = RayMap(eng, o, b, d, flux, s.tree, lazy=True)
+    e, _ = estimate(rm, q, qn, est, s)
+    seconds = time.perf_counter() - t
+    rm.release()
+    rel = e[:, 0].reshape(len(pts), len(zs)) / exact[:, None] - 1.0
+    near = dist <= NEAR
+    out = {"seconds": seconds, "rms_far": float(np.sqrt(np.mean(rel[~near] ** 2)))}
+    if near.any():
+        out["rms_near"] = float(np.sqrt(np.mean(rel[near] ** 2)))
+        out["bias_near"] = float(np.mean(np.abs(rel[near].mean(1))))
+    return out
+
+
+def at_time(rows: list[dict], seconds: float, key: str) -> tuple[float, str]:
+    """``key`` of a sweep interpolated log-log at ``seconds``: (value, "" or the bound's
+    sign where ``seconds`` lies outside the sweep's times, the nearest end then)."""
+    t = np.log([r["seconds"] for r in rows])
+    v = np.log([r[key] for r in rows])
+    order = np.argsort(t)
+    t, v = t[order], v[order]
+    x = np.log(seconds)
+    side = "<=" if x > t[-1] else (">=" if x < t[0] else "")
+    return float(np.exp(np.interp(x, t, v))), side
+
+
+def boundary_study(repeats: int, copy_docs: bool) -> None:
+    tests = REPO / "tests"
+    if str(tests) not in sys.path:
+        sys.path.insert(0, str(tests))
+    eng = get_engine()
+    scenes = boundary_scenes()
+    gen, pts, nrm, exact, dist = next(iter(scenes.values()))
+    boundary_run(eng, "raymap", gen, 20_000, 0, pts, nrm, exact, dist)       # build the kernels
+    boundary_run(eng, "photonmap", gen, 20_000, 0, pts, nrm, exact, dist)
+    import subprocess
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
+                            capture_output=True, text=True).stdout.strip()
+    report = {"commit": commit, "device": eng.name,
+              "machine": platform.processor() or platform.machine(), "k": 200, "near": NEAR, "repeats": repeats, "scenes": {}}
+    for name, (gen, pts, nrm, exact, dist) in scenes.items():
+        sweeps = {}
+        for est, counts in BOUNDARY_RAYS.items():
+            sweeps[est] = []
+            for n in counts:
+                runs = [boundary_run(eng, est, gen, n, 100 + i, pts, nrm, exact, dist)
+                        for i in range(repeats)]
+                row = {"rays": n, "seconds": float(np.median([r["seconds"] for r in runs])),
+                       **{k: float(np.mean([r[k] for r in runs])) for k in runs[0]
+                          if k != "seconds"}}
+                sweeps[est].append(row)
+                print(f"{name}: {est} {n:,} rays {row['seconds']:.2f} s "
+                      + " ".join(f"{k} {v:.3g}" for k, v in row.items()
+                                 if k not in ("rays", "seconds")), flush=True)
+        equal = []
+        for r in sweeps["raymap"]:
+            row = {"raymap_rays": r["rays"], "seconds": r["seconds"]}
+            for key in ("rms_near", "bias_near", "rms_far"):
+                if key in r:
+                    pm, side = at_time(sweeps["photonmap"], r["seconds"], key)
+                    row[key] = {"raymap": r[key], "photonmap": pm, "photonmap_bound": side}
+            equal.append(row)
+        report["scenes"][name] = {"sweeps": sweeps, "equal_time": equal}
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / "boundary.json").write_text(json.dumps(report, indent=1))
+    plot_boundary(report, OUT / "boundary.png")
+    if copy_docs:
+        DOCS.mkdir(parents=True, exist_ok=True)
+        shutil.copy(OUT / "boundary.json", DOCS / "raymap_boundary.json")
+        shutil.copy(OUT / "boundary.png", DOCS / "raymap_boundary.png")
+    print("\n| surface | ray-map rays | seconds | RMS near the edge: ray map | photon map "
+          "| bias near the edge: ray map | photon map | RMS away from it: ray map | photon map |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name, sc in report["scenes"].items():
+        for r in sc["equal_time"]:
+            cells = []
+            for key in ("rms_near", "bias_near", "rms_far"):
+                if key in r:
+                    c = r[key]
+                    cells += [f"{c['raymap']:.3f}", f"{c['photonmap_bound']}{c['photonmap']:.3f}"]
+                else:
+                    cells += ["-", "-"]
+            print(f"| {name} | {r['raymap_rays']:,} | {r['seconds']:.2f} | " + " | ".join(cells) + " |")
+
+
+def plot_boundary(report: dict, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    names = list(report["scenes"])
+    fig, ax = plt.subplots(1, len(names), figsize=(5 * len(names), 4.2))
+    for a, name in zip(np.atleast_1d(ax), names):
+        sw = report["scenes"][name]["sweeps"]
+        key = "rms_near" if "rms_near" in sw["raymap"][0] else "rms_far"
+        for est, m in (("raymap", "o-"), ("photonmap", "s-")):
+            a.loglog([r["seconds"] for r in sw[est]], [r[key] for r in sw[est]], m,
+                     label=f"{est} ({'near the edge' if key == 'rms_near' else 'every point'})")
+            if key == "rms_near":
+                a.loglog([r["seconds"] for r in sw[est]], [r["rms_far"] for r in sw[est]],
+                         m[0] + ":", label=f"{est} (away from the edge)")
+        a.set_title(name)
+        a.set_xlabel("seconds (map + queries)")
+        a.set_ylabel("RMS of E / E_exact - 1")
+        a.grid(True, which="both", alpha=0.3)
+        a.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
 
 
 def plot(report: dict, path: Path) -> None:
