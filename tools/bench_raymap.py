@@ -403,6 +403,7 @@ def plot_boundary(report: dict, path: Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FormatStrFormatter, NullFormatter
     names = list(report["scenes"])
     fig, ax = plt.subplots(1, len(names), figsize=(5 * len(names), 4.2))
     for a, name in zip(np.atleast_1d(ax), names):
@@ -415,6 +416,9 @@ def plot_boundary(report: dict, path: Path) -> None:
                 a.loglog([r["seconds"] for r in sw[est]], [r["rms_far"] for r in sw[est]],
                          m[0] + ":", label=f"{est} (away from the edge)")
         a.set_title(name)
+        a.set_xticks([0.1, 0.2, 0.5, 1, 2, 5])
+        a.xaxis.set_major_formatter(FormatStrFormatter("%g"))
+        a.xaxis.set_minor_formatter(NullFormatter())
         a.set_xlabel("seconds (map + queries)")
         a.set_ylabel("RMS of E / E_exact - 1")
         a.grid(True, which="both", alpha=0.3)
