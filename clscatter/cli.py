@@ -60,6 +60,7 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="refuse renders estimated to need more (e.g. 4G; default: the "
                         "device's and the machine's memory)")
     r.add_argument("--no-progress", action="store_true", help="never show progress bars")
+    _quiet_option(r)
     _budget_options(r)
     _cluster_options(r)
 
@@ -80,6 +81,7 @@ def _build_parser() -> argparse.ArgumentParser:
     a.add_argument("--device", default=None, help="OpenCL device: P:D or a name substring")
     a.add_argument("--exposure", type=_finite_float, default=0.0, help="PNG exposure in stops")
     a.add_argument("--no-progress", action="store_true", help="never show progress bars")
+    _quiet_option(a)
     _budget_options(a)
     _cluster_options(a)
 
@@ -182,6 +184,26 @@ def _note(line: str) -> None:
     print(f"clscatter: note: {line}", file=sys.stderr)
 
 
+def _quiet_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="print errors only: no progress bars, notes or closing line "
+                        "(render --stats still records the notes)")
+
+
+def _say(args: argparse.Namespace):
+    """(note, line): where a command's notes (stderr) and closing line (stdout) go; both
+    silent under --quiet. Every note is also kept in ``args.notes`` (``--stats`` writes
+    them)."""
+    args.notes = []
+    quiet = getattr(args, "quiet", False)
+
+    def note(line: str) -> None:
+        args.notes.append(line)
+        if not quiet:
+            _note(line)
+    return note, (lambda line: None) if quiet else print
+
+
 def _cmd_render(args: argparse.Namespace) -> int:
     stats = args.stats_obj
     with stats.stage("startup"):     # imports of the render path, and the output checks
@@ -200,9 +222,10 @@ def _cmd_render(args: argparse.Namespace) -> int:
             raise ClscatterError(f"{_first_duplicate(dests)}: the same file is given twice "
                                  "as output")
         max_memory = parse_bytes(args.max_memory) if args.max_memory is not None else None
+    note, say = _say(args)
     spec = args.scene or f"builtin:{DEFAULT_BUILTIN}"
     with stats.stage("load_scene"):
-        scene = load_scene(spec, args.overrides, on_note=_note)
+        scene = load_scene(spec, args.overrides, on_note=note)
     with stats.stage("cluster_start"):
         cluster = _open_cluster(args)
     if cluster is not None:
@@ -212,7 +235,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
     else:
         result = render(scene, method=args.method, device=args.device, stats=stats,
                         show_progress=not args.no_progress, max_memory=max_memory,
-                        on_note=_note)
+                        on_note=note)
     writes = [(o, lambda tmp, o=o: write_image(tmp, result.image, exposure=args.exposure))
               for o in outputs]
     t_write = time.perf_counter()
@@ -220,13 +243,13 @@ def _cmd_render(args: argparse.Namespace) -> int:
         # written last, so the image writes before it are already timed in it
         def write_stats(tmp):
             stats.stages["write_outputs"] = time.perf_counter() - t_write
-            write_json(tmp, _final(stats, result.stats))
+            write_json(tmp, {**_final(stats, result.stats), "notes": args.notes})
         writes.append((stats_path, write_stats))
     write_all(writes)
     stats.stages["write_outputs"] = time.perf_counter() - t_write
     st = result.stats
-    print(f"{scene.source}: {st['width']}x{st['height']} by {st['method']} in "
-          f"{st['seconds_total']:.2f} s -> {', '.join(map(str, outputs))}")
+    say(f"{scene.source}: {st['width']}x{st['height']} by {st['method']} in "
+        f"{st['seconds_total']:.2f} s -> {', '.join(map(str, outputs))}")
     return 0
 
 
@@ -311,6 +334,7 @@ def _cmd_relight(args: argparse.Namespace) -> int:
     from .io.stats import progress, write_json
     from .scene import DEFAULT_BUILTIN, load_scene
 
+    note, say = _say(args)
     spec = args.scene or f"builtin:{DEFAULT_BUILTIN}"
     out = Path(args.output)
     if out.exists() and not out.is_dir():
@@ -319,7 +343,7 @@ def _cmd_relight(args: argparse.Namespace) -> int:
         raise ClscatterError(f"{args.output}: parent folder {out.resolve().parent} does not exist")
     if args.frames > MAX_FRAMES:
         raise ClscatterError(f"--frames: at most {MAX_FRAMES:,} (got {args.frames:,})")
-    scene = load_scene(spec, args.overrides, on_note=_note)
+    scene = load_scene(spec, args.overrides, on_note=note)
     if args.keyframes is not None:
         from .keyframes import load as load_keyframes
         frames = load_keyframes(args.keyframes)
@@ -335,7 +359,7 @@ def _cmd_relight(args: argparse.Namespace) -> int:
     _check_frames_fit(out, len(frames), scene.camera.width * scene.camera.height, args.format)
     for m in (path.movers if path is not None else []):
         if m.widened:
-            _note(f"{m.key} is close to the orbit's axis: it orbits at "
+            note(f"{m.key} is close to the orbit's axis: it orbits at "
                   + (f"radius {m.radius:.3g} (its height kept)" if m.radius is not None
                      else f"{m.tilt_deg:g} degrees from the axis")
                   + " so that the frames differ")
@@ -376,7 +400,7 @@ def _cmd_relight(args: argparse.Namespace) -> int:
         record.update(scene=spec, count=len(frames), files=names)
         write_json(stage / "frames.json", record)
     total = sum(f["seconds"] for f in record["frames"])
-    print(f"{spec}: {len(frames)} frames ({movement}) in {total:.2f} s -> {out}/")
+    say(f"{spec}: {len(frames)} frames ({movement}) in {total:.2f} s -> {out}/")
     return 0
 
 
@@ -543,6 +567,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             parser = _build_parser()
             args = parser.parse_args(argv)
         args.stats_obj = stats
+        if getattr(args, "quiet", False):
+            args.no_progress = True
         _budget_overrides(args)
     except SystemExit as e:          # argparse: usage errors (one line, status 2) and --help
         return int(e.code or 0)

@@ -336,3 +336,25 @@ def test_device_option_takes_precedence_over_clscatter_device(tmp_path):
     assert r.returncode == 0, r.stderr
     assert read_image(out).max() > 0
     assert json.loads(stats.read_text())["device"]
+
+
+def test_quiet_prints_nothing_and_stats_keep_the_notes(tmp_path, capsys):
+    """``-q``: no progress, no notes, no closing line; the image is written and ``--stats``
+    holds the notes a plain run prints (here: raymarch leaves the glass's caustics out)."""
+    sets = ["--set", "camera.resolution=[16,12]", "--set", "camera.spp=1"]
+    argv = ["render", "builtin:glass", "--method", "raymarch", *sets]
+    code, out, err = _run([*argv, "-o", str(tmp_path / "loud.png"), "--no-progress",
+                           "--stats", str(tmp_path / "loud.json")], capsys)
+    assert code == 0 and out.strip() and err.count("clscatter: note: ") >= 1, (out, err)
+    printed = [ln.removeprefix("clscatter: note: ") for ln in err.splitlines()]
+    code, out, err = _run([*argv, "-o", str(tmp_path / "quiet.png"), "-q",
+                           "--stats", str(tmp_path / "quiet.json")], capsys)
+    assert code == 0 and out == "" and err == "", (out, err)
+    assert (tmp_path / "quiet.png").is_file()
+    notes = json.loads((tmp_path / "quiet.json").read_text())["notes"]
+    assert notes == printed
+    assert json.loads((tmp_path / "loud.json").read_text())["notes"] == printed
+    code, out, err = _run(["relight", "builtin:volume_sphere", "--frames", "2", *sets,
+                           "-o", str(tmp_path / "frames"), "--quiet"], capsys)
+    assert code == 0 and out == "" and err == "", (out, err)
+    assert len(list((tmp_path / "frames").glob("frame_*.png"))) == 2
