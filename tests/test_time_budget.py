@@ -205,6 +205,51 @@ def test_budget_first_pass_over_budget_gives_a_note(caustic, monkeypatch):
     assert passes == 1 and notes == []
 
 
+def test_a_share_of_the_render_budget_holds_its_overrun_note(caustic, monkeypatch):
+    """Inside a session (``hold_overruns``) a first pass that breaks its share of the
+    render's budget keeps its note for the session, which tells it only if the whole
+    render breaks its budget (the other passes may make up for it); a first pass that
+    breaks the method's own ``time_budget`` tells it at once."""
+    from clscatter.pipeline.session import _Budget, _report_budget
+    ps, paths = caustic
+    real_add = line_gather.Gatherer.add
+
+    def run(params: dict, deadline: float | None) -> tuple[list[str], list[str]]:
+        clock = FakeClock()
+
+        def slow_add(self, segs, *a, **kw):
+            clock.now += 5.0
+            return real_add(self, segs, *a, **kw)
+
+        monkeypatch.setattr(line_gather.Gatherer, "add", slow_add)
+        told: list[str] = []
+        m = LineSpaceGathering({"light_rays": 1500, "passes": 8, "radius": 0.02, **params})
+        with PassContext(ps, paths, Stats(), False, on_note=told.append, clock=clock,
+                         deadline=None if deadline is None else clock() + deadline,
+                         hold_overruns=True) as ctx:
+            m.render(ctx)
+        return told, ctx.overruns
+
+    told, held = run({}, 1.0)                              # the render's share: held
+    assert told == [] and len(held) == 1 and "first pass alone took 5 s" in held[0]
+    told, held = run({"time_budget": 1.0}, None)          # its own budget: told at once
+    assert len(told) == 1 and "first pass alone took 5 s" in told[0] and held == []
+    told, held = run({"time_budget": 1.0}, 0.5)           # the render's share is shorter
+    assert told == [] and len(held) == 1
+
+    import time
+    now = time.perf_counter()
+    for started, expect in ((now, []), (now - 100.0, ["pass note"])):
+        out: list[str] = []
+        _report_budget(Stats(), _Budget(10.0, "auto's default", started, started + 10.0),
+                       out.append, ["pass note"])
+        assert out == expect                  # within the budget: nothing; past it: the note
+    out = []
+    _report_budget(Stats(), _Budget(10.0, "auto's default", now - 100.0, now - 90.0),
+                   out.append, [])
+    assert len(out) == 1 and "the render took" in out[0]     # no pass's note: the stage
+
+
 def test_render_level_budget_and_error_estimate(engine):
     """auto's default budget is in the stats; an explicit budget and target error are
     recorded; a progressive render reports a finite error estimate; a render without

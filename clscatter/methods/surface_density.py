@@ -143,6 +143,4 @@ class SurfaceDensityMethod(Method):
             unit = (f"a first pass of {rays} lighting rays, each of its {res.hits} diffuse hits "
                     "gathering its k nearest,")
             lower = f"render.{name}.k, camera.resolution or camera.spp"
-        line = prog.overrun_note(name, unit, lower)
-        if line:
-            ctx.note(line)
+        ctx.overrun(prog, prog.overrun_note(name, unit, lower))

@@ -307,6 +307,7 @@ class RenderSession:
         def image_so_far() -> np.ndarray:
             return base() + added + medium
 
+        overruns: list[str] = []                       # passes' first passes past their share
         for k in order:
             p = run.req.passes[k]
             run.stop_if_asked()
@@ -322,9 +323,11 @@ class RenderSession:
             with PassContext(run.ps, run.paths, stats, run.show_progress,
                              self._caches.setdefault(p.method, PassCache()), run.on_note,
                              deadline, scene.render.target_error, image_so_far,
-                             cancel=run.cancel, costs=_costs(run)) as ctx:
+                             cancel=run.cancel, costs=_costs(run),
+                             hold_overruns=True) as ctx:
                 out = method.render(ctx)
                 err = ctx.errors()
+            overruns += ctx.overruns or []
             if deadline is None and not run.preview and run.only is None:
                 _calibrate(run, p.method, time.perf_counter() - t0)
             run.ran.append(p.method)
@@ -341,7 +344,7 @@ class RenderSession:
         with stats.stage("compose"):
             image = _finite(surface + medium, stats, run.on_note)
         _report_error(stats, errors, image, scene.render.target_error, run.on_note)
-        _report_budget(stats, run.budget, run.on_note)
+        _report_budget(stats, run.budget, run.on_note, overruns)
         result = self._result(run, image, surface, medium)
         result.parts = {k: np.asarray(v, np.float32) for k, v in parts.items()
                         if isinstance(v, np.ndarray)}
@@ -542,13 +545,21 @@ def _report_error(stats: Stats, errors: tuple | None, image: np.ndarray,
                 f"{target:g}, when the passes stopped (raise render.time_budget to go on)")
 
 
-def _report_budget(stats: Stats, b: _Budget, on_note) -> None:
-    """A note when the render ran past its time budget by more than BUDGET_SLACK,
-    naming the stage that took longest."""
+def _report_budget(stats: Stats, b: _Budget, on_note, overruns: list[str]) -> None:
+    """A note when the render ran past its time budget by more than BUDGET_SLACK: the
+    passes' own notes where a first pass alone broke its share of the budget
+    (``overruns``: what could not be made smaller), or else the stage that took longest.
+    Within the budget a pass that overran its share says nothing: the others made up
+    for it."""
     if b.deadline is None:
         return
     took = time.perf_counter() - b.started
     if took <= budget.BUDGET_SLACK * b.seconds or on_note is None:
+        return
+    if overruns:
+        for line in overruns:
+            stats.set(notes=[*stats.values.get("notes", []), line])
+            on_note(line)
         return
     stages = stats.stages
     name = max(stages, key=stages.get) if stages else "the render"

@@ -64,8 +64,12 @@ class PassContext:
                  clock: Callable[[], float] = time.perf_counter,
                  cancel: Callable[[], bool] | None = None,
                  costs: tuple[Callable[[str, float], float | None],
-                              Callable[[str, float, float], None]] | None = None):
+                              Callable[[str, float, float], None]] | None = None,
+                 hold_overruns: bool = False):
         self.ps = ps
+        #: with ``hold_overruns``, :meth:`overrun` keeps here what it would tell (the
+        #: session tells it only when the whole render breaks its budget); else None
+        self.overruns: list[str] | None = [] if hold_overruns else None
         self._costs = costs            # (predict, learn) of the session's calibration
         self.cancel = cancel           # polled between progressive passes
         self.clock = clock             # what deadlines are measured on (tests give a fake one)
@@ -109,6 +113,18 @@ class PassContext:
         if self._on_note is not None:
             self._on_note(line)
 
+    def overrun(self, prog: Progression, line: str | None) -> None:
+        """A progression's note that its first pass alone broke its deadline (None: it did
+        not). Told at once when that deadline is the method's own ``time_budget``, or when
+        no session watches the render's budget; otherwise the deadline is only this pass's
+        share of the render's budget, and the line waits in :attr:`overruns`."""
+        if line is None:
+            return
+        if self.overruns is None or prog.own_deadline:
+            self.note(line)
+        else:
+            self.overruns.append(line)
+
     def predict(self, stage: str, work: float) -> float | None:
         """Seconds ``work`` units of ``stage`` should take on this device, as learnt from
         earlier :meth:`learn` calls (None before any, or without a session)."""
@@ -125,9 +141,10 @@ class PassContext:
         seconds from now (0: none), whichever is first."""
         prog = Progression(None, self.target_error, max_passes, planned, self._image_so_far,
                            self.clock, self.cancel)
-        ends = [t for t in (self.deadline, prog.started + own_budget if own_budget > 0 else None)
-                if t is not None]
+        own = prog.started + own_budget if own_budget > 0 else None
+        ends = [t for t in (self.deadline, own) if t is not None]
         prog.deadline = min(ends) if ends else None
+        prog.own_deadline = own is not None and (self.deadline is None or own < self.deadline)
         self.progressions.append(prog)
         return prog
 

@@ -77,6 +77,8 @@ class Progression:
                  clock: Callable[[], float] = time.perf_counter,
                  cancel: Callable[[], bool] | None = None):
         self.deadline = deadline
+        #: whether ``deadline`` is the method's own ``time_budget`` (not the render's)
+        self.own_deadline = False
         self.target_error = float(target_error)
         self.max_passes = max(1, int(max_passes))
         self.planned = max(1, int(planned))

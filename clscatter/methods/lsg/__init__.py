@@ -419,10 +419,8 @@ class LineSpaceGathering(Method):
     def _budget_note(self, ctx: PassContext, prog, seconds: list) -> None:
         """Say why the time budget could not be kept, when the first pass alone broke it."""
         if seconds:
-            line = prog.overrun_note("lsg", f"a pass of {self._pass_rays[0]} lighting rays",
-                                     "camera.resolution or camera.spp")
-            if line:
-                ctx.note(line)
+            ctx.overrun(prog, prog.overrun_note("lsg", f"a pass of {self._pass_rays[0]} "
+                                                "lighting rays", "camera.resolution or camera.spp"))
 
     # ---- automatic radius ----
     def auto_radius(self, ps: PreparedScene, gat: Gatherer, views: np.ndarray,
