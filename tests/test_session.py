@@ -103,6 +103,31 @@ def test_light_moves_reshade_hits_like_a_fresh_render(engine, spec, moves):
             np.testing.assert_allclose(warm.image, fresh.image, rtol=1e-5, atol=1e-7)
 
 
+@pytest.mark.parametrize("method", ["raymap", "photonmap"])
+def test_light_move_reuses_the_surface_passes_hits_and_their_tree(engine, method):
+    """The surface estimators read the diffuse hits the view paths recorded (not traced
+    again) and keep their host copy and the splats' tree with them: after a light move
+    the same objects are used, and the image equals a fresh render's."""
+    sets = ["camera.resolution=[32,24]", "camera.spp=2", "render.time_budget=0",
+            f"render.method=\"{method}\"", f"render.{method}.medium=\"none\"",
+            f"render.{method}.passes=2", f"render.{method}.photons=3000"]
+    with RenderSession.from_source("builtin:caustic_sphere", sets, engine=engine) as s:
+        s.render(show_progress=False)
+        hits = s._paths.hits
+        kept = {k: hits.derived(k, lambda: pytest.fail(k + " was not kept"))
+                for k in ("surface_hits_host", "surface_hit_discs")}
+        assert len(kept["surface_hit_discs"]) == hits.count > 0
+        s.set(["lights[0].position=[0.6,3.2,0.4]"])
+        warm = s.render(show_progress=False)
+        assert s._paths.hits is hits and "view_paths" not in warm.stats["stages_run"]
+        for k, v in kept.items():
+            assert hits.derived(k, lambda: pytest.fail(k + " was built again")) is v
+        fresh = render(load_scene("builtin:caustic_sphere", sets + s.current_overrides()[len(sets):]),
+                       engine=engine, show_progress=False)
+        assert fresh.image.max() > 0.0
+        np.testing.assert_allclose(warm.image, fresh.image, rtol=1e-5, atol=1e-7)
+
+
 def test_segment_derivations_are_built_once_and_freed_with_the_segments(engine):
     """DeviceSegments.derived builds what a method derives from the segments alone once;
     its buffers are freed with the segments."""

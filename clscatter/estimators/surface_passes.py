@@ -110,8 +110,8 @@ def progressive_surface_caustics(ps, estimator: str, rays: int, settings: Densit
                                  seed: int = 0, show_progress: bool = False,
                                  sample_range: tuple[int, int] | None = None,
                                  first_cost: tuple[int, float] | None = None,
-                                 predict_first: Callable[[int, int], float | None] | None = None
-                                 ) -> SurfacePasses:
+                                 predict_first: Callable[[int, int], float | None] | None = None,
+                                 kept_hits=None) -> SurfacePasses:
     """The surface caustics (as :func:`~.ray_density.surface_caustics`) refined by passes
     while ``prog`` (a :class:`~clscatter.transport.progressive.Progression`) says so;
     each later pass's own image goes to ``prog.add`` with its radius (the median base
@@ -129,15 +129,24 @@ def progressive_surface_caustics(ps, estimator: str, rays: int, settings: Densit
     known); with neither, all ``rays``. Every later pass traces as many (the radius rule
     assumes passes alike); the passes stop when the next would end past the deadline.
     ``sized_from`` in the result says which of the three it was (``session``,
-    ``calibration``, ``none``)."""
+    ``calibration``, ``none``).
+
+    ``kept_hits``: the diffuse hits of these camera samples already on the device (a
+    :class:`~clscatter.transport.view_paths.DeviceSegments` the view paths recorded; None:
+    traced here and freed after). Their host copy and the splats' tree over them are
+    derived once and kept with them, so a warm re-render after a light change reuses
+    all three."""
     cam = ps.scene.camera
     out = SurfacePasses(np.zeros((cam.height, cam.width, 3), np.float32))
     if ps.num_lights == 0:
         return out
-    with stats.stage(f"{estimator}_trace"):
-        dev = trace_diffuse_hits_on_device(ps, sample_range=sample_range)
+    dev = kept_hits
+    if dev is None:
+        with stats.stage(f"{estimator}_trace"):
+            dev = trace_diffuse_hits_on_device(ps, sample_range=sample_range)
     try:
-        hits = read_hits(ps, dev)
+        with stats.stage(f"{estimator}_trace"):
+            hits = dev.derived("surface_hits_host", lambda: ([], read_hits(ps, dev)))
         stats.set(diffuse_hits=int(dev.count))
         out.hits = int(dev.count)
         if first_cost is not None:
@@ -150,7 +159,8 @@ def progressive_surface_caustics(ps, estimator: str, rays: int, settings: Densit
             _run_passes(ps, dev, hits, estimator, rays, settings, stats, prog, alpha, radius,
                         seed, show_progress, out, first_cost)
     finally:
-        dev.release()
+        if dev is not kept_hits:
+            dev.release()
     return out
 
 
@@ -162,7 +172,7 @@ def _run_passes(ps, dev, hits, estimator: str, rays: int, settings: DensitySetti
     pass has rays, each is a first pass (it sets the radii); then fixed radii ``s_i B``."""
     total = None
     base = None
-    discs = None               # the hits' tree for the later passes' splats, built once
+    discs = None               # the hits' tree for the later passes' splats (kept with the hits)
     scales: list[float] = []
     first = settings if radius <= 0 else replace(settings, max_radius=radius)
     foot = footprints(ps, hits["p"])
@@ -171,52 +181,54 @@ def _run_passes(ps, dev, hits, estimator: str, rays: int, settings: DensitySetti
     # passes alike): under a deadline, as many as the first pass's share of it allows
     share = max(prog.pass_seconds(), prog.remaining() / MAX_SPLIT)
     n = sized_rays(rays, first_cost, share) if prog.budgeted else rays
-    try:
-        while True:
-            expected = None
-            if prog.budgeted and out.seconds:
-                expected = out.seconds[-1]
-            elif prog.budgeted and first_cost is not None:
-                expected = first_cost[1] * n / max(first_cost[0], 1)
-            if not prog.more(expected):
-                break
-            t0 = prog.clock()
-            s = float(ppm_scales(alpha, i + 1)[-1])
-            with stats.stage(f"{estimator}_trace"):
-                pieces = caustic_pieces(ps, n, stats, show_progress,
-                                        seed_offset=i + (seed << 16))
-            stats.add(f"{estimator}_rays_stored", int(len(pieces)))
-            opening = base is None      # the k-nearest pass: another estimator than the rest
-            if len(pieces) == 0:
-                own = np.zeros_like(out.image)
-            elif base is None:
-                own, base, out.radius = _first_pass(ps, dev, hits, pieces, estimator, first,
-                                                    stats, show_progress, foot, radius)
-            else:
-                if discs is None:
-                    with stats.stage(f"{estimator}_splat"):
-                        discs = HitDiscs.build(ps.engine, hits["p"][:, :3], hits["n"][:, :3])
-                own = pass_image(ps, dev, hits, pieces, estimator, settings, stats,
-                                 show_progress, radii=(base * s).astype(np.float32),
-                                 discs=discs)
-            out.seconds.append(prog.clock() - t0)
-            out.rays.append(int(n))
-            scales.append(s)
-            # the error estimate compares passes of one estimator: the k-nearest opening pass
-            # (a different kernel and radius rule) is left out of it
-            prog.add(None if opening else own, out.seconds[-1],
-                     radius=None if base is None else s * max(out.radius, 1e-30))
-            total = own.astype(np.float64) if total is None else total + own
-            i += 1
-    finally:
-        if discs is not None:
-            discs.release()
+    while True:
+        expected = None
+        if prog.budgeted and out.seconds:
+            expected = out.seconds[-1]
+        elif prog.budgeted and first_cost is not None:
+            expected = first_cost[1] * n / max(first_cost[0], 1)
+        if not prog.more(expected):
+            break
+        t0 = prog.clock()
+        s = float(ppm_scales(alpha, i + 1)[-1])
+        with stats.stage(f"{estimator}_trace"):
+            pieces = caustic_pieces(ps, n, stats, show_progress,
+                                    seed_offset=i + (seed << 16))
+        stats.add(f"{estimator}_rays_stored", int(len(pieces)))
+        opening = base is None      # the k-nearest pass: another estimator than the rest
+        if len(pieces) == 0:
+            own = np.zeros_like(out.image)
+        elif base is None:
+            own, base, out.radius = _first_pass(ps, dev, hits, pieces, estimator, first,
+                                                stats, show_progress, foot, radius)
+        else:
+            if discs is None:
+                with stats.stage(f"{estimator}_splat"):
+                    discs = dev.derived("surface_hit_discs", lambda: _discs(ps, hits))
+            own = pass_image(ps, dev, hits, pieces, estimator, settings, stats,
+                             show_progress, radii=(base * s).astype(np.float32),
+                             discs=discs)
+        out.seconds.append(prog.clock() - t0)
+        out.rays.append(int(n))
+        scales.append(s)
+        # the error estimate compares passes of one estimator: the k-nearest opening pass
+        # (a different kernel and radius rule) is left out of it
+        prog.add(None if opening else own, out.seconds[-1],
+                 radius=None if base is None else s * max(out.radius, 1e-30))
+        total = own.astype(np.float64) if total is None else total + own
+        i += 1
     n = max(len(out.seconds), 1)
     if total is not None:
         out.image = (total / n).astype(np.float32) if n > 1 else total.astype(np.float32)
     out.scales = np.asarray(scales)
     out.stopped_by = prog.stopped_by or "passes"
     out.error = prog.error
+
+
+def _discs(ps, hits: np.ndarray) -> tuple[list, HitDiscs]:
+    """The splats' tree over the diffuse hits, with its buffers (for ``derived``)."""
+    d = HitDiscs.build(ps.engine, hits["p"][:, :3], hits["n"][:, :3])
+    return list(d.buf.values()), d
 
 
 def _first_pass(ps, dev, hits, pieces, estimator: str, settings: DensitySettings, stats: Stats,

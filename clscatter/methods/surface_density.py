@@ -115,7 +115,8 @@ class SurfaceDensityMethod(Method):
                                            sample_range=ctx.paths.sample_range,
                                            first_cost=ctx.cache.get(slot),
                                            predict_first=lambda rays, hits:
-                                           ctx.predict(stage, rays + hits))
+                                           ctx.predict(stage, rays + hits),
+                                           kept_hits=ctx.paths.hits)
         if res.rays:
             ctx.cache[slot] = (res.rays[0], res.seconds[0])
             ctx.learn(stage, res.rays[0] + res.hits, res.seconds[0])
