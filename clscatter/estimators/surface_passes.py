@@ -29,7 +29,7 @@ from typing import Callable
 import numpy as np
 
 from ..io.stats import Stats
-from ..transport.view_paths import trace_diffuse_hits_on_device
+from ..transport.view_paths import DeviceSegments, trace_diffuse_hits_on_device
 from .disc_splat import HitDiscs
 from .ray_density import DensitySettings, caustic_pieces, pass_image, read_hits
 
@@ -111,7 +111,7 @@ def progressive_surface_caustics(ps, estimator: str, rays: int, settings: Densit
                                  sample_range: tuple[int, int] | None = None,
                                  first_cost: tuple[int, float] | None = None,
                                  predict_first: Callable[[int, int], float | None] | None = None,
-                                 kept_hits=None) -> SurfacePasses:
+                                 kept_hits: DeviceSegments | None = None) -> SurfacePasses:
     """The surface caustics (as :func:`~.ray_density.surface_caustics`) refined by passes
     while ``prog`` (a :class:`~clscatter.transport.progressive.Progression`) says so;
     each later pass's own image goes to ``prog.add`` with its radius (the median base
