@@ -579,27 +579,48 @@ def main(argv: Sequence[str] | None = None) -> int:
                 "diff": _cmd_diff, "serve": _cmd_serve,
                 "devices": _cmd_devices, "scenes": _cmd_scenes, "volume": _cmd_volume,
                 "convert": _cmd_convert}
-    previous = signal.signal(signal.SIGTERM, _terminate)
+    previous = {sig: signal.signal(sig, _terminate) for sig in (signal.SIGTERM, signal.SIGINT)}
+    _STOPPED.clear()
     try:
         return handlers[args.command](args)
     except ClscatterError as e:
+        if _STOPPED:
+            return _interrupted()
         text = str(e)
         if e.exit_status == 2:
             text = " ".join(text.split())  # user errors: exactly one line
         print(f"clscatter: error: {text}", file=sys.stderr)
         return e.exit_status
     except KeyboardInterrupt:
-        print("clscatter: interrupted; nothing was written", file=sys.stderr)
-        return 130
+        return _interrupted()
+    except Exception:
+        if not _STOPPED:
+            raise
+        # the interrupt was raised inside library code that turned it into an error of
+        # its own (NumPy does, in some compares): still an interruption
+        return _interrupted()
     except BrokenPipeError:          # e.g. `clscatter scenes | head`
         sys.stderr.close()
         return 0
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+#: set once SIGINT or SIGTERM arrived during a command
+_STOPPED: set[int] = set()
+
+
+def _interrupted() -> int:
+    print("clscatter: interrupted; nothing was written", file=sys.stderr)
+    return 130
 
 
 def _terminate(signum, frame) -> None:
-    """SIGTERM stops like Ctrl-C: between kernel launches, with no output written."""
+    """SIGTERM stops like Ctrl-C (SIGINT): between kernel launches, with no output
+    written. Remembered, so that an interrupt some library turned into another error
+    still ends as an interruption."""
+    _STOPPED.add(signum)
     raise KeyboardInterrupt
 
 

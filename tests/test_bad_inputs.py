@@ -453,3 +453,31 @@ def test_an_animation_lands_whole(tmp_path, capsys):
         "frame_0000.npy", "frame_0001.npy", "frame_0002.npy", "frames.json"]
     assert [f.name for f in tmp_path.iterdir()] == ["frames"]
     assert np.all(np.isfinite(np.load(out / "frame_0001.npy")))
+
+
+def test_an_interrupt_a_library_turned_into_another_error_still_interrupts(tmp_path, monkeypatch,
+                                                                           capsys):
+    """A signal's KeyboardInterrupt that library code replaced with an error of its own
+    (NumPy's structured compares do) ends the command as an interruption: status 130,
+    one line, no traceback, nothing written; the same error without a signal is not
+    hidden."""
+    import clscatter.cli as cli
+
+    def converted(args):
+        try:
+            cli._terminate(signal.SIGTERM, None)
+        except KeyboardInterrupt:
+            raise TypeError("Cannot compare structured arrays") from None
+
+    monkeypatch.setattr(cli, "_cmd_render", converted)
+    out = tmp_path / "out.png"
+    assert cli.main(["render", "builtin:occluder", "-o", str(out)]) == 130
+    assert capsys.readouterr().err == "clscatter: interrupted; nothing was written\n"
+    assert not out.exists()
+
+    def plain(args):
+        raise TypeError("a bug")
+
+    monkeypatch.setattr(cli, "_cmd_render", plain)
+    with pytest.raises(TypeError, match="a bug"):
+        cli.main(["render", "builtin:occluder", "-o", str(out)])

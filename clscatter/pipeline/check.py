@@ -58,7 +58,9 @@ def open_edges(faces: np.ndarray) -> int:
     if len(f) == 0:
         return 0
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    _, counts = np.unique(e, axis=0, return_counts=True)
+    # an integer key per edge (np.unique(axis=0) compares structured arrays, which turns
+    # a KeyboardInterrupt raised by a signal meanwhile into a TypeError)
+    _, counts = np.unique(e[:, 0] * (int(f.max()) + 1) + e[:, 1], return_counts=True)
     return int(np.count_nonzero(counts == 1))
 
 

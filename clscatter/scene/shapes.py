@@ -114,7 +114,10 @@ def unit_icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
     v /= np.linalg.norm(v, axis=1, keepdims=True)
     for _ in range(int(subdivisions)):
         edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-        uniq, inv = np.unique(edges, axis=0, return_inverse=True)
+        # one integer key per edge (not np.unique(axis=0): its structured-array compare
+        # turns a KeyboardInterrupt raised by a signal meanwhile into a TypeError)
+        keys, inv = np.unique(edges[:, 0] * len(v) + edges[:, 1], return_inverse=True)
+        uniq = np.stack([keys // len(v), keys % len(v)], axis=1)
         mid = v[uniq[:, 0]] + v[uniq[:, 1]]
         mid /= np.linalg.norm(mid, axis=1, keepdims=True)
         m = len(v) + inv.reshape(3, -1)            # midpoint of edge (0,1), (1,2), (2,0)
