@@ -960,7 +960,9 @@ __kernel void outer_view(__global const ViewSegment *segs, int count, __global c
  * h v/|v|, v' = v + ds grad n. On each step the in-scattered radiance at the step's
  * midpoint, sigma_s p_HG(mean photon direction . towards camera) * fluence, fluence =
  * deposited flux-length / voxel volume, is integrated exactly against the step's
- * transmittance. A ray ends where it leaves the grid (rays_out: the continuing ray, just
+ * transmittance and scaled by (n0 / n)^2, n0 the index where the ray starts (radiance
+ * / n^2 is invariant along the ray: light scattered inside glass of index 1.5 reaches the
+ * camera in air at 1 / 2.25 of its radiance there, times the transmittance). A ray ends where it leaves the grid (rays_out: the continuing ray, just
  * outside, with its throughput) or at a surface (rays_out from the step's start with
  * flags |= VOX_SKIP_FIRST: the straight tracer takes the surface from there, the piece up
  * to it already integrated here). radiance[r] is the ray's in-scattered light (weighted
@@ -986,7 +988,8 @@ __kernel void voxel_view_march(__global const VoxRay *rays, int count, float4 gl
     x.w = 0.0f;
     float inv_h = 1.0f / h, inv_vol = inv_h * inv_h * inv_h;
     Tri tr0 = tri_setup(x, glo, dims, inv_h);
-    float4 v = tri_f(n_grid, dims, &tr0) * ray.d;
+    float n0 = tri_f(n_grid, dims, &tr0);   /* the index where the ray starts (the camera's) */
+    float4 v = n0 * ray.d;
     v.w = 0.0f;
     float4 L = (float4)(0.0f);
     int ended = 0;
@@ -1027,7 +1030,11 @@ __kernel void voxel_view_march(__global const VoxRay *rays, int count, float4 gl
         integ.y = kp.y * len > 1e-4f ? (1.0f - Tp.y) / kp.y : len;
         integ.z = kp.z * len > 1e-4f ? (1.0f - Tp.z) / kp.z : len;
         integ.w = 0.0f;
-        L += thr * ss * E * ph * integ;
+        /* radiance / n^2 is what a ray carries unchanged (through graded index and, times
+         * the Fresnel transmittance, across a boundary): light scattered where the index
+         * is n_m arrives where the ray started scaled by (n0 / n_m)^2 */
+        float nm = tri_f(n_grid, dims, &tm), rel_n = n0 / nm;
+        L += thr * ss * E * ph * integ * (rel_n * rel_n);
         if (surf) {
             /* hand the surface to the straight tracer: from x along dir, no medium on
              * the way (integrated here up to the hit) */
