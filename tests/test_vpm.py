@@ -417,3 +417,24 @@ def test_direct_light_over_optical_depth_against_closed_form(engine, depth):
             assert 0.72 <= ratio <= 1.18, (camera, light)     # the noise band 0.82 .. 1.08
         else:
             assert abs(ratio - 1.0) <= (0.01 if camera == "outside" else 0.02), (camera, light)
+
+
+def test_automatic_gather_cap_shrinks_like_the_photon_spacing():
+    """``auto_max_radius`` on a Poisson set of photons: AUTO_RADIUS_FACTOR times the median
+    distance to the knn-th nearest, whose closed form for density lam is (m / (lam 4/3 pi))^(1/3)
+    with m the median of Gamma(knn) (within 10 %: the sample's edges); 8x the photons halve
+    it (within 5 %), so a shadow's leak converges. A fixed cap did not shrink: on
+    builtin:epi_sun (64 x 48) VPM's mean stayed 11-16 % above ray marching from 250k to 4M
+    photons; with the automatic cap 6.5-9 % (measured), with a cap of 0.003 0.5 %."""
+    from scipy.stats import gamma
+
+    from clscatter.methods.vpm import AUTO_RADIUS_FACTOR, auto_max_radius
+    rng = np.random.default_rng(3)
+    caps = {}
+    for n in (20_000, 160_000):
+        pts = rng.uniform(-1.0, 1.0, (n, 3))
+        caps[n] = auto_max_radius(pts, 32)
+        closed = AUTO_RADIUS_FACTOR * (gamma(32).median() / (n / 8.0 * 4.0 / 3.0 * np.pi)) ** (1 / 3)
+        assert caps[n] == pytest.approx(closed, rel=0.1), (n, caps[n], closed)
+    assert caps[160_000] / caps[20_000] == pytest.approx(0.5, rel=0.05)
+    assert auto_max_radius(np.zeros((1, 3)), 32) == 0.0
