@@ -425,7 +425,7 @@ def test_automatic_gather_cap_shrinks_like_the_photon_spacing():
     with m the median of Gamma(knn) (within 10 %: the sample's edges); 8x the photons halve
     it (within 5 %), so a shadow's leak converges. A fixed cap did not shrink: on
     builtin:epi_sun (64 x 48) VPM's mean stayed 11-16 % above ray marching from 250k to 4M
-    photons; with the automatic cap 6.5-9 % (measured), with a cap of 0.003 0.5 %."""
+    photons; with the automatic cap 7-10 % (measured), with a cap of 0.003 0.5 %."""
     from scipy.stats import gamma
 
     from clscatter.methods.vpm import AUTO_RADIUS_FACTOR, auto_max_radius

@@ -1,6 +1,7 @@
 """Volumetric photon mapping (Jensen & Christensen 1998): the baseline for caustics."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,9 +25,12 @@ from .photons import (
 # photons deposited per NumPy batch (bounds the float64 temporaries of the deposition)
 DEPOSIT_BATCH = 1 << 16
 #: the automatic largest gather radius: this many times the photons' median knn-th
-#: nearest distance (from a sample of AUTO_RADIUS_SAMPLE photons)
+#: nearest distance (from a sample of AUTO_RADIUS_SAMPLE photons, AUTO_RADIUS_QUERIES of
+#: them queried), at most AUTO_RADIUS_MAX of the scene's extent
 AUTO_RADIUS_FACTOR = 2.0
-AUTO_RADIUS_SAMPLE = 1 << 15
+AUTO_RADIUS_SAMPLE = 1 << 13
+AUTO_RADIUS_QUERIES = 1 << 11
+AUTO_RADIUS_MAX = 0.05
 
 
 def auto_max_radius(positions: np.ndarray, knn: int, seed: int = 0) -> float:
@@ -40,9 +44,11 @@ def auto_max_radius(positions: np.ndarray, knn: int, seed: int = 0) -> float:
     if n < 2:
         return 0.0
     m = min(n, AUTO_RADIUS_SAMPLE)
-    sub = pos[np.random.default_rng(seed).choice(n, m, replace=False)] if m < n else pos
+    rng = np.random.default_rng(seed)
+    sub = pos[rng.choice(n, m, replace=False)] if m < n else pos
     k = min(int(knn), m - 1)
-    dist = cKDTree(sub).query(sub, k=k + 1)[0][:, -1]
+    queries = sub[:AUTO_RADIUS_QUERIES]                   # the sample is in random order
+    dist = cKDTree(sub).query(queries, k=k + 1)[0][:, -1]
     return float(AUTO_RADIUS_FACTOR * np.median(dist) * (m / n) ** (1.0 / 3.0))
 
 
@@ -246,10 +252,11 @@ class VolumetricPhotonMapping(Method):
     Poisson process, where ``knn / V`` is biased by ``knn / (knn - 1)``); with fewer than
     ``knn`` photons within ``max_radius``, all of them over the ball of radius
     ``max_radius``. By default ``max_radius`` is automatic: :data:`AUTO_RADIUS_FACTOR`
-    times the photons' median ``knn``-th nearest distance, so that it shrinks like the
+    times the photons' median ``knn``-th nearest distance (at most
+    :data:`AUTO_RADIUS_MAX` of the extent, the former fixed cap), so that it shrinks like the
     photon spacing and the estimate converges; a fixed cap does not, since in a shadow
     next to lit fog every lit photon within it leaks in (on ``builtin:epi_sun`` VPM stayed
-    11-16 % above ray marching from 250k to 4M photons with the former fixed 0.05; 6.5-9 %
+    11-16 % above ray marching from 250k to 4M photons with the former fixed 0.05; 7-10 %
     with the automatic cap, the k-nearest blur into the trunks' shadows; an explicit small
     cap, 0.003, gave 0.5 %). In a bounded medium V is the part of the ball inside the medium box
     (no photon can lie outside it), which removes the estimate's deficit along the box
@@ -303,8 +310,8 @@ class VolumetricPhotonMapping(Method):
         Param("knn", 32, "photons per density estimate", lo=2, hi=1024),
         Param("dx", 0.004, "march step, relative to the scene's extent", lo=0, lo_open=True),
         Param("max_radius", 0.0, "largest gather radius, relative to the extent; 0: automatic, "
-              "twice the photons' median knn-th nearest distance (it shrinks as photons are "
-              "added, so shadows converge)", lo=0),
+              "twice the photons' median knn-th nearest distance, at most 0.05 (it shrinks as "
+              "photons are added, so shadows converge)", lo=0),
         Param("leaf_size", 8, "least photons per kd-tree leaf (at most 2x)", lo=1, hi=4096),
         Param("segments_per_launch", 16384, "view segments per kernel launch (progress)", lo=1),
         Param("min_light_depth", 0, "deposit photons only on lighting segments with at least "
@@ -377,8 +384,10 @@ class VolumetricPhotonMapping(Method):
         rel = ps.scene.scene_extent() / ps.frame.scale
         max_r = self.params["max_radius"] * rel
         if max_r <= 0:
-            pos = tree.photons.view(np.float32).reshape(-1, PHOTON.itemsize // 4)[:, :3]
-            max_r = auto_max_radius(pos, self.params["knn"]) or rel
+            with stats.stage("vpm_radius"):
+                pos = tree.photons.view(np.float32).reshape(-1, PHOTON.itemsize // 4)[:, :3]
+                max_r = min(auto_max_radius(pos, self.params["knn"]) or math.inf,
+                            AUTO_RADIUS_MAX * rel)
         stats.set(vpm_max_radius=max_r / rel, vpm_max_radius_world=max_r * ps.frame.scale)
         pmap = DevicePhotonMap.upload(eng, tree)
         eng.note_host(tree.nbytes)   # the host copy while uploading
