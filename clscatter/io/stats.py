@@ -62,6 +62,10 @@ class Stats:
     def add(self, key: str, amount: float) -> None:
         self.values[key] = self.values.get(key, 0) + amount
 
+    def note(self, line: str) -> None:
+        """Keep a note told to the user under ``notes``."""
+        self.values["notes"] = [*self.values.get("notes", []), line]
+
     def to_dict(self) -> dict[str, Any]:
         d = dict(self.values)
         d.setdefault("method", "")

@@ -558,7 +558,7 @@ def _report_budget(stats: Stats, b: _Budget, on_note, overruns: list[str]) -> No
         return
     if overruns:
         for line in overruns:
-            stats.set(notes=[*stats.values.get("notes", []), line])
+            stats.note(line)
             on_note(line)
         return
     stages = stats.stages

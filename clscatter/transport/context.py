@@ -109,7 +109,7 @@ class PassContext:
 
     def note(self, line: str) -> None:
         """Tell the user ``line`` (one line); also kept in the stats under ``notes``."""
-        self.stats.set(notes=[*self.stats.values.get("notes", []), line])
+        self.stats.note(line)
         if self._on_note is not None:
             self._on_note(line)
 
