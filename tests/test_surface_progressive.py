@@ -104,7 +104,7 @@ def _surface(ps, paths, method: str, params: dict, **ctx_kw) -> tuple[np.ndarray
 def test_progressive_passes_converge(ball, method):
     """Floor caustic of the glass ball (48 x 36, 1 spp), against a long run (12 passes of
     20000 rays, k = 64): 16 passes of 2000 rays (k = 16) have at most 0.75 x the relative
-    RMS error of one such pass (measured: 0.0377 -> 0.0215, both methods), the radius
+    RMS error of one such pass (measured: 0.0120 -> 0.0049, both methods), the radius
     shrinks by s_16, and the passes' error estimate is reported."""
     ps, paths = ball
     ref, _ = _surface(ps, paths, method, {"photons": 20000, "passes": 12})
@@ -115,9 +115,12 @@ def test_progressive_passes_converge(ball, method):
     one, _ = _surface(ps, paths, method, {"photons": 2000, "passes": 1, "k": 16})
     many, st = _surface(ps, paths, method, {"photons": 2000, "passes": 16, "k": 16})
     assert st[f"{method}_passes"] == 16
-    # the 15 later passes splat: their work is counted apart from the K-nearest pass's
+    # the 15 later passes splat: their work is counted apart from the K-nearest pass's,
+    # which splats only for the hits whose K nearest lie within their camera sample's cell
     assert st[f"{method}_splat_hits_tested"] > 0 and st[f"{method}_refs_tested"] > 0
-    assert f"{method}_splat_hits_tested" not in _surface(ps, paths, method, {"photons": 2000})[1]
+    single = _surface(ps, paths, method, {"photons": 2000})[1]
+    assert (f"{method}_splat_hits_tested" in single) == (single[f"{method}_cell_floored"] > 0)
+    print(f"\n{method}: relative RMS error {err(one):.4f} (1 pass), {err(many):.4f} (16)")
     assert err(many) <= 0.75 * err(one), (err(one), err(many))
     s16 = surface_passes.ppm_scales(2.0 / 3.0, 16)[-1]
     assert st[f"{method}_radius_last"] == pytest.approx(st[f"{method}_radius"] * s16, rel=1e-12)

@@ -224,48 +224,78 @@ def pass_image(ps, dev, hits: np.ndarray, pieces: np.ndarray, estimator: str,
                settings: DensitySettings, stats: Stats, show_progress: bool = False,
                radii: np.ndarray | None = None, out_r=None,
                discs: HitDiscs | None = None) -> np.ndarray:
-    """One estimate's image (H, W, 3, finite): the map of ``pieces``, every hit of ``dev``
-    (``hits`` on the host) estimated (``radii``, ``out_r``: :func:`estimate_on_device`),
-    weighed and summed per pixel; the map's statistics set under ``estimator``. With
-    ``radii`` and ``discs`` (the hits' tree, :class:`~.disc_splat.HitDiscs`) the fixed-radius
-    estimate is splatted from the segments (:func:`~.disc_splat.splat_on_device`, the stage
-    ``<estimator>_splat``) and no map is built."""
+    """One estimate's image (H, W, 3, finite): :func:`hit_irradiance` at every hit of
+    ``dev``, weighed and summed per pixel (:func:`weighed_image`)."""
+    e_buf = hit_irradiance(ps, dev, hits, pieces, estimator, settings, stats, show_progress,
+                           radii=radii, out_r=out_r, discs=discs)
+    try:
+        return weighed_image(ps, dev, e_buf, estimator, stats)
+    finally:
+        ps.engine.free(e_buf)
+
+
+def hit_irradiance(ps, dev, hits: np.ndarray, pieces: np.ndarray, estimator: str,
+                   settings: DensitySettings, stats: Stats, show_progress: bool = False,
+                   radii: np.ndarray | None = None, out_r=None, discs: HitDiscs | None = None):
+    """The irradiance at every hit of ``dev`` (``hits`` on the host), a device buffer of
+    ``dev.count`` float4 the caller frees: the map of ``pieces`` queried (``radii``,
+    ``out_r``: :func:`estimate_on_device`), its statistics set under ``estimator``. With
+    ``radii`` and ``discs`` (the hits' tree, :class:`~.disc_splat.HitDiscs`, over these
+    hits or a subset of them, then ``radii`` and the result are the subset's) the
+    fixed-radius estimate is splatted from the segments (:func:`~.disc_splat.splat_on_device`,
+    the stage ``<estimator>_splat``) and no map is built."""
     eng = ps.engine
     nh = dev.count
-    rmap = e_buf = w_buf = v_buf = None
+    if discs is not None and radii is not None:
+        with stats.stage(f"{estimator}_splat"):
+            e_buf, (visited, tested) = splat_on_device(
+                discs, *map_segments(pieces, estimator), radii, estimator, settings.kernel,
+                settings.k)
+            eng.finish()
+        # summed over the splatted passes (the search's own counts stay those of the
+        # K-nearest pass)
+        stats.add(f"{estimator}_splat_nodes_visited", int(visited))
+        stats.add(f"{estimator}_splat_hits_tested", int(tested))
+        return e_buf
+    rmap = w_buf = e_buf = None
     try:
-        if discs is not None and radii is not None:
-            with stats.stage(f"{estimator}_splat"):
-                e_buf, (visited, tested) = splat_on_device(
-                    discs, *map_segments(pieces, estimator), radii, estimator, settings.kernel,
-                    settings.k)
-                eng.finish()
-            # summed over the splatted passes (the search's own counts stay those of the
-            # K-nearest pass)
-            stats.add(f"{estimator}_splat_nodes_visited", int(visited))
-            stats.add(f"{estimator}_splat_hits_tested", int(tested))
-        else:
-            with stats.stage(f"{estimator}_build"):
-                rmap = build_map(eng, pieces, estimator, settings)
-            with stats.stage(f"{estimator}_estimate"):
-                e_buf, w_buf = estimate_on_device(rmap, hits["p"][:, :3], hits["n"][:, :3],
-                                                  estimator, settings, show_progress, stats,
-                                                  radii=radii, out_r=out_r)
-                visited, tested = prim.int_totals(eng, w_buf, nh, 2)
-            t = rmap.tree
-            stats.set(**{f"{estimator}_tree_nodes": int(t.n),
-                         f"{estimator}_tree_refs": int(t.num_refs),
-                         f"{estimator}_index_peak_bytes": int(t.peak_bytes),
-                         f"{estimator}_collapses": int(t.collapses),
-                         f"{estimator}_nodes_visited": int(visited),
-                         f"{estimator}_refs_tested": int(tested)})
-            eng.note_host(t.nbytes + pieces.nbytes + hits.nbytes)
+        with stats.stage(f"{estimator}_build"):
+            rmap = build_map(eng, pieces, estimator, settings)
         with stats.stage(f"{estimator}_estimate"):
-            v_buf = eng.empty(16 * nh)
-            ps.call("raymap", "rm_weigh_hits", nh, hits=dev.buf, e=e_buf, n=nh, out=v_buf)
-            img = dev.accumulate(v_buf)
+            e_buf, w_buf = estimate_on_device(rmap, hits["p"][:, :3], hits["n"][:, :3],
+                                              estimator, settings, show_progress, stats,
+                                              radii=radii, out_r=out_r)
+            visited, tested = prim.int_totals(eng, w_buf, nh, 2)
+        t = rmap.tree
+        stats.set(**{f"{estimator}_tree_nodes": int(t.n),
+                     f"{estimator}_tree_refs": int(t.num_refs),
+                     f"{estimator}_index_peak_bytes": int(t.peak_bytes),
+                     f"{estimator}_collapses": int(t.collapses),
+                     f"{estimator}_nodes_visited": int(visited),
+                     f"{estimator}_refs_tested": int(tested)})
+        eng.note_host(t.nbytes + pieces.nbytes + hits.nbytes)
+        return e_buf
+    except BaseException:
+        if e_buf is not None:
+            eng.free(e_buf)
+        raise
     finally:
         if rmap is not None:
             rmap.release()
-        eng.free(*(b for b in (e_buf, w_buf, v_buf) if b is not None))
+        if w_buf is not None:
+            eng.free(w_buf)
+
+
+def weighed_image(ps, dev, e_buf, estimator: str, stats: Stats) -> np.ndarray:
+    """The image (H, W, 3, finite) of irradiance ``e_buf`` at the hits of ``dev``: each
+    hit's weight (throughput x albedo / pi) times its irradiance, summed per pixel."""
+    eng = ps.engine
+    nh = dev.count
+    with stats.stage(f"{estimator}_estimate"):
+        v_buf = eng.empty(16 * nh)
+        try:
+            ps.call("raymap", "rm_weigh_hits", nh, hits=dev.buf, e=e_buf, n=nh, out=v_buf)
+            img = dev.accumulate(v_buf)
+        finally:
+            eng.free(v_buf)
     return np.where(np.isfinite(img), img, 0.0).astype(np.float32)

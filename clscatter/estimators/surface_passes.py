@@ -8,15 +8,27 @@ rays at x (``max_radius`` where fewer lie within). With an explicit radius r the
 r instead (the k nearest where more than k lie within). The estimates and the radii are in
 the normalised frame, so they do not depend on the scene's scale.
 
+*No disc smaller than the camera sample's cell.* A pixel is the mean of its radiance over
+its footprint, and its ``spp`` camera samples are fixed for the whole render: each stands
+for a cell of ``1 / spp`` of the footprint. Where the rays crowd (a caustic's focus, where
+the irradiance is singular) the k nearest lie within a disc far smaller than that cell,
+and the estimate at the sample's point grows without bound as rays are added while the
+pixel's true mean stays finite. So every hit's radius is at least the radius of a disc of
+its cell's area, ``c(x) = f(x) / sqrt(pi spp)`` (:func:`cell_radii`; ``f(x)`` the pixel
+footprint at x, :func:`footprints`): where ``R_1(x)`` is smaller the hit gathers every ray
+within ``c(x)`` instead (a fixed-radius splat over those hits, :mod:`.disc_splat`), so the
+estimate is the irradiance averaged over a disc the size of its cell and converges to a
+finite image, blurred by at most a camera sample's share of a pixel.
+
 *Later passes.* Pass i (from 1) traces fresh rays (``seed_offset`` i) and gathers at every
-hit all rays within the fixed radius ``R_i(x) = s_i B(x)``, the base
-``B(x) = max(R_1(x), f(x) / FOOTPRINT_FRACTION)`` (``f(x)``: the pixel footprint at x,
-:func:`footprints`; no disc smaller than a sixteenth of a pixel) and
-``s_i^2 = prod_{j<i} (j + alpha) / (j + 1)`` (:func:`ppm_scales`): progressive photon
-mapping's rule for a 2-D kernel (Hachisuka et al. 2008; Knaus and Zwicker 2011,
-``r_{i+1}^2 = r_i^2 (i + alpha) / (i + 1)``). A pass's expected count within its disc
-falls like ``i^(alpha - 1)`` while the mean of ``n`` passes has variance falling like
-``n^-alpha`` and a blur (bias ~ r^2) falling like ``n^(alpha - 1)``: the mean converges.
+hit all rays within the fixed radius ``R_i(x) = max(s_i B(x), c(x))``, the base
+``B(x) = max(R_1(x), c(x))`` and ``s_i^2 = prod_{j<i} (j + alpha) / (j + 1)``
+(:func:`ppm_scales`): progressive photon mapping's rule for a 2-D kernel (Hachisuka et
+al. 2008; Knaus and Zwicker 2011, ``r_{i+1}^2 = r_i^2 (i + alpha) / (i + 1)``), down to
+the sample's cell. A pass's expected count within its disc falls like ``i^(alpha - 1)``
+while the mean of ``n`` passes has variance falling like ``n^-alpha`` and a blur (bias ~
+r^2) falling like ``n^(alpha - 1)`` until the radii reach the cells: the mean converges
+(to the cell-averaged image).
 These fixed-radius passes need no nearest-neighbour search: every segment adds itself to
 the hits whose disc it qualifies for (:mod:`.disc_splat`, over a tree of the hits built
 once), so a hit gathers every ray within its radius.
@@ -31,10 +43,9 @@ import numpy as np
 from ..io.stats import Stats
 from ..transport.view_paths import DeviceSegments, trace_diffuse_hits_on_device
 from .disc_splat import HitDiscs
-from .ray_density import DensitySettings, caustic_pieces, pass_image, read_hits
+from .ray_density import (DensitySettings, caustic_pieces, hit_irradiance, pass_image,
+                          read_hits, weighed_image)
 
-#: the base radius is at least the pixel footprint divided by this
-FOOTPRINT_FRACTION = 16.0
 #: under a deadline a pass has at least this many rays (or all of them, if fewer) and at
 #: most RESIZE times (or 1 / RESIZE of) the rays of the pass its cost was measured on
 MIN_PASS_RAYS = 2000
@@ -98,11 +109,17 @@ class SurfacePasses:
     sized_from: str = "none"              # what the passes' rays were sized from
 
 
-def base_radii(first: np.ndarray, foot: np.ndarray, explicit: float) -> np.ndarray:
+def cell_radii(foot: np.ndarray, spp: int) -> np.ndarray:
+    """``c(x)`` of the module docstring: the radius of a disc whose area is one camera
+    sample's share of the pixel footprints ``foot``, ``foot / sqrt(pi spp)``."""
+    return np.asarray(foot, np.float64) / np.sqrt(np.pi * max(int(spp), 1))
+
+
+def base_radii(first: np.ndarray, cell: np.ndarray, explicit: float) -> np.ndarray:
     """``B(x)`` of the module docstring: ``explicit`` if it is positive, else the first
-    pass's radius ``first``; at least ``foot / FOOTPRINT_FRACTION``."""
+    pass's radius ``first``; at least the sample's cell radius ``cell``."""
     b = np.full(len(first), explicit) if explicit > 0 else np.asarray(first, np.float64)
-    return np.maximum(b, np.asarray(foot, np.float64) / FOOTPRINT_FRACTION)
+    return np.maximum(b, np.asarray(cell, np.float64))
 
 
 def progressive_surface_caustics(ps, estimator: str, rays: int, settings: DensitySettings,
@@ -175,7 +192,7 @@ def _run_passes(ps, dev, hits, estimator: str, rays: int, settings: DensitySetti
     discs = None               # the hits' tree for the later passes' splats (kept with the hits)
     scales: list[float] = []
     first = settings if radius <= 0 else replace(settings, max_radius=radius)
-    foot = footprints(ps, hits["p"])
+    cell = cell_radii(footprints(ps, hits["p"]), ps.scene.camera.spp)
     i = 0
     # every pass traces the same rays (progressive photon mapping's radius rule assumes
     # passes alike): under a deadline, as many as the first pass's share of it allows
@@ -200,13 +217,14 @@ def _run_passes(ps, dev, hits, estimator: str, rays: int, settings: DensitySetti
             own = np.zeros_like(out.image)
         elif base is None:
             own, base, out.radius = _first_pass(ps, dev, hits, pieces, estimator, first,
-                                                stats, show_progress, foot, radius)
+                                                stats, show_progress, cell, radius)
         else:
             if discs is None:
                 with stats.stage(f"{estimator}_splat"):
                     discs = dev.derived("surface_hit_discs", lambda: _discs(ps, hits))
             own = pass_image(ps, dev, hits, pieces, estimator, settings, stats,
-                             show_progress, radii=(base * s).astype(np.float32),
+                             show_progress,
+                             radii=np.maximum(base * s, cell).astype(np.float32),
                              discs=discs)
         out.seconds.append(prog.clock() - t0)
         out.rays.append(int(n))
@@ -232,18 +250,50 @@ def _discs(ps, hits: np.ndarray) -> tuple[list, HitDiscs]:
 
 
 def _first_pass(ps, dev, hits, pieces, estimator: str, settings: DensitySettings, stats: Stats,
-                show_progress: bool, foot: np.ndarray, radius: float):
+                show_progress: bool, cell: np.ndarray, radius: float):
     """The first pass's image, the base radii ``B`` it gives (:func:`base_radii`) and their
     median over the hits it found k rays for (0 without any; with an explicit radius, over
-    every hit)."""
+    every hit). Hits whose k nearest lie within their cell radius ``cell`` are estimated
+    again over every ray within it (module docstring); ``<estimator>_cell_floored`` in the
+    statistics is their share of the hits."""
     eng = ps.engine
     r_buf = eng.empty(4 * dev.count)
+    e_buf = None
     try:
-        own = pass_image(ps, dev, hits, pieces, estimator, settings, stats, show_progress,
-                         out_r=r_buf)
+        e_buf = hit_irradiance(ps, dev, hits, pieces, estimator, settings, stats,
+                               show_progress, out_r=r_buf)
         r1 = eng.read(r_buf, dev.count, np.float32).astype(np.float64)
+        small = np.flatnonzero(r1 < cell)
+        stats.set(**{f"{estimator}_cell_floored": float(len(small) / max(dev.count, 1))})
+        if len(small):
+            fixed = _estimate_within_cells(ps, dev, hits, pieces, estimator, settings, stats,
+                                           e_buf, small, cell[small])
+            eng.free(e_buf)
+            e_buf = fixed
+        own = weighed_image(ps, dev, e_buf, estimator, stats)
     finally:
-        eng.free(r_buf)
-    base = base_radii(r1, foot, radius)
+        eng.free(*(b for b in (r_buf, e_buf) if b is not None))
+    base = base_radii(r1, cell, radius)
     lit = np.flatnonzero(r1 < settings.max_radius) if radius <= 0 else np.arange(len(r1))
     return own, base, float(np.median(base[lit])) if len(lit) else 0.0
+
+
+def _estimate_within_cells(ps, dev, hits, pieces, estimator: str, settings: DensitySettings,
+                           stats: Stats, e_buf, small: np.ndarray, radii: np.ndarray):
+    """A new buffer: ``e_buf`` (every hit's irradiance) with the hits ``small`` estimated
+    again over every ray within ``radii`` (a splat over a tree of those hits alone)."""
+    eng = ps.engine
+    with stats.stage(f"{estimator}_splat"):
+        discs = HitDiscs.build(eng, hits["p"][small, :3], hits["n"][small, :3])
+    try:
+        sub = hit_irradiance(ps, dev, hits, pieces, estimator, settings, stats,
+                             radii=radii.astype(np.float32), discs=discs)
+        try:
+            e_sub = eng.read(sub, (len(small), 4), np.float32)
+        finally:
+            eng.free(sub)
+    finally:
+        discs.release()
+    e = eng.read(e_buf, (dev.count, 4), np.float32)
+    e[small] = e_sub
+    return eng.to_device(e)
