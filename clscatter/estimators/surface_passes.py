@@ -12,8 +12,8 @@ the normalised frame, so they do not depend on the scene's scale.
 its footprint, and its ``spp`` camera samples are fixed for the whole render: each stands
 for a cell of ``1 / spp`` of the footprint. Where the rays crowd (a caustic's focus, where
 the irradiance is singular) the k nearest lie within a disc far smaller than that cell,
-and the estimate at the sample's point grows without bound as rays are added while the
-pixel's true mean stays finite. So every hit's radius is at least the radius of a disc of
+and the estimate at the sample's point follows the singular irradiance there, growing or
+falling without limit as rays are added while the pixel's true mean stays put. So every hit's radius is at least the radius of a disc of
 its cell's area, ``c(x) = f(x) / sqrt(pi spp)`` (:func:`cell_radii`; ``f(x)`` the pixel
 footprint at x, :func:`footprints`): where ``R_1(x)`` is smaller the hit gathers every ray
 within ``c(x)`` instead (a fixed-radius splat over those hits, :mod:`.disc_splat`), so the
@@ -294,6 +294,7 @@ def _estimate_within_cells(ps, dev, hits, pieces, estimator: str, settings: Dens
             eng.free(sub)
     finally:
         discs.release()
-    e = eng.read(e_buf, (dev.count, 4), np.float32)
-    e[small] = e_sub
-    return eng.to_device(e)
+    with stats.stage(f"{estimator}_splat"):
+        e = eng.read(e_buf, (dev.count, 4), np.float32)
+        e[small] = e_sub
+        return eng.to_device(e)
