@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from clscatter.pipeline.check import open_edges, scene_notes
+from clscatter.pipeline.check import PARITY_RAY, crossings, open_edges, scene_notes
 from clscatter.pipeline.render import render
 from clscatter.scene.loader import scene_from_dict
 from clscatter.scene.shapes import load_mesh
@@ -78,3 +78,56 @@ def test_an_open_glass_mesh_is_noted():
     assert len(lines) == 1 and lines[0].startswith("objects[0]: ") and "160 open edges" in lines[0]
     assert not [n for n in scene_notes(scene_from_dict(_scene(COW, "glass"))) if "not closed" in n]
     assert not [n for n in scene_notes(scene_from_dict(_scene(TEAPOT))) if "not closed" in n]
+
+
+
+def _winding(tris: np.ndarray, p: np.ndarray) -> float:
+    """The winding number of the closed surface ``tris`` (F, 3, 3) about ``p``: the solid
+    angles its triangles subtend there (Van Oosterom and Strackee), summed, over 4 pi."""
+    a, b, c = (tris[:, i] - p for i in range(3))
+    la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
+    num = np.einsum("ij,ij->i", a, np.cross(b, c))
+    den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc
+           + np.einsum("ij,ij->i", b, c) * la + np.einsum("ij,ij->i", c, a) * lb)
+    return float(np.sum(2 * np.arctan2(num, den)) / (4 * np.pi))
+
+
+def test_crossings_tell_inside_from_outside_a_closed_mesh():
+    """The parity of the ray's crossings against a closed mesh (the cow) agrees with the
+    surface's winding number at 400 random points of its bounding box."""
+    vertices, faces, _ = load_mesh(COW, "cow")
+    tris = vertices[faces]
+    rng = np.random.default_rng(5)
+    points = rng.uniform(vertices.min(axis=0), vertices.max(axis=0), (400, 3))
+    want = np.array([abs(_winding(tris, p)) > 0.5 for p in points])
+    got = np.array([crossings(p, PARITY_RAY, tris) % 2 == 1 for p in points])
+    assert 20 < want.sum() < 380
+    assert np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("shape", ["sphere", "box", "mesh"])
+def test_a_camera_inside_glass_is_noted(shape):
+    """A camera inside a closed glass object (a sphere, a box, the cow) gets one note
+    naming the object; inside a diffuse one, or outside, none."""
+    obj = {"sphere": {"shape": "sphere", "center": [0.0, 0.3, 0.0], "radius": 0.3},
+           "box": {"shape": "box", "min": [-0.3, 0.0, -0.3], "max": [0.3, 0.6, 0.3]},
+           "mesh": {"shape": "mesh", "file": str(COW)}}[shape]
+    d = _scene(COW, "glass")
+    d["objects"] = [dict(obj, material="glass")]
+    o = scene_from_dict(d).objects[0]
+    tris = o.vertices[o.faces]
+    lo, hi = o.vertices.min(axis=0), o.vertices.max(axis=0)
+    # a point inside (by the winding number): along the vertical through the box's centre
+    line = [np.array([(lo[0] + hi[0]) / 2, y, (lo[2] + hi[2]) / 2])
+            for y in np.linspace(lo[1], hi[1], 41)[1:-1]]
+    inside = [p for p in line if abs(_winding(tris, p)) > 0.5]
+    centre = inside[len(inside) // 2]
+    d["camera"]["origin"] = [float(x) for x in centre]
+    d["camera"]["target"] = [float(centre[0]), float(centre[1]), float(centre[2]) - 1.0]
+    lines = [n for n in scene_notes(scene_from_dict(d)) if "camera.origin is inside" in n]
+    assert len(lines) == 1 and "objects[0] (glass)" in lines[0], lines
+    d["objects"][0]["material"] = "grey"
+    assert not [n for n in scene_notes(scene_from_dict(d)) if "camera.origin" in n]
+    d["objects"][0]["material"] = "glass"
+    d["camera"]["origin"], d["camera"]["target"] = [0.0, 0.6, 3.0], [0.0, 0.2, 0.0]
+    assert not [n for n in scene_notes(scene_from_dict(d)) if "camera.origin" in n]
