@@ -53,3 +53,39 @@ def slab_interval(a: np.ndarray, d: np.ndarray, lo, hi, t_max) -> tuple[np.ndarr
     enter = np.maximum(np.maximum(np.maximum(near[..., 0], near[..., 1]), near[..., 2]), 0.0)
     leave = np.minimum(np.minimum(np.minimum(far[..., 0], far[..., 1]), far[..., 2]), t_max)
     return enter, leave
+
+
+def open_edges(faces: np.ndarray) -> int:
+    """Edges of a triangle mesh (vertex indices, shared vertices merged) that only one
+    triangle uses: 0 for a closed surface."""
+    f = np.asarray(faces, np.int64)
+    if len(f) == 0:
+        return 0
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    # an integer key per edge (np.unique(axis=0) compares structured arrays, which turns
+    # a KeyboardInterrupt raised by a signal meanwhile into a TypeError)
+    _, counts = np.unique(e[:, 0] * (int(f.max()) + 1) + e[:, 1], return_counts=True)
+    return int(np.count_nonzero(counts == 1))
+
+
+#: the direction of the parity ray from the camera (no symmetry of a box or a sphere lies
+#: along it, so it does not graze their edges)
+PARITY_RAY = np.array([0.5312, 0.6217, 0.5755])
+
+
+def ray_crossings(origin, direction, triangles: np.ndarray) -> int:
+    """How many of ``triangles`` (F, 3, 3) the ray ``origin + t direction``, t > 0, crosses
+    (Moller-Trumbore in float64): odd when the origin lies inside a closed surface."""
+    tri = np.asarray(triangles, np.float64).reshape(-1, 3, 3)
+    o, d = np.asarray(origin, np.float64), np.asarray(direction, np.float64)
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    p = np.cross(d, e2)
+    det = np.einsum("ij,ij->i", e1, p)
+    ok = np.abs(det) > 1e-12 * np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1)
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    tv = o - tri[:, 0]
+    u = np.einsum("ij,ij->i", tv, p) * inv
+    q = np.cross(tv, e1)
+    v = (q @ d) * inv
+    t = np.einsum("ij,ij->i", e2, q) * inv
+    return int(np.count_nonzero(ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)))

@@ -77,6 +77,9 @@ typedef struct {
     int height;
     int spp;           /* samples per pixel */
     int spp_side;      /* >0: spp == side*side, stratified grid; 0: jittered random */
+    int inside;        /* material index of the closed glass the camera is inside, or -1 */
+    float radiance_scale;  /* that glass's ior^2 (1 in air): radiance / n^2 is what rays carry */
+    int pad0, pad1;
 } Camera;
 
 /* ---- BVH (built on the host, clscatter/accel/bvh.py), depth-first layout ----

@@ -5,10 +5,11 @@
  * Fresnel-weighted reflected and refracted children (no Russian roulette), so images
  * of glass are noise-free and energy bookkeeping is exact. A branch's weight `thr` is
  * a throughput for view paths and a flux for light paths; both only ever get multiplied.
- * Radiance scaling by eta^2 at refraction is omitted from the branches: sources, the
- * camera and the medium lie outside all objects, so a path that enters an object and
- * leaves it again crosses twice and the factors cancel. The one path that does not is a
- * view path that sees light scattered inside glass: interior_radiance_scale. */
+ * Radiance scaling by eta^2 at refraction is omitted from the branches: a branch carries
+ * radiance / n^2 (relative to air), which no interface changes. Sources and the medium lie
+ * outside all objects, so light reaches a view path in air, save light scattered inside
+ * glass (interior_radiance_scale: / n^2); a camera inside glass sees n^2 times what its
+ * branches carry, which camera_branch puts in their throughput (Camera.radiance_scale). */
 #ifndef CLSCATTER_SPECULAR_H
 #define CLSCATTER_SPECULAR_H
 #include "common.h"
@@ -142,10 +143,11 @@ int scatters_inside(__global const Material *mat) {
     return mat->type == MAT_DIELECTRIC && fmax(s.x, fmax(s.y, s.z)) > 0.0f;
 }
 
-/* What radiance inside a dielectric of index n is worth at the camera, which is in air:
- * radiance / n^2 is invariant along a ray across an interface, so light scattered inside
- * and leaving towards the camera arrives divided by n^2 (the Fresnel transmittance of the
- * crossing is in the view branch's throughput already; Fresnel is the same both ways). */
+/* What radiance inside a dielectric of index n is worth relative to air (where a view
+ * branch's throughput is measured): radiance / n^2 is invariant along a ray across an
+ * interface, so light scattered inside and leaving towards a camera in air arrives divided
+ * by n^2 (the Fresnel transmittance of the crossing is in the view branch's throughput
+ * already; Fresnel is the same both ways; a camera inside glass has its n^2 there too). */
 float interior_radiance_scale(__global const Material *mat) {
     return 1.0f / (mat->ior * mat->ior);
 }

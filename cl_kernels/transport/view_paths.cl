@@ -49,7 +49,9 @@ float4 camera_dir(__global const Camera *cam, int px, int py, int k, Rng *rng) {
 }
 
 /* The primary branch of camera sample s (pixel = s / spp): origin, stratified direction,
- * throughput 1/spp, outside every object. Every camera-path tracer starts here. */
+ * throughput 1/spp, in the closed glass the camera is inside (cam->inside, -1: in air)
+ * with its ior^2 in the throughput (radiance / n^2 is what a branch carries, and the
+ * camera sees the radiance where it is). Every camera-path tracer starts here. */
 Branch camera_branch(__global const Camera *cam, uint seed, int s, int *pixel) {
     *pixel = s / cam->spp;
     int k = s % cam->spp;
@@ -58,9 +60,10 @@ Branch camera_branch(__global const Camera *cam, uint seed, int s, int *pixel) {
     Branch b;
     b.o = cam->origin;
     b.d = camera_dir(cam, *pixel % cam->width, *pixel / cam->width, k, &rng);
-    b.thr = (float4)(inv_spp, inv_spp, inv_spp, 0.0f);
+    float w = inv_spp * cam->radiance_scale;
+    b.thr = (float4)(w, w, w, 0.0f);
     b.depth = 0;
-    b.inside = -1;
+    b.inside = cam->inside;
     b.id = 0;
     b.pad = 0;
     return b;

@@ -40,6 +40,7 @@ MEDIUM = np.dtype([
 CAMERA = np.dtype([
     ("origin", *F4), ("forward", *F4), ("right", *F4), ("up", *F4),
     ("width", np.int32), ("height", np.int32), ("spp", np.int32), ("spp_side", np.int32),
+    ("inside", np.int32), ("radiance_scale", np.float32), ("pad0", np.int32), ("pad1", np.int32),
 ], align=True)
 
 BVH_NODE = np.dtype([

@@ -206,6 +206,10 @@ class Method:
     # True for a method that renders heterogeneous media (volumes with a density grid):
     # ``auto`` passes over the others on such a scene, and the planner notes an explicit one
     DENSITY: ClassVar[bool] = False
+    # True for a method that renders what a camera inside closed glass sees (its view paths
+    # start in the glass, with the glass's n^2 in their throughput); ``auto`` passes over
+    # the others there, and the planner notes an explicit one
+    CAMERA_IN_GLASS: ClassVar[bool] = True
 
     def __init__(self, params: dict | None = None):
         self.params: dict[str, Any] = configure(type(self), params)
@@ -218,10 +222,15 @@ class Method:
     @classmethod
     def suits(cls, scene) -> str:
         """'' when this method's assumptions hold for ``scene`` (a :class:`Scene`), else why
-        not. The default: every light's kind is in ``LIGHTS``."""
+        not. The default: every light's kind is in ``LIGHTS``, and the camera is in air
+        unless the method handles a camera inside glass (``CAMERA_IN_GLASS``)."""
         kinds = {light.type for light in scene.lights}
-        missing = kinds - cls.LIGHTS
-        return f"{cls.NAME} handles {', '.join(sorted(cls.LIGHTS))} lights only" if missing else ""
+        if kinds - cls.LIGHTS:
+            return f"{cls.NAME} handles {', '.join(sorted(cls.LIGHTS))} lights only"
+        glass = None if cls.CAMERA_IN_GLASS else scene.camera_glass()
+        if glass is not None:
+            return f"{cls.NAME} takes the camera to be in air; it is inside {glass.key} (glass)"
+        return ""
 
     @classmethod
     def unreliable(cls, scene) -> str:

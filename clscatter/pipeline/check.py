@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry import open_edges
 from ..methods import configure_scene
 from ..scene.model import Scene
 from . import budget
@@ -36,8 +37,7 @@ def scene_notes(scene: Scene) -> list[str]:
     """One-line notes about the scene itself: zero-area triangles dropped when loading,
     glass and volume surfaces that are not closed, and surfaces that reflect more light
     than reaches them (albedo or reflectance above
-    1: allowed, as other renderers allow it, but not physical), and a camera inside a glass
-    object."""
+    1: allowed, as other renderers allow it, but not physical)."""
     notes = [f"{o.key}: {o.dropped_triangles} zero-area triangles dropped"
              for o in scene.objects if o.dropped_triangles]
     seen = set()
@@ -49,20 +49,7 @@ def scene_notes(scene: Scene) -> list[str]:
         seen.add(id(m))
         notes.append(f"{m.key or m.name}.{value}: {float(np.max(m.color)):g} > 1 reflects more light "
                      "than reaches it (not physical)")
-    return notes + _open_surface_notes(scene) + _camera_inside_notes(scene) + _range_notes(scene)
-
-
-def open_edges(faces: np.ndarray) -> int:
-    """Edges of a triangle mesh (vertex indices, shared vertices merged) that only one
-    triangle uses: 0 for a closed surface."""
-    f = np.asarray(faces, np.int64)
-    if len(f) == 0:
-        return 0
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    # an integer key per edge (np.unique(axis=0) compares structured arrays, which turns
-    # a KeyboardInterrupt raised by a signal meanwhile into a TypeError)
-    _, counts = np.unique(e[:, 0] * (int(f.max()) + 1) + e[:, 1], return_counts=True)
-    return int(np.count_nonzero(counts == 1))
+    return notes + _open_surface_notes(scene) + _range_notes(scene)
 
 
 def _open_surface_notes(scene: Scene) -> list[str]:
@@ -77,49 +64,6 @@ def _open_surface_notes(scene: Scene) -> list[str]:
         if n:
             notes.append(f"{key}: its surface is not closed ({n} open edges): glass and "
                          "volumes need a closed surface; light crossing the gaps is wrong")
-    return notes
-
-
-#: the direction of the parity ray from the camera (no symmetry of a box or a sphere lies
-#: along it, so it does not graze their edges)
-PARITY_RAY = np.array([0.5312, 0.6217, 0.5755])
-
-
-def crossings(origin, direction, triangles: np.ndarray) -> int:
-    """How many of ``triangles`` (F, 3, 3) the ray ``origin + t direction``, t > 0, crosses
-    (Moller-Trumbore in float64): odd when the origin lies inside a closed surface."""
-    tri = np.asarray(triangles, np.float64).reshape(-1, 3, 3)
-    o, d = np.asarray(origin, np.float64), np.asarray(direction, np.float64)
-    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    p = np.cross(d, e2)
-    det = np.einsum("ij,ij->i", e1, p)
-    ok = np.abs(det) > 1e-12 * np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1)
-    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-    tv = o - tri[:, 0]
-    u = np.einsum("ij,ij->i", tv, p) * inv
-    q = np.cross(tv, e1)
-    v = (q @ d) * inv
-    t = np.einsum("ij,ij->i", e2, q) * inv
-    return int(np.count_nonzero(ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)))
-
-
-def _camera_inside_notes(scene: Scene) -> list[str]:
-    """A note when the camera lies inside a closed glass object: view paths start in air
-    (the engine's cameras, lights' rays and medium lie outside closed dielectrics), so
-    what such a camera sees lacks the n^2 radiance gain of light entering the glass, and
-    the glass's own interior is taken for the scene medium up to its surface."""
-    origin = np.asarray(scene.camera.origin, np.float64)
-    notes = []
-    for o in scene.objects:
-        if o.material.type != "dielectric" or not len(o.faces):
-            continue
-        lo, hi = o.vertices.min(axis=0), o.vertices.max(axis=0)
-        if np.any(origin < lo) or np.any(origin > hi) or open_edges(o.faces):
-            continue
-        if crossings(origin, PARITY_RAY, o.vertices[o.faces]) % 2:
-            notes.append(f"camera.origin is inside {o.key} (glass): cameras are taken to be in "
-                         "air, so this image lacks the glass's n^2 radiance gain and treats its "
-                         "inside as the scene medium up to its surface; move the camera out of it")
     return notes
 
 

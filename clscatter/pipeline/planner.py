@@ -96,7 +96,8 @@ def plan(scene: Scene, requested: str) -> tuple[list[Pass], list[str]]:
     notes on what was chosen or skipped (a note ending in :data:`DROPS_LIGHT` for light
     the scene has and the plan leaves out)."""
     passes, notes = _plan(scene, requested)
-    return passes, notes + interior_scattering_note(scene, passes) + density_note(scene, passes)
+    return passes, (notes + interior_scattering_note(scene, passes) + density_note(scene, passes)
+                    + camera_glass_note(scene, passes))
 
 
 def _plan(scene: Scene, requested: str) -> tuple[list[Pass], list[str]]:
@@ -204,6 +205,20 @@ def density_note(scene: Scene, passes: list[Pass]) -> list[str]:
     able = " and ".join(n for n, c in sorted(methods.items()) if c.DENSITY)
     return [f"{vols[0].key}.density: {who} does not render heterogeneous media (only "
             f"{able} do): the density is ignored, {DROPS_LIGHT}"]
+
+
+def camera_glass_note(scene: Scene, passes: list[Pass]) -> list[str]:
+    """One note when the camera is inside closed glass and a pass of the plan takes it to
+    be in air (no ``CAMERA_IN_GLASS``): what that pass renders is not what the camera
+    sees there (the glass's n^2 radiance gain, its inside taken for the scene medium)."""
+    methods = all_methods()
+    air = [p.method for p in passes if not methods[p.method].CAMERA_IN_GLASS]
+    glass = scene.camera_glass() if air else None
+    if glass is None:
+        return []
+    return [f"camera.origin is inside {glass.key} (glass), which {'+'.join(air)} does not "
+            f"model (it takes the camera to be in air: no n^2 radiance gain, the glass's "
+            f"inside taken for the scene medium): {APPROXIMATES}"]
 
 
 def dropped_light(notes: list[str]) -> list[str]:

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from ..geometry import box_corners, perpendicular_axes
+from ..geometry import PARITY_RAY, box_corners, open_edges, perpendicular_axes, ray_crossings
 
 RGB = np.ndarray  # shape (3,), float64
 
@@ -270,6 +270,22 @@ class Scene:
             return 1.0
         ext = float(np.max(bb[1] - bb[0]))
         return ext if ext > 0 else 1.0
+
+    def camera_glass(self) -> Object | None:
+        """The closed glass object the camera's origin lies inside (the innermost, by the
+        volume of its bounding box, where several nest), or None: a camera there starts its
+        view paths inside that glass (the parity of a ray's crossings of its surface)."""
+        eye = np.asarray(self.camera.origin, np.float64)
+        found = []
+        for o in self.objects:
+            if o.material.type != "dielectric" or not len(o.faces):
+                continue
+            lo, hi = o.vertices.min(axis=0), o.vertices.max(axis=0)
+            if np.any(eye < lo) or np.any(eye > hi) or open_edges(o.faces):
+                continue
+            if ray_crossings(eye, PARITY_RAY, o.vertices[o.faces]) % 2:
+                found.append((float(np.prod(hi - lo)), o))
+        return min(found, key=lambda f: f[0])[1] if found else None
 
     def camera_in_medium(self) -> bool:
         """True when the camera's origin lies in the medium (always, for an unbounded one)."""

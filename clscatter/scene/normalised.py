@@ -77,8 +77,11 @@ class Frame:
         return Frame(centre=(lo + hi) / 2, scale=ext)
 
 
-def camera_struct(cam: Camera, frame: Frame) -> np.ndarray:
-    """The Camera struct: orthonormal basis with right/up scaled by the half-fov tangents."""
+def camera_struct(cam: Camera, frame: Frame, scene: Scene | None = None) -> np.ndarray:
+    """The Camera struct: orthonormal basis with right/up scaled by the half-fov tangents;
+    with ``scene`` (whose camera ``cam`` is), inside a closed glass object
+    (:meth:`Scene.camera_glass`): that glass's material index (as the triangle soup numbers
+    them) and its ior^2 (else -1 and 1: in air)."""
     fwd = cam.target - cam.origin
     fwd = fwd / np.linalg.norm(fwd)
     right = np.cross(fwd, cam.up)
@@ -95,7 +98,19 @@ def camera_struct(cam: Camera, frame: Frame) -> np.ndarray:
     c["width"], c["height"], c["spp"] = cam.width, cam.height, cam.spp
     side = int(round(math.sqrt(cam.spp)))
     c["spp_side"] = side if side * side == cam.spp else 0
+    glass = scene.camera_glass() if scene is not None else None
+    c["inside"] = -1 if glass is None else material_order(scene)[id(glass.material)]
+    c["radiance_scale"] = 1.0 if glass is None else glass.material.ior ** 2
     return c
+
+
+def material_order(scene: Scene) -> dict[int, int]:
+    """The device material table's order: ``id(material)`` -> index, each object's material
+    at its first appearance."""
+    order: dict[int, int] = {}
+    for obj in scene.objects:
+        order.setdefault(id(obj.material), len(order))
+    return order
 
 
 def medium_struct(medium: Medium | None, frame: Frame) -> np.ndarray:
@@ -162,14 +177,12 @@ class TriangleSoup:
 def triangle_soup(scene: Scene, frame: Frame, materials_only: bool = False) -> TriangleSoup:
     """Flatten every object of ``scene`` into one triangle soup in the normalised frame
     (``materials_only``: just the material table, in the same order; no triangles)."""
-    mats: list = []
-    mat_index: dict[int, int] = {}
+    mat_index = material_order(scene)
+    mats: list = [None] * len(mat_index)
     tris, norms, tri_mat = [], [], []
     for obj in scene.objects:
         key = id(obj.material)
-        if key not in mat_index:
-            mat_index[key] = len(mats)
-            mats.append(obj.material)
+        mats[mat_index[key]] = obj.material
         if materials_only:
             continue
         v = frame.point(obj.vertices)

@@ -119,7 +119,7 @@ def prepare_scene(scene: Scene, engine: Engine, stats: Stats | None = None) -> P
         normals[:, :, :3] = soup.normals[order]
         tri_mat = np.ascontiguousarray(soup.material[order], np.int32)
         medium = medium_struct(scene.medium, frame)
-        camera = camera_struct(scene.camera, frame)
+        camera = camera_struct(scene.camera, frame, scene)
         lights = light_structs(scene.lights, frame)
         lights_dev = lights if len(lights) else np.zeros(1, structs.LIGHT)
     with stats.stage("scene_grids"):
@@ -154,7 +154,7 @@ def refresh(ps: PreparedScene, scene: Scene, stats: Stats | None = None) -> list
     eng = ps.engine
     frame = ps.frame
     fresh = {"medium": medium_struct(scene.medium, frame),
-             "camera": camera_struct(scene.camera, frame),
+             "camera": camera_struct(scene.camera, frame, scene),
              "lights": light_structs(scene.lights, frame)}
     changed = []
     with stats.stage("upload"):

@@ -103,6 +103,7 @@ class Voxel(Method):
     """
 
     NAME = "voxel"
+    CAMERA_IN_GLASS = False     # its viewing pass starts at the index the camera sees in the grid
     PARAMS = (
         Param("resolution", 64, "voxels along the grid's longest side", lo=8, hi=1024),
         Param("margin", 0.25, "grid margin around the volumes, per side, relative to their extent", lo=0.0),
