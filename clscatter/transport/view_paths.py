@@ -306,8 +306,9 @@ def trace_interior_segments(ps: PreparedScene, sample_range: tuple[int, int] | N
     ``SEGMENT_REGIONS = 2``: every straight piece of a branch inside such an object, from
     where it enters (or reflects inside) to where it meets the surface again, with
     weight = the throughput at its start times 1 / ior^2 (radiance scattered inside
-    reaches the camera, in air, divided by n^2; the interior extinction beyond the start
-    is the estimator's) and its region in ``a.w``
+    reaches a camera in air divided by n^2; a camera inside glass has its own n^2 in the
+    throughput; the interior extinction beyond the start is the estimator's) and its
+    region in ``a.w``
     (:func:`~clscatter.device.structs.segment_regions`: the material index + 1). A
     separate trace, so the shared segments every medium method reads stay the pieces in
     the medium alone."""
