@@ -260,7 +260,8 @@ class Epipolar(Method):
             per_light.append({"light": li, **out.info})
         stats.set(epipolar_fallback=fallback, epipolar_lights=per_light,
                   epipolar_ring_steps=steps)
-        swept = [x for x in per_light if "fallback" not in x]
+        # lights swept over at least one sample (not every medium segment behind glass)
+        swept = [x for x in per_light if "fallback" not in x and "slices" in x]
         if swept:
             first = swept[0]
             stats.set(slices=first["slices"], light_rays_per_slice=first["light_rays"],
