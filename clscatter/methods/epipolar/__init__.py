@@ -103,7 +103,6 @@ class Epipolar(Method):
     """
 
     NAME = "epipolar"
-    CAMERA_IN_GLASS = False     # its sweeps trace their own camera rays through the medium
     PARAMS = PARAMS
     TERMS = frozenset({"direct"})
     LIGHTS = frozenset({"spot", "directional"})
