@@ -619,8 +619,12 @@ def _interrupted() -> int:
 def _terminate(signum, frame) -> None:
     """SIGTERM stops like Ctrl-C (SIGINT): between kernel launches, with no output
     written. Remembered, so that an interrupt some library turned into another error
-    still ends as an interruption."""
+    still ends as an interruption. The devices' queues are drained first, so the
+    unwinding frees no buffer a kernel in flight still uses."""
     _STOPPED.add(signum)
+    engines = sys.modules.get("clscatter.device.engine")   # none made yet: nothing in flight
+    if engines is not None:
+        engines.finish_all()
     raise KeyboardInterrupt
 
 

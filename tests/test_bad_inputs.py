@@ -403,7 +403,7 @@ def test_interrupting_a_long_render_leaves_no_output(tmp_path):
                               "--set", "render.raymarch.segments_per_launch=256",
                               "-o", str(out), "--no-progress"],
                              cwd=tmp_path, stderr=subprocess.PIPE, text=True,
-                             env={**os.environ, "PYTHONPATH": str(REPO)})
+                             env={**os.environ, "PYTHONPATH": str(REPO), "PYTHONFAULTHANDLER": "1"})
         seen = []
         for line in p.stderr:                  # until the mark, or the end of the process
             seen.append(line)
@@ -421,13 +421,14 @@ def test_interrupting_a_long_render_leaves_no_output(tmp_path):
 def test_interrupting_an_animation_leaves_no_frames(tmp_path):
     """SIGTERM during ``relight``: the frames rendered so far were staged beside the
     output folder and are deleted; the folder is not created (no frames are left behind
-    under "nothing was written")."""
+    under "nothing was written"). The child runs with faulthandler: a crash prints its
+    stack here."""
     out = tmp_path / "frames"
     p = subprocess.Popen([sys.executable, "-m", "clscatter", "relight", "builtin:occluder",
                           "--frames", "5000", "--format", "npy", "-o", str(out), "--no-progress",
                           "--set", "camera.resolution=[32,24]", "--set", "camera.spp=1"],
                          cwd=tmp_path, stderr=subprocess.PIPE, text=True,
-                         env={**os.environ, "PYTHONPATH": str(REPO)})
+                         env={**os.environ, "PYTHONPATH": str(REPO), "PYTHONFAULTHANDLER": "1"})
     deadline = time.monotonic() + 60.0
     staged = []
     while time.monotonic() < deadline and p.poll() is None:

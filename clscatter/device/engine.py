@@ -90,6 +90,17 @@ class Engine(ProgramCache, BufferPool, KernelLauncher):
 _ENGINES: dict[str | None, Engine] = {}
 
 
+def finish_all() -> None:
+    """Wait for every engine's queue to drain (errors ignored): the first step of a stop
+    requested by a signal, so that no kernel still in flight uses a buffer the unwinding
+    then frees."""
+    for engine in list(_ENGINES.values()):
+        try:
+            engine.queue.finish()
+        except Exception:           # a queue already broken: nothing is in flight on it
+            pass
+
+
 def get_engine(spec: str | None = None) -> Engine:
     """The process-wide engine for a device spec: ``spec``, else ``$CLSCATTER_DEVICE``,
     else the first working device (see :func:`~clscatter.device.choose_device`), made at
