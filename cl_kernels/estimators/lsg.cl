@@ -81,47 +81,79 @@ int load_query(__global const ViewSegment *views, int vi, ViewQuery *q) {
  * dielectric material m). */
 int view_region(__global const ViewSegment *v) { return (int)rint(v->a.w); }
 
-/* Range of P . w over a node's 6-D box against [-thr, thr]. */
-int node_near(__global const LineNode *nd, const float *w, float thr) {
-    float lo = 0.0f, hi = 0.0f;
-    for (int i = 0; i < 6; ++i) {
-        float x = w[i] * nd->lo[i], y = w[i] * nd->hi[i];
-        lo += fmin(x, y);
-        hi += fmax(x, y);
-    }
-    return lo <= thr && hi >= -thr;
+/* What a tree walk tests its nodes and points against (walk_of): the query's line as the
+ * 6-D hyperplane w = (m, u) in the Plücker frame (its moment m taken there), as w4 (w0..w3)
+ * and w2 (w4, w5), with its positive and negative parts (p, n: w = p + n, one of them 0 in
+ * each coordinate); the plane test's threshold (lsg_threshold); and the query segment's
+ * inverse direction for the 3-D box test, finite (a coordinate below 1e-20 in magnitude is
+ * taken as 1e-20), so that no product in that test is 0 * inf. */
+typedef struct {
+    float4 w4, p4, n4;
+    float2 w2, p2, n2;
+    float4 inv;
+    float thr;
+} Walk;
+
+Walk walk_of(const ViewQuery *q, float4 pl_centre, float pl_inv_scale, float radius,
+             float max_m1) {
+    Walk k;
+    float4 m = cross3((q->a - pl_centre) * pl_inv_scale, q->u);
+    k.w4 = (float4)(m.x, m.y, m.z, q->u.x);
+    k.w2 = (float2)(q->u.y, q->u.z);
+    k.p4 = fmax(k.w4, 0.0f);
+    k.n4 = fmin(k.w4, 0.0f);
+    k.p2 = fmax(k.w2, 0.0f);
+    k.n2 = fmin(k.w2, 0.0f);
+    float4 u = q->u;
+    u.x = fabs(u.x) < 1e-20f ? 1e-20f : u.x;
+    u.y = fabs(u.y) < 1e-20f ? 1e-20f : u.y;
+    u.z = fabs(u.z) < 1e-20f ? 1e-20f : u.z;
+    u.w = 1.0f;
+    k.inv = 1.0f / u;
+    k.thr = lsg_threshold(radius, pl_inv_scale, m, max_m1);
+    return k;
+}
+
+/* Range of P . w over a node's 6-D box against [-thr, thr]: the box's corner nearest to
+ * each side of the plane, by w's positive and negative parts (no per-coordinate minimum;
+ * an empty box, lo > hi, fails). */
+int node_near(__global const LineNode *nd, const Walk *k) {
+    float4 lo4 = vload4(0, nd->lo), hi4 = vload4(0, nd->hi);
+    float2 lo2 = vload2(2, nd->lo), hi2 = vload2(2, nd->hi);
+    float4 a = k->p4 * lo4 + k->n4 * hi4, b = k->p4 * hi4 + k->n4 * lo4;
+    float2 c = k->p2 * lo2 + k->n2 * hi2, d = k->p2 * hi2 + k->n2 * lo2;
+    float lo = (a.x + a.y) + (a.z + a.w) + (c.x + c.y);
+    float hi = (b.x + b.y) + (b.z + b.w) + (d.x + d.y);
+    return lo <= k->thr && hi >= -k->thr;
 }
 
 /* Does the view segment pass within r of the 3-D box [lo, hi]? A slab test of the segment
  * against the box grown by r (the set of points within r of the box lies inside it) and by
- * a rounding allowance: it never culls a pair closer than r. An empty box (lo > hi) fails. */
-int seg_near_box(const ViewQuery *q, float4 lo, float4 hi, float r) {
+ * a rounding allowance: it never culls a pair closer than r. */
+int seg_near_box(const ViewQuery *q, const Walk *k, float4 lo, float4 hi, float r) {
     float4 e = r * 1.0001f + 1e-5f * (1.0f + fabs(lo) + fabs(hi));
-    float t0, t1;
-    ray_box(q->a, safe_inv_dir(q->u), lo - e, hi + e, 0.0f, q->len, &t0, &t1);
+    float4 ta = (lo - e - q->a) * k->inv, tb = (hi + e - q->a) * k->inv;
+    int4 swap = isless(tb, ta);
+    float4 near = select(ta, tb, swap), far = select(tb, ta, swap);
+    float t0 = near.x > near.y ? near.x : near.y;   /* no NaN here: plain comparisons */
+    t0 = near.z > t0 ? near.z : t0;
+    t0 = t0 > 0.0f ? t0 : 0.0f;
+    float t1 = far.x < far.y ? far.x : far.y;
+    t1 = far.z < t1 ? far.z : t1;
+    t1 = t1 < q->len ? t1 : q->len;
     return t0 <= t1 + 1e-5f * (1.0f + q->len);
 }
 
-/* The query's line as the 6-D hyperplane w = (m, u) in the Plücker frame (its moment m
- * taken there); returns the plane test's threshold (lsg_threshold). */
-float query_plane(const ViewQuery *q, float4 pl_centre, float pl_inv_scale, float radius,
-                  float max_m1, float *w) {
-    float4 m = cross3((q->a - pl_centre) * pl_inv_scale, q->u);
-    w[0] = m.x; w[1] = m.y; w[2] = m.z;
-    w[3] = q->u.x; w[4] = q->u.y; w[5] = q->u.z;
-    return lsg_threshold(radius, pl_inv_scale, m, max_m1);
-}
-
 /* P . w for a stored Plücker point: +-d' sin(theta) of the two lines */
-float plane_side(float8 P, const float *w) {
-    return P.s0 * w[0] + P.s1 * w[1] + P.s2 * w[2] + P.s3 * w[3] + P.s4 * w[4] + P.s5 * w[5];
+float plane_side(float8 P, const Walk *k) {
+    return dot(P.s0123, k->w4) + P.s4 * k->w2.x + P.s5 * k->w2.y;
 }
 
 /* Does the walk enter node g: its 6-D box meets the slab |P . w| <= thr and the query
  * segment passes within r of its segments' 3-D box? */
 int node_visited(__global const LineNode *nodes, __global const float4 *boxes, int g,
-                 const float *w, float thr, const ViewQuery *q, float r) {
-    return node_near(&nodes[g], w, thr) && seg_near_box(q, boxes[2 * g], boxes[2 * g + 1], r);
+                 const Walk *k, const ViewQuery *q, float r) {
+    return node_near(&nodes[g], k) && seg_near_box(q, k, boxes[2 * g], boxes[2 * g + 1], r);
 }
 
 /* The node after g's subtree in depth-first order (climb while g is the last of its 8
@@ -135,11 +167,10 @@ int next_node(int g) {
  * (g-1)/8): from node *at (0 to start), the next leaf it enters (its index among the
  * leaves), or -1 when the walk is over; *at is left where the walk resumes. */
 int walk_to_leaf(__global const LineNode *nodes, __global const float4 *boxes,
-                 int first_leaf, int *at, const float *w, float thr, const ViewQuery *q,
-                 float r) {
+                 int first_leaf, int *at, const Walk *k, const ViewQuery *q, float r) {
     int g = *at;
     while (g >= 0) {
-        if (node_visited(nodes, boxes, g, w, thr, q, r)) {
+        if (node_visited(nodes, boxes, g, k, q, r)) {
             if (g < first_leaf) {
                 g = 8 * g + 1;                        /* descend to the first child */
                 continue;
@@ -182,14 +213,13 @@ __kernel void lsg_gather(__global const LineNode *nodes, __global const float4 *
                 acc += test_pair(lines[i], line_ids[i], &q, radius, min_sin, kappa, g, &cnt,
                                  pairs, pair_count, max_pairs);
         } else {
-            float w[6];
-            float thr = query_plane(&q, pl_centre, pl_inv_scale, radius, max_m1, w);
+            Walk k = walk_of(&q, pl_centre, pl_inv_scale, radius, max_m1);
             int at = 0, leaf;
-            while ((leaf = walk_to_leaf(nodes, boxes, first_leaf, &at, w, thr, &q, radius)) >= 0) {
+            while ((leaf = walk_to_leaf(nodes, boxes, first_leaf, &at, &k, &q, radius)) >= 0) {
                 int2 rg = leaf_ranges[leaf];
                 cnt.z += rg.y - rg.x;             /* points the hierarchy did not cull */
                 for (int i = rg.x; i < rg.y; ++i) {
-                    if (fabs(plane_side(points[i], w)) > thr) continue;
+                    if (fabs(plane_side(points[i], &k)) > k.thr) continue;
                     acc += test_pair(lines[i], line_ids[i], &q, radius, min_sin, kappa, g,
                                      &cnt, pairs, pair_count, max_pairs);
                 }
@@ -239,14 +269,13 @@ __kernel void lsg_scatter(__global const LineNode *nodes, __global const float4 
     if (q.len > 0.0f) {
         float4 kappa = medium->kappa, sigma_s = medium->sigma_s;
         float g = medium->g;
-        float w[6];
-        float thr = query_plane(&q, pl_centre, pl_inv_scale, radius, max_m1, w);
+        Walk k = walk_of(&q, pl_centre, pl_inv_scale, radius, max_m1);
         int at = 0, leaf;
-        while ((leaf = walk_to_leaf(nodes, boxes, first_leaf, &at, w, thr, &q, radius)) >= 0) {
+        while ((leaf = walk_to_leaf(nodes, boxes, first_leaf, &at, &k, &q, radius)) >= 0) {
             int2 rg = leaf_ranges[leaf];
             cnt.z += rg.y - rg.x;
             for (int i = rg.x; i < rg.y; ++i) {
-                if (fabs(plane_side(points[i], w)) > thr) continue;
+                if (fabs(plane_side(points[i], &k)) > k.thr) continue;
                 ViewQuery v;
                 if (!load_query(views, i, &v)) continue;
                 v.index = view_ids[i];

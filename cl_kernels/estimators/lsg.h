@@ -1,7 +1,7 @@
 /* lsg.h: structs and pair maths of line space gathering (Sun et al. 2010).
  *
- * Mirrored on the host by clscatter/methods/lsg/linetree.py (LINE_NODE) and
- * clscatter/methods/lsg.py (LSG_LINE); tests/test_lsg.py checks sizes and offsets.
+ * Mirrored on the host by clscatter/estimators/line_tree.py (LINE_NODE) and
+ * clscatter/estimators/line_gather.py (LSG_LINE); tests/test_lsg.py checks sizes and offsets.
  *
  * ---- The estimate (derived here, not copied from the paper) ----
  * Single scattering along a view segment x(t) = a_v + t u_v, t in [0, len_v]:
