@@ -4,8 +4,9 @@
  * segments, one work-item per lighting segment.
  *
  * lsg_gather: one work-item per view segment. The view line is the 6-D hyperplane
- * w = (m_v, u_v) (moment in the Plücker frame); a stackless depth-first walk of the
- * perfect 8-ary tree (clscatter/estimators/line_tree.py) visits every node whose box meets the
+ * w = (m_v, u_v) (moment in the Plücker frame); a depth-first walk of the perfect 8-ary
+ * tree (clscatter/estimators/line_tree.py; a bounded stack, a node's 8 children tested at
+ * once from their boxes side by side) visits every node whose box meets the
  * slab |P . w| <= r' (|P . w| = d sin theta <= d, so nothing within r is culled) and whose
  * segments' 3-D box the view segment passes within r of (the Plücker test bounds the
  * distance between the infinite lines only; the box test culls segments that lie
@@ -144,9 +145,42 @@ int seg_near_box(const ViewQuery *q, const Walk *k, float4 lo, float4 hi, float 
     return t0 <= t1 + 1e-5f * (1.0f + q->len);
 }
 
-/* P . w for a stored Plücker point: +-d' sin(theta) of the two lines */
-float plane_side(float8 P, const Walk *k) {
-    return dot(P.s0123, k->w4) + P.s4 * k->w2.x + P.s5 * k->w2.y;
+/* The plane test of the 4 Plücker points of block b (line_tree.point_blocks: rows u.x,
+ * u.y, u.z, m.x, m.y, m.z, a point per lane; P . w = +-d' sin(theta) of the two lines), as
+ * bits: bit j set where point 4b + j lies in [lo, hi) and |P . w| <= thr. */
+uint block_near(__global const float4 *points, int b, const Walk *k, int lo, int hi) {
+    __global const float4 *P = points + 6 * b;
+    float4 d = P[0] * k->w4.x + P[1] * k->w4.y + P[2] * k->w4.z + P[3] * k->w4.w
+             + P[4] * k->w2.x + P[5] * k->w2.y;
+    int4 i = (int4)(4 * b) + (int4)(0, 1, 2, 3);
+    int4 ok = islessequal(fabs(d), (float4)(k->thr)) & (i >= (int4)(lo)) & (i < (int4)(hi));
+    ok &= (int4)(1, 2, 4, 8);
+    return (uint)(ok.x | ok.y | ok.z | ok.w);
+}
+
+/* The points of one leaf that pass the plane test, 4 at a time (leaf_next). */
+typedef struct {
+    int b, end, lo, hi;
+    uint todo;        /* bits of block b still to return */
+} LeafScan;
+
+void leaf_start(LeafScan *s, int2 range) {
+    s->b = (range.x >> 2) - 1;
+    s->end = (range.y + 3) >> 2;
+    s->lo = range.x;
+    s->hi = range.y;
+    s->todo = 0u;
+}
+
+/* The next point of the leaf with |P . w| <= thr, in order, or -1. */
+int leaf_next(LeafScan *s, __global const float4 *points, const Walk *k) {
+    while (s->todo == 0u) {
+        if (++s->b >= s->end) return -1;
+        s->todo = block_near(points, s->b, k, s->lo, s->hi);
+    }
+    uint m = s->todo;
+    s->todo = m & (m - 1u);
+    return 4 * s->b + (int)(31u - clz(m & (0u - m)));
 }
 
 /* Does the walk enter node g: its 6-D box meets the slab |P . w| <= thr and the query
@@ -156,40 +190,88 @@ int node_visited(__global const LineNode *nodes, __global const float4 *boxes, i
     return node_near(&nodes[g], k) && seg_near_box(q, k, boxes[2 * g], boxes[2 * g + 1], r);
 }
 
-/* The node after g's subtree in depth-first order (climb while g is the last of its 8
- * siblings, then its next sibling); 0 when the walk is over. */
-int next_node(int g) {
-    while (g != 0 && (g & 7) == 0) g = (g - 1) >> 3;
-    return g == 0 ? 0 : g + 1;
+/* Lane-wise maximum and minimum without NaN handling (the walk's values are never NaN:
+ * Walk's inverse direction is finite). */
+float8 max8(float8 a, float8 b) { return select(a, b, isgreater(b, a)); }
+float8 min8(float8 a, float8 b) { return select(a, b, isless(b, a)); }
+
+/* Which of internal node g's 8 children the walk enters, as bits (bit c: child 8g+1+c):
+ * node_visited for all 8 at once, from their boxes side by side (kids, block g:
+ * line_tree.child_rows; rows 6-D lo 0-5, hi 6-11, 3-D lo 12-14, hi 15-17). */
+uint children_visited(__global const float8 *kids, int g, const Walk *k, const ViewQuery *q,
+                      float r) {
+    __global const float8 *c = kids + 18 * g;
+    float8 lo = k->p4.x * c[0] + k->n4.x * c[6], hi = k->p4.x * c[6] + k->n4.x * c[0];
+    lo += k->p4.y * c[1] + k->n4.y * c[7];  hi += k->p4.y * c[7] + k->n4.y * c[1];
+    lo += k->p4.z * c[2] + k->n4.z * c[8];  hi += k->p4.z * c[8] + k->n4.z * c[2];
+    lo += k->p4.w * c[3] + k->n4.w * c[9];  hi += k->p4.w * c[9] + k->n4.w * c[3];
+    lo += k->p2.x * c[4] + k->n2.x * c[10]; hi += k->p2.x * c[10] + k->n2.x * c[4];
+    lo += k->p2.y * c[5] + k->n2.y * c[11]; hi += k->p2.y * c[11] + k->n2.y * c[5];
+    int8 near = isless(lo, (float8)(k->thr)) | isequal(lo, (float8)(k->thr));
+    near &= isgreater(hi, (float8)(-k->thr)) | isequal(hi, (float8)(-k->thr));
+    /* seg_near_box, lane by lane: the same allowance e per axis */
+    float8 t0 = (float8)(0.0f), t1 = (float8)(q->len);
+    for (int ax = 0; ax < 3; ++ax) {
+        float8 blo = c[12 + ax], bhi = c[15 + ax];
+        float8 e = r * 1.0001f + 1e-5f * (1.0f + fabs(blo) + fabs(bhi));
+        float o = ax == 0 ? q->a.x : ax == 1 ? q->a.y : q->a.z;
+        float inv = ax == 0 ? k->inv.x : ax == 1 ? k->inv.y : k->inv.z;
+        float8 ta = (blo - e - o) * inv, tb = (bhi + e - o) * inv;
+        t0 = max8(t0, min8(ta, tb));
+        t1 = min8(t1, max8(ta, tb));
+    }
+    int8 hit = islessequal(t0, t1 + 1e-5f * (1.0f + q->len));
+    int8 bits = (near & hit) & (int8)(1, 2, 4, 8, 16, 32, 64, 128);
+    return (uint)(bits.s0 | bits.s1 | bits.s2 | bits.s3 | bits.s4 | bits.s5 | bits.s6 | bits.s7);
 }
 
-/* The stackless depth-first walk of the perfect 8-ary tree (children 8g+1..8g+8, parent
- * (g-1)/8): from node *at (0 to start), the next leaf it enters (its index among the
- * leaves), or -1 when the walk is over; *at is left where the walk resumes. */
-int walk_to_leaf(__global const LineNode *nodes, __global const float4 *boxes,
-                 int first_leaf, int *at, const Walk *k, const ViewQuery *q, float r) {
-    int g = *at;
-    while (g >= 0) {
-        if (node_visited(nodes, boxes, g, k, q, r)) {
-            if (g < first_leaf) {
-                g = 8 * g + 1;                        /* descend to the first child */
-                continue;
-            }
-            int next = next_node(g);
-            *at = next == 0 ? -1 : next;
-            return g - first_leaf;
-        }
-        g = next_node(g);
-        if (g == 0) break;
+/* Levels a walk can descend (a tree of up to 8^(LSG_MAX_LEVELS - 1) leaves; the host's
+ * trees are far smaller: a leaf index must fit an int). */
+#define LSG_MAX_LEVELS 12
+
+/* A depth-first walk of the perfect 8-ary tree (children 8g+1..8g+8, first_leaf the
+ * first leaf's node index): per level, the node entered and which of its children are
+ * still to enter (bits, children_visited). The stack is bounded by LSG_MAX_LEVELS. */
+typedef struct {
+    int node[LSG_MAX_LEVELS];
+    uint todo[LSG_MAX_LEVELS];
+    int level;        /* -1: over; -2: the root is the only leaf and is still to return */
+} TreeWalk;
+
+/* Start a walk at the root (its own box tested by node_visited). */
+void walk_start(TreeWalk *s, __global const LineNode *nodes, __global const float4 *boxes,
+                __global const float8 *kids, int first_leaf, const Walk *k,
+                const ViewQuery *q, float r) {
+    s->level = -1;
+    if (!node_visited(nodes, boxes, 0, k, q, r)) return;
+    if (first_leaf == 0) { s->level = -2; return; }
+    s->level = 0;
+    s->node[0] = 0;
+    s->todo[0] = children_visited(kids, 0, k, q, r);
+}
+
+/* The next leaf the walk enters (its index among the leaves), in depth-first order, or -1
+ * when the walk is over. */
+int walk_next(TreeWalk *s, __global const float8 *kids, int first_leaf, const Walk *k,
+              const ViewQuery *q, float r) {
+    if (s->level == -2) { s->level = -1; return 0; }
+    while (s->level >= 0) {
+        uint m = s->todo[s->level];
+        if (m == 0u) { s->level--; continue; }
+        s->todo[s->level] = m & (m - 1u);                 /* the lowest child, taken */
+        int child = 8 * s->node[s->level] + 1 + (int)(31u - clz(m & (0u - m)));
+        if (child >= first_leaf) return child - first_leaf;
+        s->level++;
+        s->node[s->level] = child;
+        s->todo[s->level] = children_visited(kids, child, k, q, r);
     }
-    *at = -1;
     return -1;
 }
 
 __kernel void lsg_gather(__global const LineNode *nodes, __global const float4 *boxes,
-                         __global const int2 *leaf_ranges,
+                         __global const float8 *kids, __global const int2 *leaf_ranges,
                          int first_leaf, __global const LsgLine *lines,
-                         __global const float8 *points,
+                         __global const float4 *points,
                          __global const int *line_ids, int num_lines, float max_m1,
                          __global const ViewSegment *views, int view_offset, int num_views,
                          __global const int *view_index, int indexed, float scale,
@@ -214,12 +296,16 @@ __kernel void lsg_gather(__global const LineNode *nodes, __global const float4 *
                                  pairs, pair_count, max_pairs);
         } else {
             Walk k = walk_of(&q, pl_centre, pl_inv_scale, radius, max_m1);
-            int at = 0, leaf;
-            while ((leaf = walk_to_leaf(nodes, boxes, first_leaf, &at, &k, &q, radius)) >= 0) {
+            TreeWalk walk;
+            walk_start(&walk, nodes, boxes, kids, first_leaf, &k, &q, radius);
+            int leaf;
+            while ((leaf = walk_next(&walk, kids, first_leaf, &k, &q, radius)) >= 0) {
                 int2 rg = leaf_ranges[leaf];
                 cnt.z += rg.y - rg.x;             /* points the hierarchy did not cull */
-                for (int i = rg.x; i < rg.y; ++i) {
-                    if (fabs(plane_side(points[i], &k)) > k.thr) continue;
+                LeafScan scan;
+                leaf_start(&scan, rg);
+                int i;
+                while ((i = leaf_next(&scan, points, &k)) >= 0) {
                     acc += test_pair(lines[i], line_ids[i], &q, radius, min_sin, kappa, g,
                                      &cnt, pairs, pair_count, max_pairs);
                 }
@@ -246,8 +332,9 @@ __kernel void lsg_gather(__global const LineNode *nodes, __global const float4 *
  * view's valid-pair count (counts[view].y) is raised atomically; the lighting segment's
  * own (tests, valid pairs, points in the visited leaves, 0) go to light_counts. */
 __kernel void lsg_scatter(__global const LineNode *nodes, __global const float4 *boxes,
-                          __global const int2 *leaf_ranges, int first_leaf,
-                          __global const ViewSegment *views, __global const float8 *points,
+                          __global const float8 *kids, __global const int2 *leaf_ranges,
+                          int first_leaf,
+                          __global const ViewSegment *views, __global const float4 *points,
                           __global const int *view_ids, float max_m1,
                           __global const LsgLine *lights, __global const int *light_ids,
                           int light_offset, int num_lights, float scale,
@@ -270,12 +357,16 @@ __kernel void lsg_scatter(__global const LineNode *nodes, __global const float4 
         float4 kappa = medium->kappa, sigma_s = medium->sigma_s;
         float g = medium->g;
         Walk k = walk_of(&q, pl_centre, pl_inv_scale, radius, max_m1);
-        int at = 0, leaf;
-        while ((leaf = walk_to_leaf(nodes, boxes, first_leaf, &at, &k, &q, radius)) >= 0) {
+        TreeWalk walk;
+        walk_start(&walk, nodes, boxes, kids, first_leaf, &k, &q, radius);
+        int leaf;
+        while ((leaf = walk_next(&walk, kids, first_leaf, &k, &q, radius)) >= 0) {
             int2 rg = leaf_ranges[leaf];
             cnt.z += rg.y - rg.x;
-            for (int i = rg.x; i < rg.y; ++i) {
-                if (fabs(plane_side(points[i], &k)) > k.thr) continue;
+            LeafScan scan;
+            leaf_start(&scan, rg);
+            int i;
+            while ((i = leaf_next(&scan, points, &k)) >= 0) {
                 ViewQuery v;
                 if (!load_query(views, i, &v)) continue;
                 v.index = view_ids[i];

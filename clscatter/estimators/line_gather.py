@@ -25,8 +25,10 @@ from .line_tree import (
     PluckerFrame,
     build_linetree,
     canonical_signs,
+    child_rows,
     node_boxes,
     plucker,
+    point_blocks,
 )
 
 F4 = structs.F4
@@ -41,7 +43,7 @@ structs.register_struct("lsg.h", "LsgLine", LSG_LINE)
 # PreparedLines.nbytes and Gatherer.add count them: the traced LightSegment (64), the
 # clipped float64 copy (ids, a, u, length, flux: 80), Plücker points (float64 48 +
 # float32 24 + canonical copy 24), the tree build's per-level arrays (sorted copy 24,
-# key 8, node index 8, permutation 8, order 8), LsgLine (48) and Plücker float8 (32) on
+# key 8, node index 8, permutation 8, order 8), LsgLine (48) and Plücker blocks (24) on
 # the host and again on the device, the id (4) and the tree's share (nodes, leaf ranges,
 # order: < 24 host + 16 device) -- about 500. Used to plan chunks against max_bytes; the
 # measured working set of every chunk is reported as lsg_chunk_bytes_max.
@@ -94,10 +96,11 @@ class PreparedLines:
     """One chunk's lighting segments, clipped, in tree order, with their 8-ary tree."""
 
     lines: np.ndarray          # LSG_LINE in tree order
-    points: np.ndarray         # (N, 8) float32 Plücker points (u, m, 0, 0) in tree order
+    points: np.ndarray         # Plücker points (u, m) in tree order: line_tree.point_blocks
     ids: np.ndarray            # int32: index of each line in the input segment array
     tree: LineTree
     boxes: np.ndarray          # (nodes, 2, 4) float32: each node's 3-D box of its segments
+    kids: np.ndarray           # (internal, 18, 8) float32: line_tree.child_rows
     frame: PluckerFrame
     max_m1: float              # largest |m|_1 (for the kernel's rounding allowance)
     nbytes: int                # host working set of the preparation (peak estimate)
@@ -201,15 +204,15 @@ def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
     lines["a"][:, 3] = length[o]
     lines["u"][:, :3] = pts[:, :3]
     lines["flux"][:, :3] = flux[o]
-    points = np.zeros((len(o), 8), np.float32)
-    points[:, :6] = pts
+    points = point_blocks(pts)
     max_m1 = float(np.abs(pts[:, 3:]).sum(axis=1).max()) if len(pts) else 0.0
     boxes = node_boxes(tree, np.minimum(a, ends).T, np.maximum(a, ends).T)
+    kids = child_rows(tree, boxes)
     n = len(segs)
     nbytes = int(segs.nbytes + 80 * n + 96 * len(o) + 56 * len(o) + lines.nbytes + points.nbytes
-                 + tree.nbytes + boxes.nbytes)
-    return PreparedLines(lines, points, ids[o].astype(np.int32), tree, boxes, frame, max_m1,
-                         nbytes)
+                 + tree.nbytes + boxes.nbytes + kids.nbytes)
+    return PreparedLines(lines, points, ids[o].astype(np.int32), tree, boxes, kids, frame,
+                         max_m1, nbytes)
 
 
 @dataclass
@@ -253,12 +256,12 @@ def build_view_tree(engine: Engine, views: np.ndarray, idx: np.ndarray,
         else None
     tree = build_linetree(pts * canonical_signs(u32)[:, None], leaf_size, extra)
     o = tree.order
-    points = np.zeros((len(o), 8), np.float32)
-    points[:, :6] = pts[o]
+    points = point_blocks(pts[o])
     boxes = node_boxes(tree, lo[o].T, hi[o].T)
     n = len(o)
     host = {"views": v[o], "points": points, "ids": ids[o].astype(np.int32),
-            "nodes": tree.nodes, "boxes": boxes, "ranges": tree.leaf_ranges}
+            "nodes": tree.nodes, "boxes": boxes, "kids": child_rows(tree, boxes),
+            "ranges": tree.leaf_ranges}
     bufs = {k: engine.to_device(x if len(x) else np.zeros(1, x.dtype)) for k, x in host.items()}
     bufs["acc"] = engine.zeros(24 * max(n, 1))
     max_m1 = float(np.abs(pts[:, 3:]).sum(axis=1).max()) if n else 0.0
@@ -424,9 +427,10 @@ class Gatherer:
             ids_buf = eng.to_device(prep.ids)
             nodes_buf = eng.to_device(prep.tree.nodes)
             boxes_buf = eng.to_device(prep.boxes)
+            kids_buf = eng.to_device(prep.kids)
             ranges_buf = eng.to_device(prep.tree.leaf_ranges)
             dev_bytes = (prep.lines.nbytes + prep.points.nbytes + prep.ids.nbytes
-                         + prep.tree.nodes.nbytes + prep.boxes.nbytes
+                         + prep.tree.nodes.nbytes + prep.boxes.nbytes + prep.kids.nbytes
                          + prep.tree.leaf_ranges.nbytes)
             # the host arrays that stay alive beside the new device buffers
             eng.note_host(prep.nbytes - prep.lines.nbytes - prep.points.nbytes)
@@ -441,7 +445,7 @@ class Gatherer:
                     for start in range(0, count, self.per_launch):
                         m = min(self.per_launch, count - start)
                         eng.call("lsg", "lsg_gather", m, nodes=nodes_buf, boxes=boxes_buf,
-                                 leaf_ranges=ranges_buf,
+                                 kids=kids_buf, leaf_ranges=ranges_buf,
                                  first_leaf=prep.tree.first_leaf, lines=lines_buf,
                                  points=points_buf, line_ids=ids_buf, num_lines=len(prep.lines),
                                  max_m1=prep.max_m1, views=self.views_buf, view_offset=start,
@@ -458,7 +462,7 @@ class Gatherer:
                 tests, valid, leaf = (int(x) for x in (totals - self._totals)[:3])
                 self._totals = totals
             pairs = self._recorded_pairs()
-            eng.free(lines_buf, points_buf, ids_buf, nodes_buf, boxes_buf, ranges_buf)
+            eng.free(lines_buf, points_buf, ids_buf, nodes_buf, boxes_buf, kids_buf, ranges_buf)
         return ChunkResult(tests, valid, len(prep.lines), int(prep.nbytes + dev_bytes),
                            t_build.seconds, t_gather.seconds, pairs, leaf)
 
@@ -499,7 +503,7 @@ class Gatherer:
                         for start in range(0, n, self.per_launch):
                             m = min(self.per_launch, n - start)
                             eng.call("lsg", "lsg_scatter", m, nodes=tb["nodes"],
-                                     boxes=tb["boxes"], leaf_ranges=tb["ranges"],
+                                     boxes=tb["boxes"], kids=tb["kids"], leaf_ranges=tb["ranges"],
                                      first_leaf=vt.tree.first_leaf, views=tb["views"],
                                      points=tb["points"], view_ids=tb["ids"],
                                      max_m1=vt.max_m1, lights=lines_buf, light_ids=ids_buf,

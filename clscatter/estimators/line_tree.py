@@ -186,6 +186,35 @@ def node_boxes(tree: LineTree, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return out
 
 
+def point_blocks(points) -> np.ndarray:
+    """Plücker points ``(N, 6)`` (in tree order) as blocks of 4 for a plane test of 4 at
+    once (``block_near`` in cl_kernels/estimators/lsg.cl): ``(ceil(N / 4), 6, 4)`` float32,
+    block ``b`` holding points ``4 b .. 4 b + 3`` as columns and their 6 coordinates as
+    rows; the last block padded with zeros, and one block of zeros for no points."""
+    pts = np.asarray(points, np.float32).reshape(-1, 6)
+    n = len(pts)
+    blocks = max(1, -(-n // 4))
+    out = np.zeros((blocks * 4, 6), np.float32)
+    out[:n] = pts
+    return np.ascontiguousarray(out.reshape(blocks, 4, 6).transpose(0, 2, 1))
+
+
+def child_rows(tree: LineTree, boxes: np.ndarray) -> np.ndarray:
+    """The 8 children of every internal node side by side, so that a walk tests all 8 at
+    once (``children_visited`` in cl_kernels/estimators/lsg.cl): ``(internal, 18, 8)``
+    float32, block ``g`` holding the children ``8 g + 1 .. 8 g + 8`` of internal node ``g``
+    as columns, its rows the 6-D box (lo 6, hi 6) and the 3-D box of the segments (lo 3,
+    hi 3; ``boxes``: :func:`node_boxes`). One block of zeros for a tree whose root is its
+    only leaf (a buffer is never empty)."""
+    internal = tree.first_leaf
+    if internal == 0:
+        return np.zeros((1, 18, 8), np.float32)
+    kids = slice(1, 1 + 8 * internal)          # children are contiguous, in node order
+    n, b = tree.nodes[kids], boxes[kids]
+    rows = np.concatenate([n["lo"], n["hi"], b[:, 0, :3], b[:, 1, :3]], axis=1)
+    return np.ascontiguousarray(rows.reshape(internal, 8, 18).transpose(0, 2, 1), np.float32)
+
+
 def box_plane_range(lo, hi, w) -> tuple[np.ndarray, np.ndarray]:
     """Exact range ``[min, max]`` of ``P . w`` over the 6-D boxes ``[lo, hi]`` (float64;
     broadcasts): the node test of the gather kernel, for tests and analysis."""
