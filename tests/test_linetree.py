@@ -10,8 +10,11 @@ from clscatter.estimators.line_tree import (
     box_plane_range,
     build_linetree,
     canonical_signs,
+    child_rows,
+    node_boxes,
     plane_of,
     plucker,
+    point_blocks,
     tree_levels,
 )
 
@@ -24,6 +27,38 @@ def _unit(v):
 # --------------------------------------------------------------------------------------
 # tree structure
 # --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("n", [0, 3, 700, 5000])
+def test_gather_layouts_hold_the_tree_and_points_exactly(n):
+    """What the gather kernel reads side by side: child_rows puts the 6-D and 3-D boxes of
+    node 8g+1+c at column c of block g (rows lo 6, hi 6, box lo 3, box hi 3), one block of
+    zeros for a root that is its leaf; point_blocks puts point 4b+j at column j of block b,
+    zeros after the last."""
+    rng = np.random.default_rng(n)
+    pts = rng.normal(size=(n, 6)).astype(np.float32)
+    t = build_linetree(pts, 16)
+    ends = rng.normal(size=(2, 3, n))
+    boxes = node_boxes(t, np.minimum(*ends), np.maximum(*ends))
+    kids = child_rows(t, boxes)
+    assert kids.dtype == np.float32 and kids.flags.c_contiguous
+    if t.first_leaf == 0:
+        assert kids.shape == (1, 18, 8) and not kids.any()
+    else:
+        assert kids.shape == (t.first_leaf, 18, 8)
+        for g in (0, t.first_leaf - 1):
+            for c in range(8):
+                node = 8 * g + 1 + c
+                col = kids[g, :, c]
+                np.testing.assert_array_equal(col[:6], t.nodes["lo"][node])
+                np.testing.assert_array_equal(col[6:12], t.nodes["hi"][node])
+                np.testing.assert_array_equal(col[12:15], boxes[node, 0, :3])
+                np.testing.assert_array_equal(col[15:], boxes[node, 1, :3])
+    blocks = point_blocks(pts[t.order])
+    assert blocks.shape == (max(1, -(-n // 4)), 6, 4) and blocks.flags.c_contiguous
+    flat = blocks.transpose(0, 2, 1).reshape(-1, 6)
+    np.testing.assert_array_equal(flat[:n], pts[t.order])
+    assert not flat[n:].any()
+
+
 @pytest.mark.parametrize("n, leaf", [(0, 4), (3, 4), (4, 4), (31, 4), (32, 4), (1000, 4),
                                      (255, 4), (4099, 4), (20000, 4), (5000, 16)])
 def test_tree_is_a_balanced_perfect_8ary_tree(n, leaf):
