@@ -207,8 +207,7 @@ uint children_visited(__global const float8 *kids, int g, const Walk *k, const V
     lo += k->p4.w * c[3] + k->n4.w * c[9];  hi += k->p4.w * c[9] + k->n4.w * c[3];
     lo += k->p2.x * c[4] + k->n2.x * c[10]; hi += k->p2.x * c[10] + k->n2.x * c[4];
     lo += k->p2.y * c[5] + k->n2.y * c[11]; hi += k->p2.y * c[11] + k->n2.y * c[5];
-    int8 near = isless(lo, (float8)(k->thr)) | isequal(lo, (float8)(k->thr));
-    near &= isgreater(hi, (float8)(-k->thr)) | isequal(hi, (float8)(-k->thr));
+    int8 near = islessequal(lo, (float8)(k->thr)) & isgreaterequal(hi, (float8)(-k->thr));
     /* seg_near_box, lane by lane: the same allowance e per axis */
     float8 t0 = (float8)(0.0f), t1 = (float8)(q->len);
     for (int ax = 0; ax < 3; ++ax) {
