@@ -6,6 +6,9 @@ import numpy as np
 import pytest
 
 from clscatter.estimators.line_tree import (
+    LINE_NODE,
+    WALK_LEVELS,
+    LineTree,
     PluckerFrame,
     box_plane_range,
     build_linetree,
@@ -57,6 +60,15 @@ def test_gather_layouts_hold_the_tree_and_points_exactly(n):
     flat = blocks.transpose(0, 2, 1).reshape(-1, 6)
     np.testing.assert_array_equal(flat[:n], pts[t.order])
     assert not flat[n:].any()
+
+
+def test_a_tree_deeper_than_the_walk_is_refused():
+    """The gather's walk keeps a stack of WALK_LEVELS levels: child_rows refuses a deeper
+    tree instead of handing the kernel one it would walk past its stack."""
+    deep = LineTree(np.zeros(1, LINE_NODE), np.zeros((1, 2), np.int32), np.zeros(0, np.int64),
+                    WALK_LEVELS + 1)
+    with pytest.raises(ValueError, match="levels"):
+        child_rows(deep, np.zeros((1, 2, 4), np.float32))
 
 
 @pytest.mark.parametrize("n, leaf", [(0, 4), (3, 4), (4, 4), (31, 4), (32, 4), (1000, 4),

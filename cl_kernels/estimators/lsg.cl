@@ -224,8 +224,8 @@ uint children_visited(__global const float8 *kids, int g, const Walk *k, const V
     return (uint)(bits.s0 | bits.s1 | bits.s2 | bits.s3 | bits.s4 | bits.s5 | bits.s6 | bits.s7);
 }
 
-/* Levels a walk can descend (a tree of up to 8^(LSG_MAX_LEVELS - 1) leaves; the host's
- * trees are far smaller: a leaf index must fit an int). */
+/* Levels a walk can descend (line_tree.WALK_LEVELS, which the host checks; its trees are
+ * far shallower: a node index must fit an int). */
 #define LSG_MAX_LEVELS 12
 
 /* A depth-first walk of the perfect 8-ary tree (children 8g+1..8g+8, first_leaf the

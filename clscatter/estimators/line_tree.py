@@ -66,6 +66,10 @@ from .median_split import level_starts, median_levels
 # ``LineNode`` in cl_kernels/lsg.h: 12 floats of 6-D bounds
 LINE_NODE = np.dtype([("lo", np.float32, 6), ("hi", np.float32, 6)], align=True)
 
+# The most 8-ary levels a gather's walk descends (``LSG_MAX_LEVELS`` in
+# cl_kernels/estimators/lsg.cl, the depth of its stack)
+WALK_LEVELS = 12
+
 
 @dataclass(frozen=True)
 class PluckerFrame:
@@ -206,6 +210,9 @@ def child_rows(tree: LineTree, boxes: np.ndarray) -> np.ndarray:
     as columns, its rows the 6-D box (lo 6, hi 6) and the 3-D box of the segments (lo 3,
     hi 3; ``boxes``: :func:`node_boxes`). One block of zeros for a tree whose root is its
     only leaf (a buffer is never empty)."""
+    if tree.levels > WALK_LEVELS:
+        raise ValueError(f"a line tree of {tree.levels} levels: the gather walks at most "
+                         f"{WALK_LEVELS}")
     internal = tree.first_leaf
     if internal == 0:
         return np.zeros((1, 18, 8), np.float32)
