@@ -86,7 +86,7 @@ REGISTRY: dict[str, tuple[str, np.dtype]] = {}
 
 # structs that live and die inside a kernel (no host copy exists, so no twin is needed)
 DEVICE_ONLY = frozenset({"Hit", "BvhRay", "Rng", "Branch", "SurfaceFrame", "ViewQuery", "Tri",
-                         "Pending"})
+                         "Pending", "Walk", "TreeWalk", "LeafScan"})
 
 
 def register_struct(header: str, cname: str, dtype: np.dtype) -> np.dtype:
