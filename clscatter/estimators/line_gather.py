@@ -50,9 +50,10 @@ structs.register_struct("lsg.h", "LsgLine", LSG_LINE)
 BYTES_PER_SEGMENT = 512
 
 # Bytes one view segment costs in a kept view tree (queries from the lighting side): its
-# record (64), Plücker point (32), index (4) and fixed-point sums (24) on the device, a host
-# copy of the first three, and the build's float64 ends and boxes and per-level arrays
-# (rows of 9 floats twice, key, permutation: about 100) -- about 330.
+# record (64), Plücker point (24), index (4), fixed-point sums (24) and its share of the
+# tree's nodes (under 16) on the device, a host copy of all but the sums, and the build's
+# float64 ends and boxes and per-level arrays (rows of 9 floats twice, key, permutation:
+# about 100) -- about 340.
 BYTES_PER_VIEW = 336
 
 # Weight of where a lighting segment starts (normalised frame, in [-1, 1]) against its
