@@ -32,10 +32,10 @@ def _unit(v):
 # --------------------------------------------------------------------------------------
 @pytest.mark.parametrize("n", [0, 3, 700, 5000])
 def test_gather_layouts_hold_the_tree_and_points_exactly(n):
-    """What the gather kernel reads side by side: child_rows puts the 6-D and 3-D boxes of
-    node 8g+1+c at column c of block g (rows lo 6, hi 6, box lo 3, box hi 3), one block of
-    zeros for a root that is its leaf; point_blocks puts point 4b+j at column j of block b,
-    zeros after the last."""
+    """What the gather kernel reads side by side: child_rows puts the root at column 0 of
+    block 0 (its other columns empty boxes) and the 6-D and 3-D boxes of node 8g+1+c at
+    column c of block g + 1 (rows lo 6, hi 6, box lo 3, box hi 3); point_blocks puts point
+    4b+j at column j of block b, zeros after the last."""
     rng = np.random.default_rng(n)
     pts = rng.normal(size=(n, 6)).astype(np.float32)
     t = build_linetree(pts, 16)
@@ -43,18 +43,21 @@ def test_gather_layouts_hold_the_tree_and_points_exactly(n):
     boxes = node_boxes(t, np.minimum(*ends), np.maximum(*ends))
     kids = child_rows(t, boxes)
     assert kids.dtype == np.float32 and kids.flags.c_contiguous
-    if t.first_leaf == 0:
-        assert kids.shape == (1, 18, 8) and not kids.any()
-    else:
-        assert kids.shape == (t.first_leaf, 18, 8)
-        for g in (0, t.first_leaf - 1):
-            for c in range(8):
-                node = 8 * g + 1 + c
-                col = kids[g, :, c]
-                np.testing.assert_array_equal(col[:6], t.nodes["lo"][node])
-                np.testing.assert_array_equal(col[6:12], t.nodes["hi"][node])
-                np.testing.assert_array_equal(col[12:15], boxes[node, 0, :3])
-                np.testing.assert_array_equal(col[15:], boxes[node, 1, :3])
+    assert kids.shape == (t.first_leaf + 1, 18, 8)
+
+    def column_is(block, c, node):
+        col = kids[block, :, c]
+        np.testing.assert_array_equal(col[:6], t.nodes["lo"][node])
+        np.testing.assert_array_equal(col[6:12], t.nodes["hi"][node])
+        np.testing.assert_array_equal(col[12:15], boxes[node, 0, :3])
+        np.testing.assert_array_equal(col[15:], boxes[node, 1, :3])
+
+    column_is(0, 0, 0)
+    assert (kids[0, :6, 1:] > kids[0, 6:12, 1:]).all()          # empty 6-D boxes
+    assert (kids[0, 12:15, 1:] > kids[0, 15:, 1:]).all()        # empty 3-D boxes
+    for g in {0, t.first_leaf - 1} if t.first_leaf else ():
+        for c in range(8):
+            column_is(g + 1, c, 8 * g + 1 + c)
     blocks = point_blocks(pts[t.order])
     assert blocks.shape == (max(1, -(-n // 4)), 6, 4) and blocks.flags.c_contiguous
     flat = blocks.transpose(0, 2, 1).reshape(-1, 6)

@@ -17,7 +17,6 @@ from reference_checks import assert_matches_reference
 
 from clscatter.device import structs
 from clscatter.estimators.line_gather import (
-    LINE_NODE,
     LSG_LINE,
     Gatherer,
     clip_segments,
@@ -25,7 +24,7 @@ from clscatter.estimators.line_gather import (
 from clscatter.estimators.line_tree import PluckerFrame
 from clscatter.transport.light_paths import trace_light_paths
 
-STRUCTS = {"LineNode": LINE_NODE, "LsgLine": LSG_LINE}
+STRUCTS = {"LsgLine": LSG_LINE}
 from test_render import _airlight_reference
 
 from clscatter.pipeline.render import render
@@ -51,7 +50,7 @@ def _unit(v):
 def test_lsg_struct_layouts_match(engine):
     bad = layout_mismatches(engine, "lsg.h", STRUCTS)
     assert not bad, f"layout mismatches (struct, field, host, device): {bad}"
-    assert STRUCTS["LineNode"].itemsize == 48 and STRUCTS["LsgLine"].itemsize == 48
+    assert STRUCTS["LsgLine"].itemsize == 48
 
 
 # --------------------------------------------------------------------------------------
@@ -620,7 +619,7 @@ def test_leaf_point_counts_match_a_numpy_walk_of_the_tree(engine):
         y = w[:, None, :] * nd["hi"][None].astype(np.float64)
         lo_s, hi_s = np.minimum(x, y).sum(-1), np.maximum(x, y).sum(-1)
         # the segment-to-box test: the view segment's slab interval against the node's 3-D
-        # box grown by r and the kernel's rounding allowance (lsg.cl: seg_near_box)
+        # box grown by r and the kernel's rounding allowance (lsg.cl: block_visited)
         bx = prep.boxes[first:first + 8 ** level].astype(np.float64)            # (K, 2, 4)
         blo, bhi = bx[None, :, 0, :3], bx[None, :, 1, :3]
         e = r * 1.0001 + 1e-5 * (1 + np.abs(blo) + np.abs(bhi))

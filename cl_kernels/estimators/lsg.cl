@@ -115,36 +115,6 @@ Walk walk_of(const ViewQuery *q, float4 pl_centre, float pl_inv_scale, float rad
     return k;
 }
 
-/* Range of P . w over a node's 6-D box against [-thr, thr]: the box's corner nearest to
- * each side of the plane, by w's positive and negative parts (no per-coordinate minimum;
- * an empty box, lo > hi, fails). */
-int node_near(__global const LineNode *nd, const Walk *k) {
-    float4 lo4 = vload4(0, nd->lo), hi4 = vload4(0, nd->hi);
-    float2 lo2 = vload2(2, nd->lo), hi2 = vload2(2, nd->hi);
-    float4 a = k->p4 * lo4 + k->n4 * hi4, b = k->p4 * hi4 + k->n4 * lo4;
-    float2 c = k->p2 * lo2 + k->n2 * hi2, d = k->p2 * hi2 + k->n2 * lo2;
-    float lo = (a.x + a.y) + (a.z + a.w) + (c.x + c.y);
-    float hi = (b.x + b.y) + (b.z + b.w) + (d.x + d.y);
-    return lo <= k->thr && hi >= -k->thr;
-}
-
-/* Does the view segment pass within r of the 3-D box [lo, hi]? A slab test of the segment
- * against the box grown by r (the set of points within r of the box lies inside it) and by
- * a rounding allowance: it never culls a pair closer than r. */
-int seg_near_box(const ViewQuery *q, const Walk *k, float4 lo, float4 hi, float r) {
-    float4 e = r * 1.0001f + 1e-5f * (1.0f + fabs(lo) + fabs(hi));
-    float4 ta = (lo - e - q->a) * k->inv, tb = (hi + e - q->a) * k->inv;
-    int4 swap = isless(tb, ta);
-    float4 near = select(ta, tb, swap), far = select(tb, ta, swap);
-    float t0 = near.x > near.y ? near.x : near.y;   /* no NaN here: plain comparisons */
-    t0 = near.z > t0 ? near.z : t0;
-    t0 = t0 > 0.0f ? t0 : 0.0f;
-    float t1 = far.x < far.y ? far.x : far.y;
-    t1 = far.z < t1 ? far.z : t1;
-    t1 = t1 < q->len ? t1 : q->len;
-    return t0 <= t1 + 1e-5f * (1.0f + q->len);
-}
-
 /* The plane test of the 4 Plücker points of block b (line_tree.point_blocks: rows u.x,
  * u.y, u.z, m.x, m.y, m.z, a point per lane; P . w = +-d' sin(theta) of the two lines), as
  * bits: bit j set where point 4b + j lies in [lo, hi) and |P . w| <= thr. */
@@ -183,23 +153,22 @@ int leaf_next(LeafScan *s, __global const float4 *points, const Walk *k) {
     return 4 * s->b + (int)(31u - clz(m & (0u - m)));
 }
 
-/* Does the walk enter node g: its 6-D box meets the slab |P . w| <= thr and the query
- * segment passes within r of its segments' 3-D box? */
-int node_visited(__global const LineNode *nodes, __global const float4 *boxes, int g,
-                 const Walk *k, const ViewQuery *q, float r) {
-    return node_near(&nodes[g], k) && seg_near_box(q, k, boxes[2 * g], boxes[2 * g + 1], r);
-}
-
 /* Lane-wise maximum and minimum without NaN handling (the walk's values are never NaN:
  * Walk's inverse direction is finite). */
 float8 max8(float8 a, float8 b) { return select(a, b, isgreater(b, a)); }
 float8 min8(float8 a, float8 b) { return select(a, b, isless(b, a)); }
 
-/* Which of internal node g's 8 children the walk enters, as bits (bit c: child 8g+1+c):
- * node_visited for all 8 at once, from their boxes side by side (kids, block g:
- * line_tree.child_rows; rows 6-D lo 0-5, hi 6-11, 3-D lo 12-14, hi 15-17). */
-uint children_visited(__global const float8 *kids, int g, const Walk *k, const ViewQuery *q,
-                      float r) {
+/* Which of the 8 nodes of block g the walk enters, as bits (bit c: column c): the nodes
+ * whose 6-D box meets the slab |P . w| <= thr and whose segments' 3-D box the query
+ * segment passes within r of (the Plücker test bounds the distance between the infinite
+ * lines only; the box test culls segments that lie elsewhere along them). A slab test of
+ * the segment against each box grown by r (the points within r of a box lie inside it)
+ * and by a rounding allowance, so it never culls a pair closer than r; a box's corner
+ * nearest to each side of the plane by w's positive and negative parts. Block 0 holds the
+ * root (column 0), block g + 1 the children of node g (line_tree.child_rows; rows 6-D lo
+ * 0-5, hi 6-11, 3-D lo 12-14, hi 15-17); an empty box (lo > hi) fails. */
+uint block_visited(__global const float8 *kids, int g, const Walk *k, const ViewQuery *q,
+                   float r) {
     __global const float8 *c = kids + 18 * g;
     float8 lo = k->p4.x * c[0] + k->n4.x * c[6], hi = k->p4.x * c[6] + k->n4.x * c[0];
     lo += k->p4.y * c[1] + k->n4.y * c[7];  hi += k->p4.y * c[7] + k->n4.y * c[1];
@@ -208,7 +177,6 @@ uint children_visited(__global const float8 *kids, int g, const Walk *k, const V
     lo += k->p2.x * c[4] + k->n2.x * c[10]; hi += k->p2.x * c[10] + k->n2.x * c[4];
     lo += k->p2.y * c[5] + k->n2.y * c[11]; hi += k->p2.y * c[11] + k->n2.y * c[5];
     int8 near = islessequal(lo, (float8)(k->thr)) & isgreaterequal(hi, (float8)(-k->thr));
-    /* seg_near_box, lane by lane: the same allowance e per axis */
     float8 t0 = (float8)(0.0f), t1 = (float8)(q->len);
     for (int ax = 0; ax < 3; ++ax) {
         float8 blo = c[12 + ax], bhi = c[15 + ax];
@@ -229,46 +197,40 @@ uint children_visited(__global const float8 *kids, int g, const Walk *k, const V
 #define LSG_MAX_LEVELS 12
 
 /* A depth-first walk of the perfect 8-ary tree (children 8g+1..8g+8, first_leaf the
- * first leaf's node index): per level, the node entered and which of its children are
- * still to enter (bits, children_visited). The stack is bounded by LSG_MAX_LEVELS. */
+ * first leaf's node index): per level, the first node of the block entered and which of
+ * its nodes are still to enter (bits, block_visited). Level 0 is block 0, the root alone.
+ * The stack is bounded by LSG_MAX_LEVELS. */
 typedef struct {
-    int node[LSG_MAX_LEVELS];
-    uint todo[LSG_MAX_LEVELS];
-    int level;        /* -1: over; -2: the root is the only leaf and is still to return */
+    int first[LSG_MAX_LEVELS + 1];
+    uint todo[LSG_MAX_LEVELS + 1];
+    int level;        /* -1: over */
 } TreeWalk;
 
-/* Start a walk at the root (its own box tested by node_visited). */
-void walk_start(TreeWalk *s, __global const LineNode *nodes, __global const float4 *boxes,
-                __global const float8 *kids, int first_leaf, const Walk *k,
-                const ViewQuery *q, float r) {
-    s->level = -1;
-    if (!node_visited(nodes, boxes, 0, k, q, r)) return;
-    if (first_leaf == 0) { s->level = -2; return; }
+void walk_start(TreeWalk *s, __global const float8 *kids, const Walk *k, const ViewQuery *q,
+                float r) {
     s->level = 0;
-    s->node[0] = 0;
-    s->todo[0] = children_visited(kids, 0, k, q, r);
+    s->first[0] = 0;
+    s->todo[0] = block_visited(kids, 0, k, q, r);
 }
 
 /* The next leaf the walk enters (its index among the leaves), in depth-first order, or -1
  * when the walk is over. */
 int walk_next(TreeWalk *s, __global const float8 *kids, int first_leaf, const Walk *k,
               const ViewQuery *q, float r) {
-    if (s->level == -2) { s->level = -1; return 0; }
     while (s->level >= 0) {
         uint m = s->todo[s->level];
         if (m == 0u) { s->level--; continue; }
-        s->todo[s->level] = m & (m - 1u);                 /* the lowest child, taken */
-        int child = 8 * s->node[s->level] + 1 + (int)(31u - clz(m & (0u - m)));
-        if (child >= first_leaf) return child - first_leaf;
+        s->todo[s->level] = m & (m - 1u);                 /* the lowest node, taken */
+        int g = s->first[s->level] + (int)(31u - clz(m & (0u - m)));
+        if (g >= first_leaf) return g - first_leaf;
         s->level++;
-        s->node[s->level] = child;
-        s->todo[s->level] = children_visited(kids, child, k, q, r);
+        s->first[s->level] = 8 * g + 1;
+        s->todo[s->level] = block_visited(kids, g + 1, k, q, r);
     }
     return -1;
 }
 
-__kernel void lsg_gather(__global const LineNode *nodes, __global const float4 *boxes,
-                         __global const float8 *kids, __global const int2 *leaf_ranges,
+__kernel void lsg_gather(__global const float8 *kids, __global const int2 *leaf_ranges,
                          int first_leaf, __global const LsgLine *lines,
                          __global const float4 *points,
                          __global const int *line_ids, int num_lines, float max_m1,
@@ -296,7 +258,7 @@ __kernel void lsg_gather(__global const LineNode *nodes, __global const float4 *
         } else {
             Walk k = walk_of(&q, pl_centre, pl_inv_scale, radius, max_m1);
             TreeWalk walk;
-            walk_start(&walk, nodes, boxes, kids, first_leaf, &k, &q, radius);
+            walk_start(&walk, kids, &k, &q, radius);
             int leaf;
             while ((leaf = walk_next(&walk, kids, first_leaf, &k, &q, radius)) >= 0) {
                 int2 rg = leaf_ranges[leaf];
@@ -330,8 +292,7 @@ __kernel void lsg_gather(__global const LineNode *nodes, __global const float4 *
  * into out[]), and the
  * view's valid-pair count (counts[view].y) is raised atomically; the lighting segment's
  * own (tests, valid pairs, points in the visited leaves, 0) go to light_counts. */
-__kernel void lsg_scatter(__global const LineNode *nodes, __global const float4 *boxes,
-                          __global const float8 *kids, __global const int2 *leaf_ranges,
+__kernel void lsg_scatter(__global const float8 *kids, __global const int2 *leaf_ranges,
                           int first_leaf,
                           __global const ViewSegment *views, __global const float4 *points,
                           __global const int *view_ids, float max_m1,
@@ -357,7 +318,7 @@ __kernel void lsg_scatter(__global const LineNode *nodes, __global const float4 
         float g = medium->g;
         Walk k = walk_of(&q, pl_centre, pl_inv_scale, radius, max_m1);
         TreeWalk walk;
-        walk_start(&walk, nodes, boxes, kids, first_leaf, &k, &q, radius);
+        walk_start(&walk, kids, &k, &q, radius);
         int leaf;
         while ((leaf = walk_next(&walk, kids, first_leaf, &k, &q, radius)) >= 0) {
             int2 rg = leaf_ranges[leaf];

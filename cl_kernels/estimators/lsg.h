@@ -1,7 +1,8 @@
 /* lsg.h: structs and pair maths of line space gathering (Sun et al. 2010).
  *
- * Mirrored on the host by clscatter/estimators/line_tree.py (LINE_NODE) and
- * clscatter/estimators/line_gather.py (LSG_LINE); tests/test_lsg.py checks sizes and offsets.
+ * LsgLine is mirrored on the host by clscatter/estimators/line_gather.py (LSG_LINE);
+ * tests/test_lsg.py checks its size and offsets. The tree's nodes reach the kernels as
+ * blocks of 8 boxes side by side (clscatter/estimators/line_tree.py, child_rows).
  *
  * ---- The estimate (derived here, not copied from the paper) ----
  * Single scattering along a view segment x(t) = a_v + t u_v, t in [0, len_v]:
@@ -38,12 +39,6 @@
 #ifndef CLSCATTER_LSG_H
 #define CLSCATTER_LSG_H
 #include "common.h"
-
-/* 8-ary tree node: 12 floats of 6-D bounds (Plücker points (u, m)) */
-typedef struct {
-    float lo[6];
-    float hi[6];
-} LineNode;
 
 /* A lighting segment as the gather kernel reads it (tree order). Its Plücker point
  * (u, m) with m = ((a - centre) / scale) x u lives in a separate array, in blocks of 4

@@ -20,7 +20,6 @@ from ..transport import primitives as prim
 from ..transport.view_paths import DeviceSegments
 from .fixed_sum import fixed_scale
 from .line_tree import (
-    LINE_NODE,
     LineTree,
     PluckerFrame,
     build_linetree,
@@ -36,7 +35,6 @@ F4 = structs.F4
 # ``LsgLine`` in cl_kernels/lsg.h
 LSG_LINE = np.dtype([("a", *F4), ("u", *F4), ("flux", *F4)], align=True)
 
-structs.register_struct("lsg.h", "LineNode", LINE_NODE)
 structs.register_struct("lsg.h", "LsgLine", LSG_LINE)
 
 # Host + device bytes one lighting segment costs while its chunk is processed, as
@@ -261,8 +259,7 @@ def build_view_tree(engine: Engine, views: np.ndarray, idx: np.ndarray,
     boxes = node_boxes(tree, lo[o].T, hi[o].T)
     n = len(o)
     host = {"views": v[o], "points": points, "ids": ids[o].astype(np.int32),
-            "nodes": tree.nodes, "boxes": boxes, "kids": child_rows(tree, boxes),
-            "ranges": tree.leaf_ranges}
+            "kids": child_rows(tree, boxes), "ranges": tree.leaf_ranges}
     bufs = {k: engine.to_device(x if len(x) else np.zeros(1, x.dtype)) for k, x in host.items()}
     bufs["acc"] = engine.zeros(24 * max(n, 1))
     max_m1 = float(np.abs(pts[:, 3:]).sum(axis=1).max()) if n else 0.0
@@ -426,12 +423,10 @@ class Gatherer:
             lines_buf = eng.to_device(prep.lines)
             points_buf = eng.to_device(prep.points)
             ids_buf = eng.to_device(prep.ids)
-            nodes_buf = eng.to_device(prep.tree.nodes)
-            boxes_buf = eng.to_device(prep.boxes)
             kids_buf = eng.to_device(prep.kids)
             ranges_buf = eng.to_device(prep.tree.leaf_ranges)
             dev_bytes = (prep.lines.nbytes + prep.points.nbytes + prep.ids.nbytes
-                         + prep.tree.nodes.nbytes + prep.boxes.nbytes + prep.kids.nbytes
+                         + prep.kids.nbytes
                          + prep.tree.leaf_ranges.nbytes)
             # the host arrays that stay alive beside the new device buffers
             eng.note_host(prep.nbytes - prep.lines.nbytes - prep.points.nbytes)
@@ -445,8 +440,8 @@ class Gatherer:
                 with progress(count, "lsg gather", self.show_progress) as bar:
                     for start in range(0, count, self.per_launch):
                         m = min(self.per_launch, count - start)
-                        eng.call("lsg", "lsg_gather", m, nodes=nodes_buf, boxes=boxes_buf,
-                                 kids=kids_buf, leaf_ranges=ranges_buf,
+                        eng.call("lsg", "lsg_gather", m, kids=kids_buf,
+                                 leaf_ranges=ranges_buf,
                                  first_leaf=prep.tree.first_leaf, lines=lines_buf,
                                  points=points_buf, line_ids=ids_buf, num_lines=len(prep.lines),
                                  max_m1=prep.max_m1, views=self.views_buf, view_offset=start,
@@ -463,7 +458,7 @@ class Gatherer:
                 tests, valid, leaf = (int(x) for x in (totals - self._totals)[:3])
                 self._totals = totals
             pairs = self._recorded_pairs()
-            eng.free(lines_buf, points_buf, ids_buf, nodes_buf, boxes_buf, kids_buf, ranges_buf)
+            eng.free(lines_buf, points_buf, ids_buf, kids_buf, ranges_buf)
         return ChunkResult(tests, valid, len(prep.lines), int(prep.nbytes + dev_bytes),
                            t_build.seconds, t_gather.seconds, pairs, leaf)
 
@@ -503,8 +498,8 @@ class Gatherer:
                     with progress(n, "lsg gather", self.show_progress) as bar:
                         for start in range(0, n, self.per_launch):
                             m = min(self.per_launch, n - start)
-                            eng.call("lsg", "lsg_scatter", m, nodes=tb["nodes"],
-                                     boxes=tb["boxes"], kids=tb["kids"], leaf_ranges=tb["ranges"],
+                            eng.call("lsg", "lsg_scatter", m, kids=tb["kids"],
+                                     leaf_ranges=tb["ranges"],
                                      first_leaf=vt.tree.first_leaf, views=tb["views"],
                                      points=tb["points"], view_ids=tb["ids"],
                                      max_m1=vt.max_m1, lights=lines_buf, light_ids=ids_buf,

@@ -63,7 +63,7 @@ import numpy as np
 
 from .median_split import level_starts, median_levels
 
-# ``LineNode`` in cl_kernels/lsg.h: 12 floats of 6-D bounds
+# A node of the tree: its 6-D box (the kernels read the boxes as child_rows blocks)
 LINE_NODE = np.dtype([("lo", np.float32, 6), ("hi", np.float32, 6)], align=True)
 
 # The most 8-ary levels a gather's walk descends (``LSG_MAX_LEVELS`` in
@@ -204,22 +204,22 @@ def point_blocks(points) -> np.ndarray:
 
 
 def child_rows(tree: LineTree, boxes: np.ndarray) -> np.ndarray:
-    """The 8 children of every internal node side by side, so that a walk tests all 8 at
-    once (``children_visited`` in cl_kernels/estimators/lsg.cl): ``(internal, 18, 8)``
-    float32, block ``g`` holding the children ``8 g + 1 .. 8 g + 8`` of internal node ``g``
-    as columns, its rows the 6-D box (lo 6, hi 6) and the 3-D box of the segments (lo 3,
-    hi 3; ``boxes``: :func:`node_boxes`). One block of zeros for a tree whose root is its
-    only leaf (a buffer is never empty)."""
+    """The tree's nodes 8 side by side, as the gather's walk reads them (it tests a block's
+    8 at once: ``block_visited`` in cl_kernels/estimators/lsg.cl): ``(internal + 1, 18, 8)``
+    float32. Block 0 holds the root in column 0 (its other columns empty boxes, which no
+    walk enters); block ``g + 1`` the children ``8 g + 1 .. 8 g + 8`` of internal node
+    ``g``, column ``c`` child ``8 g + 1 + c``. Rows: the 6-D box (lo 6, hi 6), then the 3-D
+    box of the node's segments (lo 3, hi 3; ``boxes``: :func:`node_boxes`)."""
     if tree.levels > WALK_LEVELS:
         raise ValueError(f"a line tree of {tree.levels} levels: the gather walks at most "
                          f"{WALK_LEVELS}")
-    internal = tree.first_leaf
-    if internal == 0:
-        return np.zeros((1, 18, 8), np.float32)
-    kids = slice(1, 1 + 8 * internal)          # children are contiguous, in node order
-    n, b = tree.nodes[kids], boxes[kids]
-    rows = np.concatenate([n["lo"], n["hi"], b[:, 0, :3], b[:, 1, :3]], axis=1)
-    return np.ascontiguousarray(rows.reshape(internal, 8, 18).transpose(0, 2, 1), np.float32)
+    rows = np.concatenate([tree.nodes["lo"], tree.nodes["hi"], boxes[:, 0, :3],
+                           boxes[:, 1, :3]], axis=1)               # (nodes, 18), node order
+    empty = np.concatenate([np.full(6, 1e30), np.full(6, -1e30), np.full(3, 1e30),
+                            np.full(3, -1e30)])
+    root = np.vstack([rows[:1], np.tile(empty, (7, 1))])
+    blocks = np.concatenate([root, rows[1:]]).reshape(-1, 8, 18)  # children are contiguous
+    return np.ascontiguousarray(blocks.transpose(0, 2, 1), np.float32)
 
 
 def box_plane_range(lo, hi, w) -> tuple[np.ndarray, np.ndarray]:
