@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SceneError
+from .ply import read_ply
 
 Mesh = tuple[np.ndarray, np.ndarray, "np.ndarray | None"]
 
@@ -158,7 +159,8 @@ _MESH_CACHE_SIZE = 8
 
 
 def load_mesh(path: Path, key: str, smooth: bool = False) -> Mesh:
-    """Load any mesh trimesh reads; SceneError ``key`` naming the file on any failure.
+    """Load any mesh trimesh reads (OBJ and PLY by this package's own readers, which do not
+    import trimesh); SceneError ``key`` naming the file on any failure.
 
     Parsed meshes are cached by (path, size, mtime, smooth), so a relighting session that
     re-validates its scene after each change does not parse the file again."""
@@ -224,8 +226,10 @@ def vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
 
 def _read_mesh(path: Path, key: str, smooth: bool) -> Mesh:
     try:
-        if path.suffix.lower() == ".obj":
-            v, f = read_obj(path)
+        suffix = path.suffix.lower()
+        read = read_obj(path) if suffix == ".obj" else read_ply(path) if suffix == ".ply" else None
+        if read is not None:
+            v, f = read
         else:
             import trimesh
             # process=False: trimesh's processing would silently drop NaN vertices, and with
