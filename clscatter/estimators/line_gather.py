@@ -25,10 +25,12 @@ from .line_tree import (
     build_linetree,
     canonical_signs,
     child_rows,
+    linetree_from_rows,
     node_boxes,
     plucker,
     point_blocks,
 )
+from .row_chunks import map_row_chunks
 
 F4 = structs.F4
 
@@ -176,6 +178,21 @@ def clip_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa
                          kappa)
 
 
+def continue_and_clip(segs: np.ndarray, medium: np.ndarray, radius: float, view_lo, view_hi,
+                      kappa) -> tuple[np.ndarray, ...]:
+    """:func:`continue_across_faces` then :func:`clip_lines`, in chunks of rows on threads
+    (:func:`~.row_chunks.map_row_chunks`): the same ``(ids, a, u, length, flux)`` as the
+    two calls over all of ``segs``."""
+    def chunk(start: int, stop: int) -> tuple[np.ndarray, ...]:
+        part = continue_across_faces(segs[start:stop], medium, radius)
+        ids, *rest = clip_lines(part, view_lo, view_hi, radius, kappa)
+        return (ids + np.int32(start), *rest)
+    parts = map_row_chunks(chunk, len(segs))
+    if len(parts) == 1:
+        return parts[0]
+    return tuple(np.concatenate(cols) for cols in zip(*parts))
+
+
 def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
                   leaf_size: int = LEAF_SIZE,
                   frame: PluckerFrame | None = None,
@@ -186,32 +203,57 @@ def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
     segments start, times ``spatial_split``)."""
     ids, a, u, length, flux = (clipped if clipped is not None
                                else clip_lines(segs, view_lo, view_hi, radius, kappa))
-    ends = a + length[:, None] * u
+    k = len(a)
+    # row-wise steps in chunks on threads (map_row_chunks): the same values as whole arrays
     if frame is None:
-        frame = (PluckerFrame.for_box(np.minimum(a.min(axis=0), ends.min(axis=0)),
-                                      np.maximum(a.max(axis=0), ends.max(axis=0)))
-                 if len(a) else PluckerFrame.for_box(np.zeros(3), np.zeros(3)))
+        def bounds(s: int, e: int) -> tuple[np.ndarray, np.ndarray]:
+            ends = a[s:e] + length[s:e, None] * u[s:e]
+            return (np.minimum(a[s:e].min(axis=0), ends.min(axis=0)),
+                    np.maximum(a[s:e].max(axis=0), ends.max(axis=0)))
+        box = map_row_chunks(bounds, k) if k else [(np.zeros(3), np.zeros(3))]
+        frame = PluckerFrame.for_box(np.min([b[0] for b in box], axis=0),
+                                     np.max([b[1] for b in box], axis=0))
     u32 = u.astype(np.float32)
-    pts = plucker(a, u32.astype(np.float64), frame).astype(np.float32)   # (u32, m32)
-    pts[:, :3] = u32
-    extra = (a - frame.centre) / frame.scale * spatial_split if spatial_split > 0 else None
-    tree = build_linetree(pts * canonical_signs(u32)[:, None], leaf_size, extra)
+    signs = canonical_signs(u32)
+    pts = np.empty((k, 6), np.float32)                 # (u32, m32), input order
+    rows = np.empty((6 + 3 * (spatial_split > 0), k), np.float32)
+
+    def points_and_rows(s: int, e: int) -> None:
+        p = plucker(a[s:e], u32[s:e].astype(np.float64), frame).astype(np.float32)
+        p[:, :3] = u32[s:e]
+        pts[s:e] = p
+        rows[:6, s:e] = (p * signs[s:e, None]).T
+        if spatial_split > 0:     # the splits are steered by where the segments start
+            rows[6:, s:e] = ((a[s:e] - frame.centre) / frame.scale * spatial_split).T
+    map_row_chunks(points_and_rows, k)
+    tree = linetree_from_rows(rows, leaf_size)
     o = tree.order
-    a, ends, pts = np.take(a, o, axis=0), np.take(ends, o, axis=0), np.take(pts, o, axis=0)
-    lines = np.zeros(len(o), LSG_LINE)
-    lines["a"][:, :3] = a
-    lines["a"][:, 3] = length[o]
-    lines["u"][:, :3] = pts[:, :3]
-    lines["flux"][:, :3] = flux[o]
-    points = point_blocks(pts)
-    max_m1 = float(np.abs(pts[:, 3:]).sum(axis=1).max()) if len(pts) else 0.0
-    boxes = node_boxes(tree, np.minimum(a, ends).T, np.maximum(a, ends).T)
+    lines = np.zeros(k, LSG_LINE)
+    sorted_pts = np.empty_like(pts)
+    lo, hi = np.empty((3, k)), np.empty((3, k))
+    sorted_ids = np.empty(k, np.int32)
+
+    def in_tree_order(s: int, e: int) -> None:
+        oc = o[s:e]
+        ac, lc = a[oc], length[oc]
+        ends = ac + lc[:, None] * u[oc]
+        lines["a"][s:e, :3] = ac
+        lines["a"][s:e, 3] = lc
+        sorted_pts[s:e] = pts[oc]
+        lines["u"][s:e, :3] = sorted_pts[s:e, :3]
+        lines["flux"][s:e, :3] = flux[oc]
+        lo[:, s:e] = np.minimum(ac, ends).T
+        hi[:, s:e] = np.maximum(ac, ends).T
+        sorted_ids[s:e] = ids[oc]
+    map_row_chunks(in_tree_order, k)
+    points = point_blocks(sorted_pts)
+    max_m1 = float(np.abs(sorted_pts[:, 3:]).sum(axis=1).max()) if k else 0.0
+    boxes = node_boxes(tree, lo, hi)
     kids = child_rows(tree, boxes)
     n = len(segs)
-    nbytes = int(segs.nbytes + 80 * n + 96 * len(o) + 56 * len(o) + lines.nbytes + points.nbytes
+    nbytes = int(segs.nbytes + 80 * n + 96 * k + 56 * k + lines.nbytes + points.nbytes
                  + tree.nbytes + boxes.nbytes + kids.nbytes)
-    return PreparedLines(lines, points, ids[o].astype(np.int32), tree, boxes, kids, frame,
-                         max_m1, nbytes)
+    return PreparedLines(lines, points, sorted_ids, tree, boxes, kids, frame, max_m1, nbytes)
 
 
 @dataclass
@@ -400,8 +442,7 @@ class Gatherer:
         t_build, t_gather = Timer(), Timer()
         kappa = self.medium["kappa"][0]
         with t_build:
-            segs = continue_across_faces(segs, self.medium, self.radius)
-            clipped = clip_lines(segs, self.lo, self.hi, self.radius, kappa)
+            clipped = continue_and_clip(segs, self.medium, self.radius, self.lo, self.hi, kappa)
         queries = "views" if bruteforce else self.queries
         self.last_queries = queries
         if queries == "lights" and self.active:

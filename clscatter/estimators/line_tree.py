@@ -142,14 +142,23 @@ def build_linetree(points, leaf_size: int = 4, split_extra=None) -> LineTree:
     extent among all 6 + k), which do not enter the boxes."""
     pts = np.ascontiguousarray(points, np.float32)
     n = len(pts)
+    cols = [pts] if split_extra is None else [pts, np.asarray(split_extra, np.float32).reshape(n, -1)]
+    return linetree_from_rows(np.concatenate(cols, axis=1).T, leaf_size)
+
+
+def linetree_from_rows(rows: np.ndarray, leaf_size: int = 4) -> LineTree:
+    """:func:`build_linetree` of points given as rows, ``(6 + k, N)`` float32: the six
+    Plücker coordinates, then the ``k`` extra split coordinates (no copy is made of a
+    C-contiguous array, and it is not changed)."""
+    rows = np.ascontiguousarray(rows, np.float32)
+    n = rows.shape[1]
     if n == 0:
         nodes = np.zeros(1, LINE_NODE)
         nodes["lo"], nodes["hi"] = 1e30, -1e30     # empty box: always culled
         return LineTree(nodes, np.zeros((1, 2), np.int32), np.zeros(0, np.int64), 0)
-    cols = [pts] if split_extra is None else [pts, np.asarray(split_extra, np.float32).reshape(n, -1)]
     levels = tree_levels(n, leaf_size)
     # ---- kd levels: every node of a level split at its median at once ----
-    cur, order, _ = median_levels(np.concatenate(cols, axis=1).T, 3 * levels)
+    cur, order, _ = median_levels(rows, 3 * levels)
     # ---- 8-ary levels: boxes of every node, breadth-first ----
     sorted_pts = cur[:6]
     total = (8 ** (levels + 1) - 1) // 7
