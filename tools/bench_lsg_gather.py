@@ -54,7 +54,7 @@ def run(scene: Path, size: tuple[int, int], rays: int, leaf: int, split: float,
         if proc.returncode != 0:
             raise SystemExit(proc.stderr.strip())
         s = json.loads(st.read_text())
-    return {k: s.get(k) for k in KEYS}
+    return {k: s.get(k) for k in KEYS + ("device",)}
 
 
 def main() -> None:
@@ -91,7 +91,7 @@ def main() -> None:
     record = {"scene": Path(args.scene).name, "size": args.size, "rays": args.rays,
               "queries": args.queries,
               "commit": commit, "machine": platform.processor() or platform.machine(),
-              "rows": rows}
+              "device": next(iter(runs.values()))[0]["device"], "rows": rows}
     out = ROOT / "bench_out" / f"{args.record}.json"
     out.parent.mkdir(exist_ok=True)
     out.write_text(json.dumps(record, indent=1))
