@@ -194,6 +194,32 @@ def test_subtrees_on_threads_build_the_same_tree(monkeypatch):
     assert np.array_equal(np.sort(many.order), np.arange(len(pts)))
 
 
+def test_levels_split_node_by_node_put_each_lower_half_first(monkeypatch):
+    """Above PARALLEL_LEVELS (from PARALLEL_MIN_POINTS points on) a level splits node by
+    node (argpartition): at every kd level, each node's first child holds the node's
+    smaller values on the recorded split axis (the largest extent of the node), the
+    children hold the node's halves, and the build below is unchanged."""
+    import clscatter.estimators.median_split as ms
+    monkeypatch.setattr(ms, "PARALLEL_MIN_POINTS", 1000)
+    rng = np.random.default_rng(11)
+    n = 5000
+    rows = (rng.normal(size=(4, n)) * [[1.0], [3.0], [0.5], [2.0]]).astype(np.float32)
+    before = rows.copy()
+    cur, order, axes = ms.median_levels(rows, 7)
+    assert np.array_equal(rows, before)                 # the input rows are not changed
+    assert np.array_equal(cur, rows[:, order]) and np.array_equal(np.sort(order), np.arange(n))
+    assert [len(a) for a in axes] == [1 << k for k in range(7)]
+    for k in range(7):
+        starts = ms.level_starts(n, k).tolist() + [n]
+        for j in range(1 << k):
+            a, b = starts[j], starts[j + 1]
+            mid = (2 * j + 1) * n >> (k + 1)
+            node = rows[:, order[a:b]]
+            ax = int(axes[k][j])
+            assert ax == int(np.argmax(node.max(1).astype(np.float64) - node.min(1)))
+            assert cur[ax, a:mid].max() <= cur[ax, mid:b].min()
+
+
 # --------------------------------------------------------------------------------------
 # Plücker coordinates and the plane-query bound
 # --------------------------------------------------------------------------------------

@@ -15,6 +15,7 @@ from clscatter.estimators.line_gather import (
     continue_and_clip,
     prepare_lines,
 )
+from clscatter.estimators.line_tree import node_boxes, plucker, point_blocks
 
 
 @pytest.mark.parametrize("n, chunk", [(0, 4), (3, 4), (4, 4), (10, 4), (1000, 7)])
@@ -79,7 +80,31 @@ def test_chunked_preparation_is_the_whole_array_preparation(monkeypatch):
     assert np.array_equal(one.tree.order, many.tree.order)
     assert np.array_equal(one.frame.centre, many.frame.centre)
     assert one.frame.scale == many.frame.scale and one.max_m1 == many.max_m1
-    # the rows really are in tree order: each line's start is its clipped segment's
+    # the rows really are in tree order: each line's start is its clipped segment's, the
+    # Plücker blocks and the node boxes those of whole float64 arrays in that order
+    ids, a, u, length, _ = chunked
     o = many.tree.order
-    np.testing.assert_array_equal(many.lines["a"][:, :3], chunked[1][o].astype(np.float32))
-    np.testing.assert_array_equal(many.ids, chunked[0][o])
+    np.testing.assert_array_equal(many.lines["a"][:, :3], a[o].astype(np.float32))
+    np.testing.assert_array_equal(many.lines["a"][:, 3], length[o].astype(np.float32))
+    np.testing.assert_array_equal(many.ids, ids[o])
+    u32 = u[o].astype(np.float32)
+    pts = plucker(a[o], u32.astype(np.float64), many.frame).astype(np.float32)
+    pts[:, :3] = u32
+    np.testing.assert_array_equal(many.points, point_blocks(pts))
+    ends = a + length[:, None] * u
+    boxes = node_boxes(many.tree, np.minimum(a, ends)[o].T, np.maximum(a, ends)[o].T)
+    np.testing.assert_array_equal(many.boxes, boxes)
+
+
+@pytest.mark.parametrize("chunk", [5, 1 << 20])
+def test_preparing_no_kept_lines(monkeypatch, chunk):
+    """Every segment outside the view box: an empty preparation, not an error."""
+    monkeypatch.setattr(rc, "ROW_CHUNK", chunk)
+    medium, segs = _fog_and_segments(50)
+    kappa = medium[0]["kappa"]
+    lo, hi = np.full(3, 5.0), np.full(3, 6.0)
+    clipped = continue_and_clip(segs, medium, 0.01, lo, hi, kappa)
+    assert len(clipped[0]) == 0
+    prep = prepare_lines(segs, lo, hi, 0.01, kappa, 4, clipped=clipped)
+    assert len(prep.lines) == 0 and prep.max_m1 == 0.0 and prep.tree.levels == 0
+    assert prep.points.shape == (1, 6, 4) and not prep.points.any()

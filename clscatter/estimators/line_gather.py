@@ -43,11 +43,12 @@ structs.register_struct("lsg.h", "LsgLine", LSG_LINE)
 # PreparedLines.nbytes and Gatherer.add count them: the traced LightSegment (64), the
 # clipped float64 copy (ids, a, u, length, flux: 80), Plücker points (float64 48 +
 # float32 24 + canonical copy 24), the tree build's per-level arrays (sorted copy 24,
-# key 8, node index 8, permutation 8, order 8), LsgLine (48) and Plücker blocks (24) on
-# the host and again on the device, the id (4) and the tree's share (nodes, leaf ranges,
-# order: < 24 host + 16 device) -- about 500. Used to plan chunks against max_bytes; the
-# measured working set of every chunk is reported as lsg_chunk_bytes_max.
-BYTES_PER_SEGMENT = 512
+# key 8, node index 8, permutation 8, order 8), LsgLine (48) in input order and in tree
+# order on the host and again on the device, Plücker blocks (24) on the host and the
+# device, the id (4) and the tree's share (nodes, leaf ranges, order: < 24 host + 16
+# device) -- about 530. Used to plan chunks against max_bytes; the measured working set
+# of every chunk is reported as lsg_chunk_bytes_max.
+BYTES_PER_SEGMENT = 544
 
 # Bytes one view segment costs in a kept view tree (queries from the lighting side): its
 # record (64), Plücker point (24), index (4), fixed-point sums (24) and its share of the
@@ -204,16 +205,26 @@ def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
     ids, a, u, length, flux = (clipped if clipped is not None
                                else clip_lines(segs, view_lo, view_hi, radius, kappa))
     k = len(a)
-    # row-wise steps in chunks on threads (map_row_chunks): the same values as whole arrays
+    # row-wise steps in chunks on threads (map_row_chunks): the same values as whole arrays.
+    # First, in input order: the records the kernel reads and each segment's 3-D box
+    lines_in = np.zeros(k, LSG_LINE)
+    box_in = np.empty((k, 6), np.float32)   # float32 of (min, max) of the ends (rounding
+    u32 = np.empty((k, 3), np.float32)      # commutes with min and max: node_boxes' values)
+
+    def records(s: int, e: int) -> tuple[np.ndarray, np.ndarray]:
+        ends = a[s:e] + length[s:e, None] * u[s:e]
+        lo, hi = np.minimum(a[s:e], ends), np.maximum(a[s:e], ends)
+        box_in[s:e, :3], box_in[s:e, 3:] = lo, hi
+        u32[s:e] = u[s:e]
+        lines_in["a"][s:e, :3] = a[s:e]
+        lines_in["a"][s:e, 3] = length[s:e]
+        lines_in["u"][s:e, :3] = u32[s:e]
+        lines_in["flux"][s:e, :3] = flux[s:e]
+        return lo.min(axis=0), hi.max(axis=0)
+    box = map_row_chunks(records, k) if k else [(np.zeros(3), np.zeros(3))]
     if frame is None:
-        def bounds(s: int, e: int) -> tuple[np.ndarray, np.ndarray]:
-            ends = a[s:e] + length[s:e, None] * u[s:e]
-            return (np.minimum(a[s:e].min(axis=0), ends.min(axis=0)),
-                    np.maximum(a[s:e].max(axis=0), ends.max(axis=0)))
-        box = map_row_chunks(bounds, k) if k else [(np.zeros(3), np.zeros(3))]
         frame = PluckerFrame.for_box(np.min([b[0] for b in box], axis=0),
                                      np.max([b[1] for b in box], axis=0))
-    u32 = u.astype(np.float32)
     signs = canonical_signs(u32)
     pts = np.empty((k, 6), np.float32)                 # (u32, m32), input order
     rows = np.empty((6 + 3 * (spatial_split > 0), k), np.float32)
@@ -228,30 +239,29 @@ def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
     map_row_chunks(points_and_rows, k)
     tree = linetree_from_rows(rows, leaf_size)
     o = tree.order
-    lines = np.zeros(k, LSG_LINE)
-    sorted_pts = np.empty_like(pts)
-    lo, hi = np.empty((3, k)), np.empty((3, k))
+    # then in tree order: the records, the boxes' rows, point_blocks' layout, the ids
+    lines = np.empty(k, LSG_LINE)
+    lo, hi = np.empty((3, k), np.float32), np.empty((3, k), np.float32)
+    points = np.zeros((max(1, -(-k // 4)), 6, 4), np.float32)
     sorted_ids = np.empty(k, np.int32)
 
-    def in_tree_order(s: int, e: int) -> None:
+    def in_tree_order(s: int, e: int) -> float:
         oc = o[s:e]
-        ac, lc = a[oc], length[oc]
-        ends = ac + lc[:, None] * u[oc]
-        lines["a"][s:e, :3] = ac
-        lines["a"][s:e, 3] = lc
-        sorted_pts[s:e] = pts[oc]
-        lines["u"][s:e, :3] = sorted_pts[s:e, :3]
-        lines["flux"][s:e, :3] = flux[oc]
-        lo[:, s:e] = np.minimum(ac, ends).T
-        hi[:, s:e] = np.maximum(ac, ends).T
+        lines[s:e] = lines_in[oc]
+        b = box_in[oc]
+        lo[:, s:e], hi[:, s:e] = b[:, :3].T, b[:, 3:].T
+        p = pts[oc]
+        whole = (e - s) // 4 * 4
+        points[s // 4:(s + whole) // 4] = p[:whole].reshape(-1, 4, 6).transpose(0, 2, 1)
+        if whole < e - s:                    # the last, padded block
+            points[(s + whole) // 4, :, :e - s - whole] = p[whole:].T
         sorted_ids[s:e] = ids[oc]
-    map_row_chunks(in_tree_order, k)
-    points = point_blocks(sorted_pts)
-    max_m1 = float(np.abs(sorted_pts[:, 3:]).sum(axis=1).max()) if k else 0.0
+        return float(np.abs(p[:, 3:]).sum(axis=1).max())
+    max_m1 = max(map_row_chunks(in_tree_order, k, align=4)) if k else 0.0
     boxes = node_boxes(tree, lo, hi)
     kids = child_rows(tree, boxes)
     n = len(segs)
-    nbytes = int(segs.nbytes + 80 * n + 96 * k + 56 * k + lines.nbytes + points.nbytes
+    nbytes = int(segs.nbytes + 80 * n + 96 * k + 56 * k + 2 * lines.nbytes + points.nbytes
                  + tree.nbytes + boxes.nbytes + kids.nbytes)
     return PreparedLines(lines, points, sorted_ids, tree, boxes, kids, frame, max_m1, nbytes)
 

@@ -9,9 +9,12 @@ every node at once: one ``argsort`` of all points by one float64 key (node index
 point's place along the node's widest axis, scaled into [0, 0.5]); the sort moves points
 only within their node. Coordinates are stored as rows, ``(width, n)``, so that every
 node's run is contiguous for the reductions and the moves. From
-:data:`PARALLEL_MIN_POINTS` points on, the subtrees below level :data:`PARALLEL_LEVELS`
-are built on threads (NumPy's sorts and gathers release the GIL); the split into
-subtrees does not depend on the machine, so neither does the tree."""
+:data:`PARALLEL_MIN_POINTS` points on, the levels above :data:`PARALLEL_LEVELS` split
+node by node instead (an ``argpartition`` at the node's median along its widest axis,
+the nodes of a level on threads), and the subtrees below are built on threads (NumPy's
+sorts and gathers release the GIL); the split into nodes and subtrees does not depend on
+the machine, so neither does the tree. Either way a node's lower half on its axis goes
+to its first child; only points of equal value there may fall on either side."""
 from __future__ import annotations
 
 import os
@@ -19,8 +22,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-#: levels split over all points at once before the subtrees below are built apart
-PARALLEL_LEVELS = 3
+#: levels split node by node before the subtrees below are built apart
+PARALLEL_LEVELS = 4
 #: points from which the subtrees are built on threads
 PARALLEL_MIN_POINTS = 1 << 17
 
@@ -56,6 +59,43 @@ def _split(cur: np.ndarray, order: np.ndarray, n: int, node: int, k_from: int, k
     return cur, order, axes
 
 
+def _split_nodes(cur: np.ndarray, order: np.ndarray, n: int, top: int,
+                 pool: ThreadPoolExecutor) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Levels ``0 .. top - 1`` of all ``n`` points, node by node: each node's points
+    partitioned at its median along its widest axis (``argpartition``), the nodes of a
+    level on ``pool``'s threads. Returns the points and ``order`` in the new order (new
+    arrays: the inputs are not changed) and each level's split axes."""
+    axes = []
+    for k in range(top):
+        if k == 0:                           # the root: into new arrays
+            ext = cur.max(axis=1).astype(np.float64) - cur.min(axis=1).astype(np.float64)
+            ax = int(np.argmax(ext))
+            perm = np.argpartition(cur[ax], n >> 1) if 0 < n >> 1 < n else np.arange(n)
+            cur, order = np.take(cur, perm, axis=1), np.take(order, perm)
+            axes.append(np.array([ax], np.int8))
+            continue
+        parts = 1 << k
+        bounds = level_starts(n, k).tolist() + [n]
+        axis = np.zeros(parts, np.int8)
+
+        def node(j: int) -> None:
+            a, b = bounds[j], bounds[j + 1]
+            mid = (2 * j + 1) * n >> (k + 1)        # where its second child begins
+            if b - a == 0:
+                return
+            c = cur[:, a:b]
+            ext = c.max(axis=1).astype(np.float64) - c.min(axis=1).astype(np.float64)
+            axis[j] = ax = int(np.argmax(ext))
+            if a < mid < b:
+                perm = np.argpartition(c[ax], mid - a)
+                cur[:, a:b] = np.take(c, perm, axis=1)
+                order[a:b] = np.take(order[a:b], perm)
+
+        list(pool.map(node, range(parts)))
+        axes.append(axis)
+    return cur, order, axes
+
+
 def median_levels(rows: np.ndarray, levels: int, order_dtype=np.int64
                   ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
     """Split ``levels`` kd levels of the points ``rows`` (coordinates as rows, (width, n);
@@ -64,20 +104,23 @@ def median_levels(rows: np.ndarray, levels: int, order_dtype=np.int64
     cur = np.ascontiguousarray(rows)
     n = cur.shape[1]
     order = np.arange(n, dtype=order_dtype)
-    top = levels if n < PARALLEL_MIN_POINTS else min(levels, PARALLEL_LEVELS)
-    cur, order, axes = _split(cur, order, n, 0, 0, top, 0)
-    if top < levels:                         # the subtrees below, one thread each
-        parts = 1 << top
-        bounds = level_starts(n, top).tolist() + [n]
-        below: list = [None] * parts
+    if n < PARALLEL_MIN_POINTS or levels <= 0:
+        cur, order, axes = _split(cur, order, n, 0, 0, levels, 0)
+        return cur, order, axes
+    top = min(levels, PARALLEL_LEVELS)
+    with ThreadPoolExecutor(min(1 << top, os.cpu_count() or 1)) as pool:
+        cur, order, axes = _split_nodes(cur, order, n, top, pool)
+        if top < levels:                     # the subtrees below, one thread each
+            parts = 1 << top
+            bounds = level_starts(n, top).tolist() + [n]
+            below: list = [None] * parts
 
-        def subtree(c: int) -> None:
-            a, b = bounds[c], bounds[c + 1]
-            cur[:, a:b], order[a:b], below[c] = _split(cur[:, a:b], order[a:b], n, c, top,
-                                                       levels, a)
+            def subtree(c: int) -> None:
+                a, b = bounds[c], bounds[c + 1]
+                cur[:, a:b], order[a:b], below[c] = _split(cur[:, a:b], order[a:b], n, c,
+                                                           top, levels, a)
 
-        with ThreadPoolExecutor(min(parts, os.cpu_count() or 1)) as pool:
             list(pool.map(subtree, range(parts)))
-        axes += [np.concatenate([below[c][i] for c in range(parts)])
-                 for i in range(levels - top)]
+            axes += [np.concatenate([below[c][i] for c in range(parts)])
+                     for i in range(levels - top)]
     return cur, order, axes

@@ -19,11 +19,14 @@ R = TypeVar("R")
 ROW_CHUNK = 1 << 14
 
 
-def map_row_chunks(fn: Callable[[int, int], R], n: int, chunk: int | None = None) -> list[R]:
+def map_row_chunks(fn: Callable[[int, int], R], n: int, chunk: int | None = None,
+                   align: int = 1) -> list[R]:
     """``[fn(start, stop), ...]`` over consecutive row ranges that cover ``[0, n)``, each at
-    most ``chunk`` rows (default :data:`ROW_CHUNK`), on up to one thread per core; in order
-    of ``start``. One call ``fn(0, n)`` when ``n <= chunk``."""
-    chunk = max(1, int(chunk or ROW_CHUNK))
+    most ``chunk`` rows (default :data:`ROW_CHUNK`, rounded up to a multiple of ``align``,
+    so that every ``start`` is one), on up to one thread per core; in order of ``start``.
+    One call ``fn(0, n)`` when ``n <= chunk``."""
+    align = max(1, int(align))
+    chunk = -(-max(1, int(chunk or ROW_CHUNK)) // align) * align
     starts = list(range(0, n, chunk)) or [0]
     if len(starts) == 1:
         return [fn(0, n)]
