@@ -9,7 +9,8 @@ groups (``knn_queries.REFINE_GROUP``).
 * Trees: random points (lines through a unit cube for the line tree, with their start
   points as ``split_extra`` as LSG does; points in a cube for the point tree), built
   ``--repeats`` times per setting, the settings taking turns; the least time of each. The
-  one-thread build is the same code with ``PARALLEL_MIN_POINTS`` above the size.
+  one-thread build is the same code with ``PARALLEL_MIN_POINTS`` and
+  ``row_chunks.ROW_CHUNK`` above the size.
 * The refinement: the table-edge scene of ``tools/bench_surface_equal_time.py`` (160x120,
   4 spp, ``raymap`` alone, 4 passes of 20,000 lighting rays, no budget), the stage
   ``raymap_refine`` summed over the passes and the tree's nodes at the end; group 1 and
@@ -42,13 +43,14 @@ for p in (ROOT, ROOT / "tools"):
 
 import clscatter.estimators.knn_queries as knn_queries  # noqa: E402
 import clscatter.estimators.median_split as median_split  # noqa: E402
+import clscatter.estimators.row_chunks as row_chunks  # noqa: E402
 from clscatter.device import structs  # noqa: E402
 from clscatter.estimators.line_gather import LEAF_SIZE, SPATIAL_SPLIT, prepare_lines  # noqa: E402
 from clscatter.estimators.line_tree import build_linetree  # noqa: E402
 from clscatter.estimators.segment_tree import SegmentTree  # noqa: E402
 
 OUT = ROOT / "bench_out"
-NEVER = 1 << 62                   # PARALLEL_MIN_POINTS above any size: one thread
+NEVER = 1 << 62                   # PARALLEL_MIN_POINTS, ROW_CHUNK above any size: one thread
 
 
 def _lines(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -93,17 +95,18 @@ def trees(repeats: int) -> list[dict]:
 
 
 def _threads(fn, repeats: int) -> dict:
-    """Least seconds of ``fn`` on one thread and with its subtrees on threads, in turns."""
+    """Least seconds of ``fn`` on one thread and with its subtrees and row chunks on
+    threads, in turns."""
     one, many = np.inf, np.inf
-    default = median_split.PARALLEL_MIN_POINTS
+    default, chunk = median_split.PARALLEL_MIN_POINTS, row_chunks.ROW_CHUNK
     try:
         for _ in range(repeats):
-            median_split.PARALLEL_MIN_POINTS = NEVER
+            median_split.PARALLEL_MIN_POINTS, row_chunks.ROW_CHUNK = NEVER, NEVER
             one = min(one, _least(fn, 1))
-            median_split.PARALLEL_MIN_POINTS = default
+            median_split.PARALLEL_MIN_POINTS, row_chunks.ROW_CHUNK = default, chunk
             many = min(many, _least(fn, 1))
     finally:
-        median_split.PARALLEL_MIN_POINTS = default
+        median_split.PARALLEL_MIN_POINTS, row_chunks.ROW_CHUNK = default, chunk
     return {"one_thread_seconds": one, "threads_seconds": many, "speedup": one / many}
 
 
