@@ -18,6 +18,10 @@ from clscatter.estimators.line_gather import (
 from clscatter.estimators.line_tree import node_boxes, plucker, point_blocks
 
 
+def test_host_threads_are_the_cores_this_process_may_use():
+    assert 1 <= rc.host_threads() <= (rc.os.cpu_count() or 1)
+
+
 @pytest.mark.parametrize("n, chunk", [(0, 4), (3, 4), (4, 4), (10, 4), (1000, 7)])
 def test_chunks_cover_every_row_once_in_order(n, chunk):
     got = rc.map_row_chunks(lambda s, e: (s, e), n, chunk)
@@ -28,8 +32,13 @@ def test_chunks_cover_every_row_once_in_order(n, chunk):
     assert len(got) == max(1, -(-n // chunk))
 
 
+def test_aligned_chunks_start_on_multiples():
+    got = rc.map_row_chunks(lambda s, e: (s, e), 1001, 333, align=4)
+    assert [s for s, _ in got] == [0, 336, 672] and got[-1][1] == 1001
+
+
 def test_one_thread_runs_the_chunks_in_turn(monkeypatch):
-    monkeypatch.setattr(rc.os, "cpu_count", lambda: 1)
+    monkeypatch.setattr(rc, "host_threads", lambda: 1)
     assert rc.map_row_chunks(lambda s, e: e - s, 10, 4) == [4, 4, 2]
 
 

@@ -17,10 +17,11 @@ the machine, so neither does the tree. Either way a node's lower half on its axi
 to its first child; only points of equal value there may fall on either side."""
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+
+from .row_chunks import host_threads
 
 #: levels split node by node before the subtrees below are built apart
 PARALLEL_LEVELS = 4
@@ -108,7 +109,7 @@ def median_levels(rows: np.ndarray, levels: int, order_dtype=np.int64
         cur, order, axes = _split(cur, order, n, 0, 0, levels, 0)
         return cur, order, axes
     top = min(levels, PARALLEL_LEVELS)
-    with ThreadPoolExecutor(min(1 << top, os.cpu_count() or 1)) as pool:
+    with ThreadPoolExecutor(min(1 << top, host_threads())) as pool:
         cur, order, axes = _split_nodes(cur, order, n, top, pool)
         if top < levels:                     # the subtrees below, one thread each
             parts = 1 << top

@@ -19,6 +19,15 @@ R = TypeVar("R")
 ROW_CHUNK = 1 << 14
 
 
+def host_threads() -> int:
+    """The cores this process may run on (its CPU affinity where the platform says, else
+    the machine's count): how many threads the host's parallel work uses."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
 def map_row_chunks(fn: Callable[[int, int], R], n: int, chunk: int | None = None,
                    align: int = 1) -> list[R]:
     """``[fn(start, stop), ...]`` over consecutive row ranges that cover ``[0, n)``, each at
@@ -30,7 +39,7 @@ def map_row_chunks(fn: Callable[[int, int], R], n: int, chunk: int | None = None
     starts = list(range(0, n, chunk)) or [0]
     if len(starts) == 1:
         return [fn(0, n)]
-    threads = min(len(starts), os.cpu_count() or 1)
+    threads = min(len(starts), host_threads())
     if threads == 1:
         return [fn(s, min(s + chunk, n)) for s in starts]
     with ThreadPoolExecutor(threads) as pool:
