@@ -51,9 +51,10 @@ The tree (:func:`build_linetree`, paper section 4.3)
     sorted by leaf.
 
     Build cost: the kd levels are :func:`~.median_split.median_levels` (one ``argsort``
-    of all N points per kd level, subtrees on threads for large N), shared with the
-    balanced point tree; ``np.minimum.reduceat`` for the 8-ary boxes. No Python loop runs
-    over points or nodes.
+    of all N points per kd level; for large N the top levels node by node and the
+    subtrees below on threads), shared with the balanced point tree;
+    ``np.minimum.reduceat`` for the 8-ary boxes. No Python loop runs over points, nor
+    over nodes but the few of the top levels.
 """
 from __future__ import annotations
 
