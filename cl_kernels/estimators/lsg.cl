@@ -47,9 +47,10 @@ typedef struct {
 } ViewQuery;
 
 /* Exact test of one pair (lighting segment L, view segment q): count, record, and
- * return its estimate (0 beyond r). */
-float4 test_pair(LsgLine L, int line_id, const ViewQuery *q, float r,
-                 float min_sin, float4 kappa, float g, int4 *cnt,
+ * return its estimate (0 beyond r). The lighting segment's id, line_ids[line], is read
+ * only to record the pair (max_pairs > 0): in a render it costs no load. */
+float4 test_pair(LsgLine L, __global const int *line_ids, int line, const ViewQuery *q,
+                 float r, float min_sin, float4 kappa, float g, int4 *cnt,
                  __global int2 *pairs, volatile __global int *pair_count, int max_pairs) {
     float4 la = L.a;
     float llen = la.w;
@@ -60,7 +61,7 @@ float4 test_pair(LsgLine L, int line_id, const ViewQuery *q, float r,
     cnt->y += 1;
     if (max_pairs > 0) {
         int k = atomic_inc(pair_count);
-        if (k < max_pairs) pairs[k] = (int2)(q->index, line_id);
+        if (k < max_pairs) pairs[k] = (int2)(q->index, line_ids[line]);
     }
     return lsg_pair(L, q->a, q->u, q->len, r, min_sin, kappa, g);
 }
@@ -253,7 +254,7 @@ __kernel void lsg_gather(__global const float8 *kids, __global const int2 *leaf_
             /* the reference: every pair, no culling */
             cnt.z = num_lines;
             for (int i = 0; i < num_lines; ++i)
-                acc += test_pair(lines[i], line_ids[i], &q, radius, min_sin, kappa, g, &cnt,
+                acc += test_pair(lines[i], line_ids, i, &q, radius, min_sin, kappa, g, &cnt,
                                  pairs, pair_count, max_pairs);
         } else {
             Walk k = walk_of(&q, pl_centre, pl_inv_scale, radius, max_m1);
@@ -267,7 +268,7 @@ __kernel void lsg_gather(__global const float8 *kids, __global const int2 *leaf_
                 leaf_start(&scan, rg);
                 int i;
                 while ((i = leaf_next(&scan, points, &k)) >= 0) {
-                    acc += test_pair(lines[i], line_ids[i], &q, radius, min_sin, kappa, g,
+                    acc += test_pair(lines[i], line_ids, i, &q, radius, min_sin, kappa, g,
                                      &cnt, pairs, pair_count, max_pairs);
                 }
             }
@@ -331,7 +332,7 @@ __kernel void lsg_scatter(__global const float8 *kids, __global const int2 *leaf
                 if (!load_query(views, i, &v)) continue;
                 v.index = view_ids[i];
                 int before = cnt.y;
-                float4 e = test_pair(L, light_ids[li], &v, radius, min_sin, kappa, g, &cnt,
+                float4 e = test_pair(L, light_ids, li, &v, radius, min_sin, kappa, g, &cnt,
                                      pairs, pair_count, max_pairs);
                 if (cnt.y == before) continue;
                 atomic_inc(&counts[4 * v.index + 1]);
