@@ -80,7 +80,8 @@ def whole_process(spec: str, method: str, sets: list[str]) -> tuple[float, dict,
             cmd += ["--set", s]
         t = time.perf_counter()
         r = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT,
-                           env={**os.environ, "PYTHONPATH": str(ROOT)})
+                           env={**os.environ, "PYTHONPATH": os.pathsep.join(
+                               [str(ROOT)] + [p for p in [os.environ.get("PYTHONPATH")] if p])})
         wall = time.perf_counter() - t
         if r.returncode != 0:
             raise RuntimeError(r.stderr)
