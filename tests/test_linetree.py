@@ -17,6 +17,7 @@ from clscatter.estimators.line_tree import (
     node_boxes,
     plane_of,
     plucker,
+    point_block_array,
     point_blocks,
     tree_levels,
 )
@@ -63,6 +64,13 @@ def test_gather_layouts_hold_the_tree_and_points_exactly(n):
     flat = blocks.transpose(0, 2, 1).reshape(-1, 6)
     np.testing.assert_array_equal(flat[:n], pts[t.order])
     assert not flat[n:].any()
+    # written piece by piece (pieces starting at multiples of 4): the same blocks
+    pieces = point_block_array(n)
+    for s in range(0, n, 8):
+        point_blocks(pts[t.order][s:s + 8], pieces, s)
+    np.testing.assert_array_equal(pieces, blocks)
+    with pytest.raises(ValueError, match="multiple of 4"):
+        point_blocks(pts[:3], pieces, 2)
 
 
 def test_a_tree_deeper_than_the_walk_is_refused():

@@ -28,6 +28,7 @@ from .line_tree import (
     linetree_from_rows,
     node_boxes,
     plucker,
+    point_block_array,
     point_blocks,
 )
 from .row_chunks import map_row_chunks
@@ -242,7 +243,7 @@ def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
     # then in tree order: the records, the boxes' rows, point_blocks' layout, the ids
     lines = np.empty(k, LSG_LINE)
     lo, hi = np.empty((3, k), np.float32), np.empty((3, k), np.float32)
-    points = np.zeros((max(1, -(-k // 4)), 6, 4), np.float32)
+    points = point_block_array(k)
     sorted_ids = np.empty(k, np.int32)
 
     def in_tree_order(s: int, e: int) -> float:
@@ -251,10 +252,7 @@ def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
         b = box_in[oc]
         lo[:, s:e], hi[:, s:e] = b[:, :3].T, b[:, 3:].T
         p = pts[oc]
-        whole = (e - s) // 4 * 4
-        points[s // 4:(s + whole) // 4] = p[:whole].reshape(-1, 4, 6).transpose(0, 2, 1)
-        if whole < e - s:                    # the last, padded block
-            points[(s + whole) // 4, :, :e - s - whole] = p[whole:].T
+        point_blocks(p, points, s)
         sorted_ids[s:e] = ids[oc]
         return float(np.abs(p[:, 3:]).sum(axis=1).max())
     max_m1 = max(map_row_chunks(in_tree_order, k, align=4)) if k else 0.0

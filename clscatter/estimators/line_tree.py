@@ -200,17 +200,29 @@ def node_boxes(tree: LineTree, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return out
 
 
-def point_blocks(points) -> np.ndarray:
+def point_block_array(n: int) -> np.ndarray:
+    """Zeroed blocks for ``n`` Plücker points in :func:`point_blocks`' layout: ``(ceil(n /
+    4), 6, 4)`` float32, one block for no points."""
+    return np.zeros((max(1, -(-int(n) // 4)), 6, 4), np.float32)
+
+
+def point_blocks(points, out: np.ndarray | None = None, start: int = 0) -> np.ndarray:
     """Plücker points ``(N, 6)`` (in tree order) as blocks of 4 for a plane test of 4 at
     once (``block_near`` in cl_kernels/estimators/lsg.cl): ``(ceil(N / 4), 6, 4)`` float32,
     block ``b`` holding points ``4 b .. 4 b + 3`` as columns and their 6 coordinates as
-    rows; the last block padded with zeros, and one block of zeros for no points."""
+    rows; the last block padded with zeros, and one block of zeros for no points. With
+    ``out`` (:func:`point_block_array`), the points are written there as points ``start``
+    (a multiple of 4) onwards, and ``out`` is returned."""
     pts = np.asarray(points, np.float32).reshape(-1, 6)
-    n = len(pts)
-    blocks = max(1, -(-n // 4))
-    out = np.zeros((blocks * 4, 6), np.float32)
-    out[:n] = pts
-    return np.ascontiguousarray(out.reshape(blocks, 4, 6).transpose(0, 2, 1))
+    if out is None:
+        out = point_block_array(len(pts))
+    if start % 4:
+        raise ValueError(f"point blocks start at a multiple of 4, not {start}")
+    b, whole = start // 4, len(pts) // 4 * 4
+    out[b:b + whole // 4] = pts[:whole].reshape(-1, 4, 6).transpose(0, 2, 1)
+    if whole < len(pts):                     # the last, padded block
+        out[b + whole // 4, :, :len(pts) - whole] = pts[whole:].T
+    return out
 
 
 def child_rows(tree: LineTree, boxes: np.ndarray) -> np.ndarray:
