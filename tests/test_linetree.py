@@ -7,6 +7,7 @@ import pytest
 
 from clscatter.estimators.line_tree import (
     LINE_NODE,
+    POINT_LANES,
     WALK_LEVELS,
     LineTree,
     PluckerFrame,
@@ -36,7 +37,7 @@ def test_gather_layouts_hold_the_tree_and_points_exactly(n):
     """What the gather kernel reads side by side: child_rows puts the root at column 0 of
     block 0 (its other columns empty boxes) and the 6-D and 3-D boxes of node 8g+1+c at
     column c of block g + 1 (rows lo 6, hi 6, box lo 3, box hi 3); point_blocks puts point
-    4b+j at column j of block b, zeros after the last."""
+    Lb+j at column j of block b (L = POINT_LANES, 8), zeros after the last."""
     rng = np.random.default_rng(n)
     pts = rng.normal(size=(n, 6)).astype(np.float32)
     t = build_linetree(pts, 16)
@@ -60,17 +61,19 @@ def test_gather_layouts_hold_the_tree_and_points_exactly(n):
         for c in range(8):
             column_is(g + 1, c, 8 * g + 1 + c)
     blocks = point_blocks(pts[t.order])
-    assert blocks.shape == (max(1, -(-n // 4)), 6, 4) and blocks.flags.c_contiguous
+    L = POINT_LANES
+    assert L == 8                                   # block_near's float8 rows
+    assert blocks.shape == (max(1, -(-n // L)), 6, L) and blocks.flags.c_contiguous
     flat = blocks.transpose(0, 2, 1).reshape(-1, 6)
     np.testing.assert_array_equal(flat[:n], pts[t.order])
     assert not flat[n:].any()
-    # written piece by piece (pieces starting at multiples of 4): the same blocks
+    # written piece by piece (pieces starting at multiples of L): the same blocks
     pieces = point_block_array(n)
-    for s in range(0, n, 8):
-        point_blocks(pts[t.order][s:s + 8], pieces, s)
+    for s in range(0, n, 2 * L):
+        point_blocks(pts[t.order][s:s + 2 * L], pieces, s)
     np.testing.assert_array_equal(pieces, blocks)
-    with pytest.raises(ValueError, match="multiple of 4"):
-        point_blocks(pts[:3], pieces, 2)
+    with pytest.raises(ValueError, match=f"multiple of {L}"):
+        point_blocks(pts[:3], pieces, 4)
 
 
 def test_a_tree_deeper_than_the_walk_is_refused():

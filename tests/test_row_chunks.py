@@ -15,7 +15,12 @@ from clscatter.estimators.line_gather import (
     continue_and_clip,
     prepare_lines,
 )
-from clscatter.estimators.line_tree import node_boxes, plucker, point_blocks
+from clscatter.estimators.line_tree import (
+    POINT_LANES,
+    node_boxes,
+    plucker,
+    point_blocks,
+)
 
 
 def test_host_threads_are_the_cores_this_process_may_use():
@@ -116,4 +121,4 @@ def test_preparing_no_kept_lines(monkeypatch, chunk):
     assert len(clipped[0]) == 0
     prep = prepare_lines(segs, lo, hi, 0.01, kappa, 4, clipped=clipped)
     assert len(prep.lines) == 0 and prep.max_m1 == 0.0 and prep.tree.levels == 0
-    assert prep.points.shape == (1, 6, 4) and not prep.points.any()
+    assert prep.points.shape == (1, 6, POINT_LANES) and not prep.points.any()

@@ -49,21 +49,21 @@ typedef struct {
 /* Exact test of one pair (lighting segment L, view segment q): count, record, and
  * return its estimate (0 beyond r). The lighting segment's id, line_ids[line], is read
  * only to record the pair (max_pairs > 0): in a render it costs no load. */
-float4 test_pair(LsgLine L, __global const int *line_ids, int line, const ViewQuery *q,
-                 float r, float min_sin, float4 kappa, float g, int4 *cnt,
+float4 test_pair(__global const LsgLine *L, __global const int *line_ids, int line,
+                 const ViewQuery *q, float r, float min_sin, float4 kappa, float g, int4 *cnt,
                  __global int2 *pairs, volatile __global int *pair_count, int max_pairs) {
-    float4 la = L.a;
+    cnt->x += 1;
+    float4 la = L->a, lu = L->u;
     float llen = la.w;
     la.w = 0.0f;
     float s, t;
-    cnt->x += 1;
-    if (seg_seg_dist2(la, L.u, llen, q->a, q->u, q->len, &s, &t) >= r * r) return (float4)(0.0f);
+    if (seg_seg_dist2(la, lu, llen, q->a, q->u, q->len, &s, &t) >= r * r) return (float4)(0.0f);
     cnt->y += 1;
     if (max_pairs > 0) {
         int k = atomic_inc(pair_count);
         if (k < max_pairs) pairs[k] = (int2)(q->index, line_ids[line]);
     }
-    return lsg_pair(L, q->a, q->u, q->len, r, min_sin, kappa, g);
+    return lsg_pair(la, lu, llen, L->flux, q->a, q->u, q->len, r, min_sin, kappa, g);
 }
 
 int load_query(__global const ViewSegment *views, int vi, ViewQuery *q) {
@@ -116,48 +116,52 @@ Walk walk_of(const ViewQuery *q, float4 pl_centre, float pl_inv_scale, float rad
     return k;
 }
 
-/* The plane test of the 4 Plücker points of block b (line_tree.point_blocks: rows u.x,
- * u.y, u.z, m.x, m.y, m.z, a point per lane; P . w = +-d' sin(theta) of the two lines), as
- * bits: bit j set where point 4b + j lies in [lo, hi) and |P . w| <= thr. */
-uint block_near(__global const float4 *points, int b, const Walk *k, int lo, int hi) {
-    __global const float4 *P = points + 6 * b;
-    float4 d = P[0] * k->w4.x + P[1] * k->w4.y + P[2] * k->w4.z + P[3] * k->w4.w
-             + P[4] * k->w2.x + P[5] * k->w2.y;
-    int4 i = (int4)(4 * b) + (int4)(0, 1, 2, 3);
-    int4 ok = islessequal(fabs(d), (float4)(k->thr)) & (i >= (int4)(lo)) & (i < (int4)(hi));
-    ok &= (int4)(1, 2, 4, 8);
-    return (uint)(ok.x | ok.y | ok.z | ok.w);
+/* The lanes of ok that are set (non-zero), as bits: bit j for lane j. */
+uint lane_bits8(int8 ok) {
+    ok &= (int8)(1, 2, 4, 8, 16, 32, 64, 128);
+    int4 h = ok.lo | ok.hi;
+    int2 h2 = h.lo | h.hi;
+    return (uint)(h2.x | h2.y);
 }
 
-/* The points of one leaf that pass the plane test, 4 at a time (leaf_next). */
-typedef struct {
-    int b, end, lo, hi;
-    uint todo;        /* bits of block b still to return */
-} LeafScan;
-
-void leaf_start(LeafScan *s, int2 range) {
-    s->b = (range.x >> 2) - 1;
-    s->end = (range.y + 3) >> 2;
-    s->lo = range.x;
-    s->hi = range.y;
-    s->todo = 0u;
+/* The plane test of the 8 Plücker points of block b (line_tree.point_blocks, POINT_LANES
+ * = 8: rows u.x, u.y, u.z, m.x, m.y, m.z, a point per lane; P . w = +-d' sin(theta) of
+ * the two lines), as bits: bit j set where point 8b + j lies in the leaf's range [rg.x,
+ * rg.y) and |P . w| <= thr. Most blocks have no point near: one branch tells. */
+uint block_near(__global const float8 *points, int b, const Walk *k, int2 rg) {
+    __global const float8 *P = points + 6 * b;
+    float8 d = (P[0] * k->w4.x + P[1] * k->w4.y) + (P[2] * k->w4.z + P[3] * k->w4.w)
+             + (P[4] * k->w2.x + P[5] * k->w2.y);
+    int8 near = islessequal(fabs(d), (float8)(k->thr));
+    int4 n4 = near.lo | near.hi;
+    int2 n2 = n4.lo | n4.hi;
+    if ((n2.x | n2.y) == 0) return 0u;
+    int8 i = (int8)(8 * b) + (int8)(0, 1, 2, 3, 4, 5, 6, 7);
+    return lane_bits8(near & (i >= (int8)(rg.x)) & (i < (int8)(rg.y)));
 }
 
-/* The next point of the leaf with |P . w| <= thr, in order, or -1. */
-int leaf_next(LeafScan *s, __global const float4 *points, const Walk *k) {
-    while (s->todo == 0u) {
-        if (++s->b >= s->end) return -1;
-        s->todo = block_near(points, s->b, k, s->lo, s->hi);
-    }
-    uint m = s->todo;
-    s->todo = m & (m - 1u);
-    return 4 * s->b + (int)(31u - clz(m & (0u - m)));
+/* The lowest point of block b among the bits *m (block_near), taken from them. A leaf's
+ * points are those of its blocks rg.x / 8 .. (rg.y + 7) / 8 that block_near returns. */
+int take_point(uint *m, int b) {
+    uint low = *m & (0u - *m);
+    *m &= *m - 1u;
+    return 8 * b + (int)(31u - clz(low));
 }
 
 /* Lane-wise maximum and minimum without NaN handling (the walk's values are never NaN:
  * Walk's inverse direction is finite). */
 float8 max8(float8 a, float8 b) { return select(a, b, isgreater(b, a)); }
 float8 min8(float8 a, float8 b) { return select(a, b, isless(b, a)); }
+
+/* One axis of a slab test of the query segment (origin coordinate o, inverse direction
+ * inv) against 8 boxes [blo, bhi] grown by r and a rounding allowance: narrows each
+ * box's [t0, t1]. */
+void slab8(float8 blo, float8 bhi, float o, float inv, float r, float8 *t0, float8 *t1) {
+    float8 e = r * 1.0001f + 1e-5f * (1.0f + fabs(blo) + fabs(bhi));
+    float8 ta = (blo - e - o) * inv, tb = (bhi + e - o) * inv;
+    *t0 = max8(*t0, min8(ta, tb));
+    *t1 = min8(*t1, max8(ta, tb));
+}
 
 /* Which of the 8 nodes of block g the walk enters, as bits (bit c: column c): the nodes
  * whose 6-D box meets the slab |P . w| <= thr and whose segments' 3-D box the query
@@ -171,26 +175,21 @@ float8 min8(float8 a, float8 b) { return select(a, b, isless(b, a)); }
 uint block_visited(__global const float8 *kids, int g, const Walk *k, const ViewQuery *q,
                    float r) {
     __global const float8 *c = kids + 18 * g;
-    float8 lo = k->p4.x * c[0] + k->n4.x * c[6], hi = k->p4.x * c[6] + k->n4.x * c[0];
-    lo += k->p4.y * c[1] + k->n4.y * c[7];  hi += k->p4.y * c[7] + k->n4.y * c[1];
-    lo += k->p4.z * c[2] + k->n4.z * c[8];  hi += k->p4.z * c[8] + k->n4.z * c[2];
-    lo += k->p4.w * c[3] + k->n4.w * c[9];  hi += k->p4.w * c[9] + k->n4.w * c[3];
-    lo += k->p2.x * c[4] + k->n2.x * c[10]; hi += k->p2.x * c[10] + k->n2.x * c[4];
-    lo += k->p2.y * c[5] + k->n2.y * c[11]; hi += k->p2.y * c[11] + k->n2.y * c[5];
+    /* the box's nearest corner on each side of the plane: lo (hi) sums p c_lo + n c_hi
+     * (p c_hi + n c_lo) over the 6 coordinates, as pairs of pairs */
+    float8 lo = ((k->p4.x * c[0] + k->n4.x * c[6]) + (k->p4.y * c[1] + k->n4.y * c[7]))
+              + ((k->p4.z * c[2] + k->n4.z * c[8]) + (k->p4.w * c[3] + k->n4.w * c[9]))
+              + ((k->p2.x * c[4] + k->n2.x * c[10]) + (k->p2.y * c[5] + k->n2.y * c[11]));
+    float8 hi = ((k->p4.x * c[6] + k->n4.x * c[0]) + (k->p4.y * c[7] + k->n4.y * c[1]))
+              + ((k->p4.z * c[8] + k->n4.z * c[2]) + (k->p4.w * c[9] + k->n4.w * c[3]))
+              + ((k->p2.x * c[10] + k->n2.x * c[4]) + (k->p2.y * c[11] + k->n2.y * c[5]));
     int8 near = islessequal(lo, (float8)(k->thr)) & isgreaterequal(hi, (float8)(-k->thr));
     float8 t0 = (float8)(0.0f), t1 = (float8)(q->len);
-    for (int ax = 0; ax < 3; ++ax) {
-        float8 blo = c[12 + ax], bhi = c[15 + ax];
-        float8 e = r * 1.0001f + 1e-5f * (1.0f + fabs(blo) + fabs(bhi));
-        float o = ax == 0 ? q->a.x : ax == 1 ? q->a.y : q->a.z;
-        float inv = ax == 0 ? k->inv.x : ax == 1 ? k->inv.y : k->inv.z;
-        float8 ta = (blo - e - o) * inv, tb = (bhi + e - o) * inv;
-        t0 = max8(t0, min8(ta, tb));
-        t1 = min8(t1, max8(ta, tb));
-    }
+    slab8(c[12], c[15], q->a.x, k->inv.x, r, &t0, &t1);
+    slab8(c[13], c[16], q->a.y, k->inv.y, r, &t0, &t1);
+    slab8(c[14], c[17], q->a.z, k->inv.z, r, &t0, &t1);
     int8 hit = islessequal(t0, t1 + 1e-5f * (1.0f + q->len));
-    int8 bits = (near & hit) & (int8)(1, 2, 4, 8, 16, 32, 64, 128);
-    return (uint)(bits.s0 | bits.s1 | bits.s2 | bits.s3 | bits.s4 | bits.s5 | bits.s6 | bits.s7);
+    return lane_bits8(near & hit);
 }
 
 /* Levels a walk can descend (line_tree.WALK_LEVELS, which the host checks; its trees are
@@ -233,7 +232,7 @@ int walk_next(TreeWalk *s, __global const float8 *kids, int first_leaf, const Wa
 
 __kernel void lsg_gather(__global const float8 *kids, __global const int2 *leaf_ranges,
                          int first_leaf, __global const LsgLine *lines,
-                         __global const float4 *points,
+                         __global const float8 *points,
                          __global const int *line_ids, int num_lines, float max_m1,
                          __global const ViewSegment *views, int view_offset, int num_views,
                          __global const int *view_index, int indexed, float scale,
@@ -254,7 +253,7 @@ __kernel void lsg_gather(__global const float8 *kids, __global const int2 *leaf_
             /* the reference: every pair, no culling */
             cnt.z = num_lines;
             for (int i = 0; i < num_lines; ++i)
-                acc += test_pair(lines[i], line_ids, i, &q, radius, min_sin, kappa, g, &cnt,
+                acc += test_pair(lines + i, line_ids, i, &q, radius, min_sin, kappa, g, &cnt,
                                  pairs, pair_count, max_pairs);
         } else {
             Walk k = walk_of(&q, pl_centre, pl_inv_scale, radius, max_m1);
@@ -264,12 +263,13 @@ __kernel void lsg_gather(__global const float8 *kids, __global const int2 *leaf_
             while ((leaf = walk_next(&walk, kids, first_leaf, &k, &q, radius)) >= 0) {
                 int2 rg = leaf_ranges[leaf];
                 cnt.z += rg.y - rg.x;             /* points the hierarchy did not cull */
-                LeafScan scan;
-                leaf_start(&scan, rg);
-                int i;
-                while ((i = leaf_next(&scan, points, &k)) >= 0) {
-                    acc += test_pair(lines[i], line_ids, i, &q, radius, min_sin, kappa, g,
-                                     &cnt, pairs, pair_count, max_pairs);
+                for (int b = rg.x >> 3; b < (rg.y + 7) >> 3; ++b) {
+                    uint m = block_near(points, b, &k, rg);
+                    while (m != 0u) {
+                        int i = take_point(&m, b);
+                        acc += test_pair(lines + i, line_ids, i, &q, radius, min_sin, kappa, g,
+                                         &cnt, pairs, pair_count, max_pairs);
+                    }
                 }
             }
         }
@@ -295,7 +295,7 @@ __kernel void lsg_gather(__global const float8 *kids, __global const int2 *leaf_
  * own (tests, valid pairs, points in the visited leaves, 0) go to light_counts. */
 __kernel void lsg_scatter(__global const float8 *kids, __global const int2 *leaf_ranges,
                           int first_leaf,
-                          __global const ViewSegment *views, __global const float4 *points,
+                          __global const ViewSegment *views, __global const float8 *points,
                           __global const int *view_ids, float max_m1,
                           __global const LsgLine *lights, __global const int *light_ids,
                           int light_offset, int num_lights, float scale,
@@ -324,22 +324,23 @@ __kernel void lsg_scatter(__global const float8 *kids, __global const int2 *leaf
         while ((leaf = walk_next(&walk, kids, first_leaf, &k, &q, radius)) >= 0) {
             int2 rg = leaf_ranges[leaf];
             cnt.z += rg.y - rg.x;
-            LeafScan scan;
-            leaf_start(&scan, rg);
-            int i;
-            while ((i = leaf_next(&scan, points, &k)) >= 0) {
-                ViewQuery v;
-                if (!load_query(views, i, &v)) continue;
-                v.index = view_ids[i];
-                int before = cnt.y;
-                float4 e = test_pair(L, light_ids, li, &v, radius, min_sin, kappa, g, &cnt,
-                                     pairs, pair_count, max_pairs);
-                if (cnt.y == before) continue;
-                atomic_inc(&counts[4 * v.index + 1]);
-                e *= sigma_s * (views[i].weight * scale) * fixed_scale;
-                fixed_add(acc, 3 * i, e.x);
-                fixed_add(acc, 3 * i + 1, e.y);
-                fixed_add(acc, 3 * i + 2, e.z);
+            for (int b = rg.x >> 3; b < (rg.y + 7) >> 3; ++b) {
+                uint m = block_near(points, b, &k, rg);
+                while (m != 0u) {
+                    int i = take_point(&m, b);
+                    ViewQuery v;
+                    if (!load_query(views, i, &v)) continue;
+                    v.index = view_ids[i];
+                    int before = cnt.y;
+                    float4 e = test_pair(lights + li, light_ids, li, &v, radius, min_sin, kappa,
+                                         g, &cnt, pairs, pair_count, max_pairs);
+                    if (cnt.y == before) continue;
+                    atomic_inc(&counts[4 * v.index + 1]);
+                    e *= sigma_s * (views[i].weight * scale) * fixed_scale;
+                    fixed_add(acc, 3 * i, e.x);
+                    fixed_add(acc, 3 * i + 1, e.y);
+                    fixed_add(acc, 3 * i + 2, e.z);
+                }
             }
         }
     }

@@ -76,20 +76,26 @@ float seg_seg_dist2(float4 p1, float4 d1, float l1, float4 p2, float4 d2, float 
     return dot3(dv, dv);
 }
 
-/* int_0^D exp(-(e0 + x s / D)) ds per channel = exp(-e0) D (1 - exp(-x)) / x. */
+/* int_0^D exp(-(e0 + x s / D)) ds = exp(-e0) D (1 - exp(-x)) / x, one channel. */
+float exp_segment_integral1(float e0, float x, float D) {
+    float ratio = x > 1e-4f ? -expm1(-x) / x : 1.0f - 0.5f * x;
+    return exp(-e0) * D * ratio;
+}
+
+/* The same per channel; in a grey medium (equal channels) computed once. */
 float4 exp_segment_integral(float4 e0, float4 x, float D) {
+    if (e0.x == e0.y && e0.y == e0.z && x.x == x.y && x.y == x.z)
+        return (float4)(exp_segment_integral1(e0.x, x.x, D));
     float4 ratio = select(1.0f - 0.5f * x, -expm1(-x) / x, isgreater(x, (float4)(1e-4f)));
     return exp(-e0) * D * ratio;
 }
 
 /* The estimate of one pair (see the top of this file) without sigma_s and the view
  * segment's weight: p Phi int_chord exp(-kappa (s + t(s))) ds / (pi r^2), for the
- * lighting segment L = (a (w: length), u, flux) of LsgLine. */
-float4 lsg_pair(LsgLine L, float4 va, float4 vu, float vlen,
-                float r, float min_sin, float4 kappa, float g) {
-    float4 la = L.a, lu = L.u;
-    float llen = la.w;
-    la.w = 0.0f;
+ * lighting segment from la (w 0) along unit lu for llen with rgb flux at la (an
+ * LsgLine's a, u, flux) and the view segment from va along unit vu for vlen. */
+float4 lsg_pair(float4 la, float4 lu, float llen, float4 flux, float4 va, float4 vu,
+                float vlen, float r, float min_sin, float4 kappa, float g) {
     float4 w0 = la - va;
     float ta = dot3(w0, vu);                  /* view parameter of the light start */
     float cphi = dot3(lu, vu);
@@ -124,7 +130,7 @@ float4 lsg_pair(LsgLine L, float4 va, float4 vu, float vlen,
     float4 e0 = kappa * (s_lo + t_lo);
     float4 x = kappa * ((1.0f + cphi) * D);
     float ph = hg_phase(-cphi, g);            /* light direction vs towards the camera */
-    return L.flux * exp_segment_integral(e0, x, D) * (ph / (PI_F * r * r));
+    return flux * exp_segment_integral(e0, x, D) * (ph / (PI_F * r * r));
 }
 
 /* The plane-query threshold in the Plücker frame: r' = r / scale, widened for float32

@@ -20,6 +20,7 @@ from ..transport import primitives as prim
 from ..transport.view_paths import DeviceSegments
 from .fixed_sum import fixed_scale
 from .line_tree import (
+    POINT_LANES,
     LineTree,
     PluckerFrame,
     build_linetree,
@@ -255,7 +256,7 @@ def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
         point_blocks(p, points, s)
         sorted_ids[s:e] = ids[oc]
         return float(np.abs(p[:, 3:]).sum(axis=1).max())
-    max_m1 = max(map_row_chunks(in_tree_order, k, align=4)) if k else 0.0
+    max_m1 = max(map_row_chunks(in_tree_order, k, align=POINT_LANES)) if k else 0.0
     boxes = node_boxes(tree, lo, hi)
     kids = child_rows(tree, boxes)
     n = len(segs)
