@@ -11,7 +11,8 @@ from typing import Sequence
 import numpy as np
 
 from ..accel import tile_grid
-from ..accel.bvh import BVH, build_bvh
+from ..accel.bvh import BVH
+from ..accel.bvh_cache import cached_bvh
 from ..device import Engine, structs
 from ..io.stats import Stats
 from ..scene.model import Scene
@@ -112,7 +113,7 @@ def prepare_scene(scene: Scene, engine: Engine, stats: Stats | None = None) -> P
         frame = Frame.for_scene(scene)
         soup = triangle_soup(scene, frame)
     with stats.stage("bvh_build"):
-        bvh = build_bvh(soup.triangles)
+        bvh, bvh_cached = cached_bvh(soup.triangles)
     with stats.stage("scene_structs"):
         order = bvh.order
         normals = np.zeros((len(order), 3, 4), np.float32)
@@ -137,8 +138,8 @@ def prepare_scene(scene: Scene, engine: Engine, stats: Stats | None = None) -> P
             camera=engine.to_device(camera.reshape(1)),
             **{k: tile_grid.upload(engine, g) for k, g in grids.items()},
         )
-    stats.set(triangles=int(len(order)), bvh_nodes=int(len(bvh.nodes)), lights=int(len(lights)),
-              tile_grids={k: g.stats() if g is not None else None for k, g in grids.items()})
+    stats.set(triangles=int(len(order)), bvh_nodes=int(len(bvh.nodes)), bvh_cached=bvh_cached,
+              lights=int(len(lights)), tile_grids={k: g.stats() if g is not None else None for k, g in grids.items()})
     return PreparedScene(scene, engine, frame, bvh, medium, camera, lights, dev, soup.materials)
 
 
