@@ -254,15 +254,18 @@ def test_plucker_only_tree_finds_the_same_pairs(engine, kind, r):
     np.testing.assert_allclose(v_plk, v_space, rtol=2e-5, atol=1e-6 * np.abs(v_space).max())
 
 
+@pytest.mark.parametrize("grey", [False, True])
 @pytest.mark.parametrize("queries", ["views", "lights"])
 @pytest.mark.parametrize("kind, r", [("random", 0.03), ("near_parallel", 0.004),
                                      ("near_intersecting", 0.01)])
-def test_gather_kernel_matches_numpy_reference(engine, kind, r, queries):
+def test_gather_kernel_matches_numpy_reference(engine, kind, r, queries, grey):
     """lsg_gather (a query per view segment) and lsg_scatter (a query per lighting
-    segment) against the float64 NumPy reference of the same pairs and estimate."""
+    segment) against the float64 NumPy reference of the same pairs and estimate, in an
+    rgb medium and in a grey one (whose attenuation the kernel computes once for all
+    channels)."""
     rng = np.random.default_rng(11 + len(kind))
     lights, views = _random_set(kind, rng, nl=1500, nv=120)
-    med = _medium()
+    med = _medium((0.3,) * 3, (0.1,) * 3) if grey else _medium()
     vals, res = _gather(engine, lights, views, r, med, queries=queries)
     ref, pairs = reference_gather(_as_dict(lights, "light"), _as_dict(views, "view"), r,
                                   med["kappa"], med["sigma_s"], float(med["g"]))
