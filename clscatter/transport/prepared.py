@@ -139,7 +139,8 @@ def prepare_scene(scene: Scene, engine: Engine, stats: Stats | None = None) -> P
             **{k: tile_grid.upload(engine, g) for k, g in grids.items()},
         )
     stats.set(triangles=int(len(order)), bvh_nodes=int(len(bvh.nodes)), bvh_cached=bvh_cached,
-              lights=int(len(lights)), tile_grids={k: g.stats() if g is not None else None for k, g in grids.items()})
+              lights=int(len(lights)),
+              tile_grids={k: g.stats() if g is not None else None for k, g in grids.items()})
     return PreparedScene(scene, engine, frame, bvh, medium, camera, lights, dev, soup.materials)
 
 
