@@ -41,9 +41,9 @@
 #include "common.h"
 
 /* A lighting segment as the gather kernel reads it (tree order). Its Plücker point
- * (u, m) with m = ((a - centre) / scale) x u lives in a separate array, in blocks of 4
+ * (u, m) with m = ((a - centre) / scale) x u lives in a separate array, in blocks of 8
  * points by coordinate (line_tree.point_blocks), so the plane test reads 24 bytes a point,
- * 4 points at once, not the whole segment. */
+ * 8 points at once, not the whole segment. */
 typedef struct {
     float4 a;      /* start, normalised frame; w: length */
     float4 u;      /* unit direction (its orientation: the light's travel direction) */
