@@ -60,6 +60,11 @@ def _split(cur: np.ndarray, order: np.ndarray, n: int, node: int, k_from: int, k
     return cur, order, axes
 
 
+def _widest(c: np.ndarray) -> int:
+    """The axis (row) along which the points ``c`` (rows, (width, m)) extend furthest."""
+    return int(np.argmax(c.max(axis=1).astype(np.float64) - c.min(axis=1).astype(np.float64)))
+
+
 def _split_nodes(cur: np.ndarray, order: np.ndarray, n: int, top: int,
                  pool: ThreadPoolExecutor) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
     """Levels ``0 .. top - 1`` of all ``n`` points, node by node: each node's points
@@ -69,8 +74,7 @@ def _split_nodes(cur: np.ndarray, order: np.ndarray, n: int, top: int,
     axes = []
     for k in range(top):
         if k == 0:                           # the root: into new arrays
-            ext = cur.max(axis=1).astype(np.float64) - cur.min(axis=1).astype(np.float64)
-            ax = int(np.argmax(ext))
+            ax = _widest(cur)
             perm = np.argpartition(cur[ax], n >> 1) if 0 < n >> 1 < n else np.arange(n)
             cur, order = np.take(cur, perm, axis=1), np.take(order, perm)
             axes.append(np.array([ax], np.int8))
@@ -85,8 +89,7 @@ def _split_nodes(cur: np.ndarray, order: np.ndarray, n: int, top: int,
             if b - a == 0:
                 return
             c = cur[:, a:b]
-            ext = c.max(axis=1).astype(np.float64) - c.min(axis=1).astype(np.float64)
-            axis[j] = ax = int(np.argmax(ext))
+            axis[j] = ax = _widest(c)
             if a < mid < b:
                 perm = np.argpartition(c[ax], mid - a)
                 cur[:, a:b] = np.take(c, perm, axis=1)
