@@ -25,6 +25,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from clscatter.device.cache import cache_dir  # noqa: E402
 
 
 def render(scene: str, cache: Path) -> dict:
@@ -79,9 +82,7 @@ def main() -> None:
 
 
 def _kernel_cache() -> Path:
-    """The folder of built kernels this machine's renders use (warmed by one render)."""
-    sys.path.insert(0, str(ROOT))
-    from clscatter.device.cache import cache_dir
+    """The folder of built kernels this machine's renders use."""
     folder = cache_dir()
     folder.mkdir(parents=True, exist_ok=True)
     return folder
