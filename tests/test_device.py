@@ -6,7 +6,7 @@ import pyopencl as cl
 import pytest
 
 from clscatter import device as dev
-from clscatter.device import choice, kernel_sources
+from clscatter.device import choice, kernel_sources, programs
 from clscatter.errors import DeviceError, KernelBuildError
 
 
@@ -80,6 +80,20 @@ def test_binary_cache_skips_recompilation(tmp_path, monkeypatch):
     e2.program("probe", {"CACHE_TEST": 2})          # other options: another binary
     assert e2.builds == {"source": 1, "cache": 1}
     assert len(list(tmp_path.glob("probe-*.bin"))) == 2
+
+
+@pytest.mark.parametrize("kind, hint", [
+    (cl.device_type.CPU, True),
+    (cl.device_type.GPU, False),
+    # Oclgrind claims every type and cannot lower a prefetch
+    (cl.device_type.CPU | cl.device_type.GPU | cl.device_type.ACCELERATOR
+     | cl.device_type.DEFAULT, False),
+])
+def test_cache_prefetch_hints_only_on_a_cpu_device(kind, hint):
+    class _Device:
+        type = kind
+    defines = programs.device_defines(cl, _Device())
+    assert ("CLSCATTER_CPU_PREFETCH" in defines) is hint
 
 
 def test_build_error_carries_the_compiler_log(tmp_path, monkeypatch):

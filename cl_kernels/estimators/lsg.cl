@@ -148,6 +148,31 @@ int take_point(uint *m, int b) {
     return 8 * b + (int)(31u - clz(low));
 }
 
+/* Points that passed the plane test, queued for their exact tests: a point's record is
+ * prefetched as it is queued and tested LSG_QUEUE points later (or when the walk is over),
+ * so that the load of a record far away in memory overlaps the scan instead of stalling
+ * it. First in, first out: the pairs are tested, and their estimates added, in the order
+ * of the walk, as without the queue. */
+#define LSG_QUEUE 16
+typedef struct {
+    int item[LSG_QUEUE];
+    int pushed, taken;
+} Pending;
+
+/* Queue point i; returns the point whose turn has come (queued LSG_QUEUE points
+ * earlier), or -1 while the queue fills. */
+int pending_push(Pending *p, int i) {
+    int due = -1;
+    if (p->pushed - p->taken == LSG_QUEUE) due = p->item[p->taken++ & (LSG_QUEUE - 1)];
+    p->item[p->pushed++ & (LSG_QUEUE - 1)] = i;
+    return due;
+}
+
+/* The oldest point still queued, taken from the queue; -1 when it is empty. */
+int pending_pop(Pending *p) {
+    return p->taken < p->pushed ? p->item[p->taken++ & (LSG_QUEUE - 1)] : -1;
+}
+
 /* Lane-wise maximum and minimum without NaN handling (the walk's values are never NaN:
  * Walk's inverse direction is finite). */
 float8 max8(float8 a, float8 b) { return select(a, b, isgreater(b, a)); }
@@ -259,24 +284,55 @@ __kernel void lsg_gather(__global const float8 *kids, __global const int2 *leaf_
             Walk k = walk_of(&q, pl_centre, pl_inv_scale, radius, max_m1);
             TreeWalk walk;
             walk_start(&walk, kids, &k, &q, radius);
-            int leaf;
+            Pending queue;
+            queue.pushed = queue.taken = 0;
+            int leaf, i;
             while ((leaf = walk_next(&walk, kids, first_leaf, &k, &q, radius)) >= 0) {
                 int2 rg = leaf_ranges[leaf];
                 cnt.z += rg.y - rg.x;             /* points the hierarchy did not cull */
                 for (int b = rg.x >> 3; b < (rg.y + 7) >> 3; ++b) {
                     uint m = block_near(points, b, &k, rg);
                     while (m != 0u) {
-                        int i = take_point(&m, b);
-                        acc += test_pair(lines + i, line_ids, i, &q, radius, min_sin, kappa, g,
-                                         &cnt, pairs, pair_count, max_pairs);
+                        int p = take_point(&m, b);
+                        PREFETCH_HINT(&lines[p].a);       /* a 48-byte record: 1 or 2 lines */
+                        PREFETCH_HINT(&lines[p].flux);
+                        if ((i = pending_push(&queue, p)) >= 0)
+                            acc += test_pair(lines + i, line_ids, i, &q, radius, min_sin, kappa,
+                                             g, &cnt, pairs, pair_count, max_pairs);
                     }
                 }
             }
+            while ((i = pending_pop(&queue)) >= 0)
+                acc += test_pair(lines + i, line_ids, i, &q, radius, min_sin, kappa, g, &cnt,
+                                 pairs, pair_count, max_pairs);
         }
         acc *= medium->sigma_s * (views[vi].weight * scale);
     }
     out[vi] += acc;
     counts[vi] += cnt;
+}
+
+/* lsg_scatter's exact test of lighting segment li (lights[li]) against the view segment
+ * at tree position i, and for a valid pair its estimate times the view's factor into the
+ * view's fixed-point sum and a valid pair into the view's count (see lsg_scatter). */
+void scatter_pair(__global const LsgLine *lights, __global const int *light_ids, int li,
+                  __global const ViewSegment *views, __global const int *view_ids, int i,
+                  float radius, float min_sin, __global const Medium *medium, float scale,
+                  float fixed_scale, volatile __global uint *acc, volatile __global int *counts,
+                  int4 *cnt, __global int2 *pairs, volatile __global int *pair_count,
+                  int max_pairs) {
+    ViewQuery v;
+    if (!load_query(views, i, &v)) return;
+    v.index = view_ids[i];
+    int before = cnt->y;
+    float4 e = test_pair(lights + li, light_ids, li, &v, radius, min_sin, medium->kappa,
+                         medium->g, cnt, pairs, pair_count, max_pairs);
+    if (cnt->y == before) return;
+    atomic_inc(&counts[4 * v.index + 1]);
+    e *= medium->sigma_s * (views[i].weight * scale) * fixed_scale;
+    fixed_add(acc, 3 * i, e.x);
+    fixed_add(acc, 3 * i + 1, e.y);
+    fixed_add(acc, 3 * i + 2, e.z);
 }
 
 /* lsg_scatter: the same pairs and estimates formed from the lighting side (a Gatherer
@@ -315,34 +371,31 @@ __kernel void lsg_scatter(__global const float8 *kids, __global const int2 *leaf
     q.index = li;
     int4 cnt = (int4)(0, 0, 0, 0);
     if (q.len > 0.0f) {
-        float4 kappa = medium->kappa, sigma_s = medium->sigma_s;
-        float g = medium->g;
         Walk k = walk_of(&q, pl_centre, pl_inv_scale, radius, max_m1);
         TreeWalk walk;
         walk_start(&walk, kids, &k, &q, radius);
-        int leaf;
+        Pending queue;
+        queue.pushed = queue.taken = 0;
+        int leaf, i;
         while ((leaf = walk_next(&walk, kids, first_leaf, &k, &q, radius)) >= 0) {
             int2 rg = leaf_ranges[leaf];
             cnt.z += rg.y - rg.x;
             for (int b = rg.x >> 3; b < (rg.y + 7) >> 3; ++b) {
                 uint m = block_near(points, b, &k, rg);
                 while (m != 0u) {
-                    int i = take_point(&m, b);
-                    ViewQuery v;
-                    if (!load_query(views, i, &v)) continue;
-                    v.index = view_ids[i];
-                    int before = cnt.y;
-                    float4 e = test_pair(lights + li, light_ids, li, &v, radius, min_sin, kappa,
-                                         g, &cnt, pairs, pair_count, max_pairs);
-                    if (cnt.y == before) continue;
-                    atomic_inc(&counts[4 * v.index + 1]);
-                    e *= sigma_s * (views[i].weight * scale) * fixed_scale;
-                    fixed_add(acc, 3 * i, e.x);
-                    fixed_add(acc, 3 * i + 1, e.y);
-                    fixed_add(acc, 3 * i + 2, e.z);
+                    int p = take_point(&m, b);
+                    PREFETCH_HINT(views + p);             /* a 64-byte record */
+                    PREFETCH_HINT(view_ids + p);
+                    if ((i = pending_push(&queue, p)) >= 0)
+                        scatter_pair(lights, light_ids, li, views, view_ids, i, radius, min_sin,
+                                     medium, scale, fixed_scale, acc, counts, &cnt, pairs,
+                                     pair_count, max_pairs);
                 }
             }
         }
+        while ((i = pending_pop(&queue)) >= 0)
+            scatter_pair(lights, light_ids, li, views, view_ids, i, radius, min_sin, medium,
+                         scale, fixed_scale, acc, counts, &cnt, pairs, pair_count, max_pairs);
     }
     light_counts[li] = cnt;
 }

@@ -17,6 +17,18 @@
 #define RAY_EPS 2e-5f          /* offset along the normal when leaving a surface (normalised units) */
 #define T_INF 1e30f
 
+/* PREFETCH_HINT(p): start loading the cache line that holds *p, to be read soon. Built
+ * with -DCLSCATTER_CPU_PREFETCH (clscatter/device/programs.py, device_defines: a device
+ * that is a CPU alone, whose clang-based compiler lowers __builtin_prefetch to a prefetch
+ * instruction; OpenCL's own prefetch() compiles to nothing on PoCL's CPU device) it is
+ * one; elsewhere nothing: a GPU hides the latency with other work-items. It never changes
+ * a result. */
+#ifdef CLSCATTER_CPU_PREFETCH
+#define PREFETCH_HINT(p) __builtin_prefetch(p)
+#else
+#define PREFETCH_HINT(p) ((void)0)
+#endif
+
 /* How far along the normal a ray leaving a surface at p starts: RAY_EPS, or, where p
  * lies far out (objects far from the camera keep their large normalised coordinates:
  * clscatter/scene/model.py, FAR_FACTOR), 1e-6 of its largest coordinate (~8 float32 steps

@@ -22,6 +22,15 @@ def build_options(defines: dict[str, object] | None) -> list[str]:
     return opts
 
 
+def device_defines(cl, device) -> dict[str, object]:
+    """The defines every program is built with on ``device``: ``CLSCATTER_CPU_PREFETCH``
+    on a device that is a CPU and nothing else (``PREFETCH_HINT`` in
+    ``cl_kernels/shared/common.h``: a cache prefetch hint where the kernels run on the
+    host's cores; a GPU hides memory latency with other work-items, and a simulator that
+    claims every device type, such as Oclgrind, has no prefetch to lower it to)."""
+    return {"CLSCATTER_CPU_PREFETCH": 1} if device.type == cl.device_type.CPU else {}
+
+
 def binary_key(device, name: str, opts: Sequence[str]) -> str:
     """The on-disk binary cache key of program ``name`` built with ``opts`` for ``device``
     (32 hex digits): every file the program reads (its source and what it includes,
@@ -52,13 +61,14 @@ class ProgramCache:
         self._programs: dict[tuple, object] = {}     # (name, options) -> cl.Program
         self._kernels: dict[tuple, object] = {}      # (name, defines, kernel) -> cl.Kernel
         self.builds = {"source": 0, "cache": 0}
+        self.device_defines = device_defines(self.cl, self.device)
 
     def program(self, name: str, defines: dict[str, object] | None = None):
         """The built ``cl_kernels/<name>.cl`` with ``-D`` ``defines`` (see
         :func:`build_options`): from this engine's memory, else the binary cache, else
         compiled. Raises :class:`KernelBuildError` (with the compiler's log) when the
         source is missing or does not compile."""
-        opts = build_options(defines)
+        opts = build_options({**self.device_defines, **(defines or {})})
         key = (name, tuple(opts))
         if key not in self._programs:
             self._programs[key] = self._build(name, opts)
