@@ -15,7 +15,7 @@ import pytest
 from layout import layout_mismatches
 from reference_checks import assert_matches_reference
 
-from clscatter.device import structs
+from clscatter.device import add_kernel_dir, structs
 from clscatter.estimators.line_gather import (
     LSG_LINE,
     Gatherer,
@@ -284,6 +284,36 @@ def test_gather_kernel_matches_numpy_reference(engine, kind, r, queries, grey):
     # ends come from differences of O(1) numbers, ~1e-7 absolute, i.e. 1e-5 of a short chord
     np.testing.assert_allclose(vals[:, :3], ref, rtol=1e-4, atol=1e-5 * scale)
     assert abs(vals[:, :3].sum() / ref.sum() - 1) < 1e-5
+
+
+@pytest.mark.parametrize("grey", [False, True])
+def test_chord_attenuation_integral_matches_numpy(engine, grey):
+    """exp_segment_integral (lsg.h), exp(-e0) D (1 - exp(-x)) / x, against float64 on both
+    sides of the Taylor series' end (x = 0.05) and far beyond, per channel and, in a grey
+    medium, once for all channels."""
+    add_kernel_dir(Path(__file__).parent / "kernels")       # lsg_test.cl (a test hook)
+    xs = np.array([0.0, 1e-7, 1e-5, 1e-4, 2e-3, 0.02, 0.0499, 0.05, 0.0501, 0.2, 1.0, 7.5,
+                   40.0])
+    e0s = np.array([0.0, 0.3, 4.0])
+    x, e0 = (a.ravel() for a in np.meshgrid(xs, e0s))
+    n = len(x)
+    x4 = np.repeat(x[:, None], 4, axis=1)
+    if not grey:                                   # other values in the other channels
+        x4[:, 1] = np.roll(x, 3)
+        x4[:, 2] = np.roll(x, 7)
+    x4[:, 3] = 0.0
+    e04 = np.repeat(e0[:, None], 4, axis=1)
+    D = np.linspace(0.01, 2.0, n)
+    ins = [engine.to_device(np.ascontiguousarray(a, np.float32)) for a in (e04, x4, D)]
+    out = engine.empty(n * 16)
+    engine.call("lsg_test", "lsg_exp_integral", n, e0=ins[0], x=ins[1], D=ins[2], n=n, out=out)
+    got = engine.read(out, (n, 4), np.float32)
+    xr = x4[:, :3].astype(np.float32).astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.where(xr > 0, -np.expm1(-xr) / xr, 1.0)
+    ref = np.exp(-e04[:, :3].astype(np.float32).astype(np.float64)) * \
+        D.astype(np.float32)[:, None] * ratio
+    np.testing.assert_allclose(got[:, :3], ref, rtol=1e-6)
 
 
 def test_light_queries_do_not_depend_on_the_order_of_adding(engine):

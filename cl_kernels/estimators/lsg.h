@@ -76,9 +76,15 @@ float seg_seg_dist2(float4 p1, float4 d1, float l1, float4 p2, float4 d2, float 
     return dot3(dv, dv);
 }
 
-/* int_0^D exp(-(e0 + x s / D)) ds = exp(-e0) D (1 - exp(-x)) / x, one channel. */
+/* (1 - exp(-x)) / x for 0 <= x < EXP_RATIO_SERIES_MAX (float or float4): its Taylor
+ * series to x^3, whose remainder, under x^4 / 120 < 6e-8, is below float32 rounding. A
+ * pair's chord is usually far shorter than a mean free path, so this spares the expm1. */
+#define EXP_RATIO_SERIES_MAX 0.05f
+#define EXP_RATIO_SERIES(x) (1.0f - (x) * (0.5f - (x) * (1.0f / 6.0f - (x) * (1.0f / 24.0f))))
+
+/* int_0^D exp(-(e0 + x s / D)) ds = exp(-e0) D (1 - exp(-x)) / x, one channel (x >= 0). */
 float exp_segment_integral1(float e0, float x, float D) {
-    float ratio = x > 1e-4f ? -expm1(-x) / x : 1.0f - 0.5f * x;
+    float ratio = x < EXP_RATIO_SERIES_MAX ? EXP_RATIO_SERIES(x) : -expm1(-x) / x;
     return exp(-e0) * D * ratio;
 }
 
@@ -86,7 +92,9 @@ float exp_segment_integral1(float e0, float x, float D) {
 float4 exp_segment_integral(float4 e0, float4 x, float D) {
     if (e0.x == e0.y && e0.y == e0.z && x.x == x.y && x.y == x.z)
         return (float4)(exp_segment_integral1(e0.x, x.x, D));
-    float4 ratio = select(1.0f - 0.5f * x, -expm1(-x) / x, isgreater(x, (float4)(1e-4f)));
+    float4 ratio = EXP_RATIO_SERIES(x);
+    if (x.x >= EXP_RATIO_SERIES_MAX || x.y >= EXP_RATIO_SERIES_MAX || x.z >= EXP_RATIO_SERIES_MAX)
+        ratio = select(ratio, -expm1(-x) / x, isgreaterequal(x, (float4)(EXP_RATIO_SERIES_MAX)));
     return exp(-e0) * D * ratio;
 }
 
