@@ -329,10 +329,31 @@ def test_error_estimate_tracks_the_error_against_a_long_run(engine, name, method
         assert 0.5 <= ratio <= 2.0, (passes, r.stats["error_estimate"], ratio)
 
 
+def test_calibration_predicts_from_renders_of_a_like_size(tmp_path, monkeypatch):
+    """A prediction uses the rates of the measurements nearest in work and their median: a
+    small render's fixed costs and one odd render do not move it; entries of another form
+    are ignored."""
+    from clscatter.pipeline import calibration
+    monkeypatch.setenv("CLSCATTER_CACHE_DIR", str(tmp_path))
+    (tmp_path / "costs.json").write_text('{"dev": {"lsg": [1e-05, 2e-05], "raymap": 7}}')
+    assert calibration.predict("dev", "lsg", 1e9) is None        # bare rates: not measurements
+    assert calibration.predict("dev", "raymap", 1e9) is None
+    small = [(1e6, 0.3), (2e6, 0.6), (1.5e6, 0.45)]              # 3e-7 s a unit: fixed costs
+    large = [(1e9, 1.0), (1.1e9, 1.1), (0.9e9, 40.0), (1.2e9, 1.2)]  # 1e-9, one odd render
+    for work, seconds in small + large:
+        calibration.record("dev", "lsg", work, seconds)
+    # nearest 1e9: 1e9, 1.1e9 and the odd 0.9e9; their median rate is 1e-9
+    assert calibration.predict("dev", "lsg", 1e9) == pytest.approx(1.0, rel=1e-9)
+    assert calibration.predict("dev", "lsg", 1.5e6) == pytest.approx(0.45, rel=1e-9)
+    calibration.record("dev", "lsg", 1.4e6, 7.0)                 # a first compile, say
+    assert calibration.predict("dev", "lsg", 1.5e6) == pytest.approx(0.45, rel=1e-9)
+    assert calibration.predict("dev", "lsg", 0.0) is None
+
+
 def test_calibration_learns_seconds_per_unit_of_work(tmp_path, monkeypatch, capsys):
     """A rate is recorded per device and stage (negligible work is not), the prediction is
-    work times the geometric mean of the kept rates, the oldest beyond KEEP drop out; a
-    render records its full passes and check prints the time on the device."""
+    work times the rates' middle (here two: their geometric mean), the oldest beyond KEEP
+    drop out; a render records its full passes and check prints the time on the device."""
     from clscatter.pipeline import calibration
     monkeypatch.setenv("CLSCATTER_CACHE_DIR", str(tmp_path))
     assert calibration.predict("dev", "lsg", 1e9) is None

@@ -2,16 +2,22 @@
 
 Every render's plan carries cost estimates (``Method.estimate``: work in a method's own
 unit, e.g. pair tests or ray casts). After a render, each stage that ran in full (not cut
-short by a time budget) records its measured seconds against its estimated work, per
-device; ``clscatter check`` then turns each estimate into a time on that device. The
-first render of a method on a device calibrates it, as the probe result and the program
-binaries are kept after their first use.
+short by a time budget) records its estimated work and measured seconds, per device;
+``clscatter check`` then turns each estimate into a time on that device. The first render
+of a method on a device calibrates it, as the probe result and the program binaries are
+kept after their first use.
 
-The rate kept is the geometric mean of the last :data:`KEEP` measurements (estimates are
-orders of magnitude; a rate moves with the scene, so the prediction is a guide, within a
-factor of a few, not a promise). Rates live in ``costs.json`` beside the other cached
-results (:func:`clscatter.device.cache.cache_dir`); a file that cannot be read or written
-is ignored.
+A prediction takes the :data:`NEAR` kept measurements whose work is nearest the asked
+work (by ratio; the newer first among equals) and multiplies the work by the median of
+their rates (seconds per unit; with an even count, the geometric mean of the middle two).
+A rate moves with the size of a render (fixed costs weigh more in a small one) and with
+the scene, and a single odd render (another program on the machine, a first compile)
+should not move the prediction: the nearest in size, and their median, keep it to the
+renders like the one asked about. Estimates are orders of magnitude, so the prediction is
+a guide, within a factor of a few, not a promise. The last :data:`KEEP` measurements are
+kept in ``costs.json`` beside the other cached results
+(:func:`clscatter.device.cache.cache_dir`); a file that cannot be read or written is
+ignored, and so are entries in another form.
 """
 from __future__ import annotations
 
@@ -22,7 +28,9 @@ from pathlib import Path
 from ..device.cache import cache_dir
 
 #: measurements kept per device and stage
-KEEP = 8
+KEEP = 16
+#: measurements a prediction is made from (those nearest the asked work)
+NEAR = 3
 #: stages whose work estimate is below this are not recorded (their time is noise)
 MIN_WORK = 1e5
 
@@ -39,14 +47,27 @@ def _load() -> dict:
         return {}
 
 
+def _measurements(entries) -> list[tuple[float, float]]:
+    """The ``(work, seconds)`` pairs among a stage's stored entries, oldest first."""
+    out = []
+    for e in entries if isinstance(entries, list) else []:
+        if (isinstance(e, list) and len(e) == 2 and all(isinstance(v, (int, float)) for v in e)
+                and e[0] > 0 and e[1] > 0 and math.isfinite(e[0]) and math.isfinite(e[1])):
+            out.append((float(e[0]), float(e[1])))
+    return out
+
+
 def record(device: str, stage: str, work: float, seconds: float) -> None:
-    """Keep ``seconds / work`` for ``stage`` on ``device`` (nothing for negligible work)."""
-    if not (work >= MIN_WORK and seconds > 0 and math.isfinite(seconds)):
+    """Keep ``(work, seconds)`` for ``stage`` on ``device`` (nothing for negligible work)."""
+    if not (work >= MIN_WORK and math.isfinite(work) and seconds > 0 and math.isfinite(seconds)):
         return
     data = _load()
-    rates = data.setdefault(device, {}).setdefault(stage, [])
-    rates.append(seconds / work)
-    del rates[:-KEEP]
+    stages = data.setdefault(device, {})
+    if not isinstance(stages, dict):
+        stages = data[device] = {}
+    kept = [list(m) for m in _measurements(stages.get(stage))]
+    kept.append([float(work), float(seconds)])
+    stages[stage] = kept[-KEEP:]
     try:
         _path().parent.mkdir(parents=True, exist_ok=True)
         tmp = _path().with_suffix(".tmp")
@@ -57,8 +78,16 @@ def record(device: str, stage: str, work: float, seconds: float) -> None:
 
 
 def predict(device: str, stage: str, work: float) -> float | None:
-    """Seconds ``work`` of ``stage`` should take on ``device``; None before any record."""
-    rates = _load().get(device, {}).get(stage)
-    if not rates:
+    """Seconds ``work`` of ``stage`` should take on ``device`` (see the module docstring);
+    None before any measurement."""
+    stages = _load().get(device, {})
+    kept = _measurements(stages.get(stage) if isinstance(stages, dict) else None)
+    if not kept or not work > 0:
         return None
-    return work * math.exp(sum(math.log(r) for r in rates) / len(rates))
+    newest_first = list(reversed(kept))
+    near = sorted(range(len(newest_first)),
+                  key=lambda i: (abs(math.log(newest_first[i][0] / work)), i))[:NEAR]
+    rates = sorted(newest_first[i][1] / newest_first[i][0] for i in near)
+    mid = len(rates) // 2
+    rate = rates[mid] if len(rates) % 2 else math.sqrt(rates[mid - 1] * rates[mid])
+    return work * rate
