@@ -152,8 +152,14 @@ int take_point(uint *m, int b) {
  * prefetched as it is queued and tested LSG_QUEUE points later (or when the walk is over),
  * so that the load of a record far away in memory overlaps the scan instead of stalling
  * it. First in, first out: the pairs are tested, and their estimates added, in the order
- * of the walk, as without the queue. */
+ * of the walk, as without the queue. Without a prefetch (PREFETCH_HINT, common.h: a GPU,
+ * whose other work-items hide the latency) the queue is one point deep, which keeps its
+ * slot in a register. */
+#ifdef CLSCATTER_CPU_PREFETCH
 #define LSG_QUEUE 16
+#else
+#define LSG_QUEUE 1
+#endif
 typedef struct {
     int item[LSG_QUEUE];
     int pushed, taken;
