@@ -91,7 +91,7 @@ QUICK = {
     "size": (128, 128), "spp": 1, "light_rays": 100_000,
     "ref_lsg": {"light_rays": 400_000, "passes": 8},
     "ref_auto": {"light_rays": 400_000, "raymap_photons": 400_000, "raymarch_steps": 128},
-    "vpm_photons": [50_000, 100_000, 200_000, 400_000],
+    "vpm_photons": [6_250, 12_500, 25_000, 50_000, 100_000, 200_000, 400_000],
     "rays": [25_000, 50_000, 100_000, 200_000],
     "pixels": [(64, 64), (128, 128), (256, 256)],
     "triangles": [4_000, 17_000, None, "x4"],
