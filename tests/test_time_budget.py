@@ -335,6 +335,7 @@ def test_calibration_predicts_from_renders_of_a_like_size(tmp_path, monkeypatch)
     are ignored."""
     from clscatter.pipeline import calibration
     monkeypatch.setenv("CLSCATTER_CACHE_DIR", str(tmp_path))
+    monkeypatch.delenv("CLSCATTER_COSTS")                     # the cache folder's costs.json
     (tmp_path / "costs.json").write_text('{"dev": {"lsg": [1e-05, 2e-05], "raymap": 7}}')
     assert calibration.predict("dev", "lsg", 1e9) is None        # bare rates: not measurements
     assert calibration.predict("dev", "raymap", 1e9) is None
@@ -350,12 +351,24 @@ def test_calibration_predicts_from_renders_of_a_like_size(tmp_path, monkeypatch)
     assert calibration.predict("dev", "lsg", 0.0) is None
 
 
+def test_calibration_file_can_be_named(tmp_path, monkeypatch):
+    """$CLSCATTER_COSTS names the calibration file (the suite's own: conftest.py), in place
+    of costs.json in the cache folder."""
+    from clscatter.pipeline import calibration
+    monkeypatch.setenv("CLSCATTER_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv("CLSCATTER_COSTS", str(tmp_path / "mine.json"))
+    calibration.record("dev", "lsg", 1e9, 2.0)
+    assert (tmp_path / "mine.json").is_file() and not (tmp_path / "cache").exists()
+    assert calibration.predict("dev", "lsg", 1e9) == pytest.approx(2.0, rel=1e-12)
+
+
 def test_calibration_learns_seconds_per_unit_of_work(tmp_path, monkeypatch, capsys):
     """A rate is recorded per device and stage (negligible work is not), the prediction is
     work times the rates' middle (here two: their geometric mean), the oldest beyond KEEP
     drop out; a render records its full passes and check prints the time on the device."""
     from clscatter.pipeline import calibration
     monkeypatch.setenv("CLSCATTER_CACHE_DIR", str(tmp_path))
+    monkeypatch.delenv("CLSCATTER_COSTS")                     # the cache folder's costs.json
     assert calibration.predict("dev", "lsg", 1e9) is None
     calibration.record("dev", "lsg", 1e9, 2.0)
     calibration.record("dev", "lsg", 1e9, 8.0)

@@ -16,13 +16,16 @@ should not move the prediction: the nearest in size, and their median, keep it t
 renders like the one asked about. Estimates are orders of magnitude, so the prediction is
 a guide, within a factor of a few, not a promise. The last :data:`KEEP` measurements are
 kept in ``costs.json`` beside the other cached results
-(:func:`clscatter.device.cache.cache_dir`); a file that cannot be read or written is
-ignored, and so are entries in another form.
+(:func:`clscatter.device.cache.cache_dir`), or in the file ``$CLSCATTER_COSTS`` names (the
+test suite points it at a file of its own, so that its small renders do not replace a
+user's measurements); a file that cannot be read or written is ignored, and so are entries
+in another form.
 """
 from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 from ..device.cache import cache_dir
@@ -35,8 +38,12 @@ NEAR = 3
 MIN_WORK = 1e5
 
 
+#: the variable that names the calibration file (default: costs.json in the cache folder)
+ENV_COSTS = "CLSCATTER_COSTS"
+
+
 def _path() -> Path:
-    return cache_dir() / "costs.json"
+    return Path(os.environ.get(ENV_COSTS) or cache_dir() / "costs.json")
 
 
 def _load() -> dict:
