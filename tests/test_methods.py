@@ -110,6 +110,24 @@ def test_committed_method_docs_are_current():
 
 # ---- keyword kernel launches ------------------------------------------------------------
 
+@pytest.mark.parametrize("cost, sizes", [
+    (1e-4, [1024, 2500, 2500]),              # 2,500 items fill a quarter second
+    (1e-8, [1024, 4096, 16384, 65536]),      # cheap items: growth by 4 up to the most
+    (1e-1, [1024, 2, 2, 2]),                 # dear items: down to what fits
+])
+def test_timed_launches_cover_the_items_in_launches_of_about_a_quarter_second(cost, sizes):
+    from clscatter.device.launch import timed_launches
+    now = [0.0]
+    got, end, n = [], 0, 200_000
+    for start, count in timed_launches(n, 65536, clock=lambda: now[0]):
+        assert start == end and count >= 1
+        now[0] += count * cost                      # the launch, finished
+        got.append(count)
+        end = start + count
+    assert end == n
+    assert got[:len(sizes)] == sizes
+    assert all(c <= 4 * b for b, c in zip(got, got[1:]))
+
 def test_kernel_signature_parsing():
     from clscatter.device import kernel_signature
     src = """

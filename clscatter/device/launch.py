@@ -14,12 +14,39 @@ from .kernel_sources import KernelParam, program_signature
 # work-items per group of a 1-D launch (less where a kernel allows fewer)
 GROUP_SIZE = 64
 
+#: what one launch of work whose cost per item varies by orders of magnitude between
+#: scenes should take (timed_launches): progress moves and a stop is heard within it
+LAUNCH_SECONDS = 0.25
+#: items of the first such launch, before any is timed
+FIRST_LAUNCH = 1024
+#: most a launch may grow over the one before
+LAUNCH_GROWTH = 4
+
 # OpenCL scalar parameter types -> the NumPy type a value is converted to
 _SCALARS = {"int": np.int32, "uint": np.uint32, "unsigned int": np.uint32, "float": np.float32,
             "long": np.int64, "ulong": np.uint64, "short": np.int16, "ushort": np.uint16,
             "char": np.int8, "uchar": np.uint8}
 # OpenCL vector parameter types -> their number of components
 _VECTORS = {"float2": 2, "float4": 4, "int2": 2, "int4": 4}
+
+
+def timed_launches(n: int, most: int, seconds: float = LAUNCH_SECONDS,
+                   first: int = FIRST_LAUNCH, clock=time.perf_counter):
+    """``(start, count)`` of successive launches over ``n`` items, sized so that each takes
+    about ``seconds``: the first ``first`` items (at most ``most``), then each the last
+    launch's items per second times ``seconds``, at most :data:`LAUNCH_GROWTH` times the
+    last launch and at most ``most``, at least 1. The caller launches and waits for the
+    launch (``Engine.finish``) before taking the next: the time between two steps of the
+    iteration is the launch's."""
+    start, size = 0, max(1, min(int(first), int(most)))
+    while start < n:
+        count = min(size, n - start)
+        t = clock()
+        yield start, count
+        dt = clock() - t
+        start += count
+        fit = count * seconds / dt if dt > 0 else float("inf")
+        size = int(max(1, min(most, LAUNCH_GROWTH * count, fit)))
 
 
 class KernelLauncher:

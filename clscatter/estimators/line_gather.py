@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..device import Engine, structs
+from ..device.launch import timed_launches
 from ..geometry import slab_interval
 from ..io.stats import Timer, progress
 from ..transport import primitives as prim
@@ -488,8 +489,7 @@ class Gatherer:
             index_buf, count, scale = self._group or (self.pair_count, self.n, 1.0)
             if len(prep.lines) and count:
                 with progress(count, "lsg gather", self.show_progress) as bar:
-                    for start in range(0, count, self.per_launch):
-                        m = min(self.per_launch, count - start)
+                    for start, m in timed_launches(count, self.per_launch):
                         eng.call("lsg", "lsg_gather", m, kids=kids_buf,
                                  leaf_ranges=ranges_buf,
                                  first_leaf=prep.tree.first_leaf, lines=lines_buf,
@@ -546,8 +546,7 @@ class Gatherer:
                 tb = vt.bufs
                 try:
                     with progress(n, "lsg gather", self.show_progress) as bar:
-                        for start in range(0, n, self.per_launch):
-                            m = min(self.per_launch, n - start)
+                        for start, m in timed_launches(n, self.per_launch):
                             eng.call("lsg", "lsg_scatter", m, kids=tb["kids"],
                                      leaf_ranges=tb["ranges"],
                                      first_leaf=vt.tree.first_leaf, views=tb["views"],

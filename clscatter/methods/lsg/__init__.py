@@ -241,7 +241,8 @@ class LineSpaceGathering(Method):
               "paths are, a query per lighting segment); the same pairs either way",
               choices=QUERIES),
         Param("min_sin", 1e-6, "sin(theta) below this counts as parallel", lo=0, hi=1, hi_open=True),
-        Param("segments_per_launch", 65536, "view segments per kernel launch (progress)", lo=1),
+        Param("segments_per_launch", 65536, "most segments (view or lighting) per kernel "
+              "launch; launches are timed to about 0.25 s", lo=1),
         Param("view_samples", 1, "camera samples of each pixel a pass gathers, the pixel's samples "
               "taking turns pass by pass while the automatic radius spans half a pixel "
               "(0: all of them in every pass)", lo=0),
