@@ -8,6 +8,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..device.launch import timed_launches
 from ..io.stats import Stats, progress
 from ..transport.prepared import PreparedScene
 from ..transport.view_paths import DeviceSegments
@@ -23,13 +24,11 @@ def march_segments(ps: PreparedScene, segs: DeviceSegments, steps: int, stats: S
     the same kernel (``density_march``: density grids, :mod:`.density_march`)."""
     eng = ps.engine
     n = segs.count
-    chunk = max(1, min(int(per_launch), n))
     out_buf = eng.empty(16 * max(n, 1))
     seed = np.uint32((ps.scene.render.seed * 7919 + 17) & 0xFFFFFFFF)
     try:
         with stats.stage("raymarch"), progress(n, "raymarch", show_progress) as bar:
-            for start in range(0, n, chunk):
-                m = min(chunk, n - start)
+            for start, m in timed_launches(n, per_launch):
                 ps.call(program, "raymarch", m, segs=segs.buf, seg_offset=start, num_segs=m,
                         scale=scale if scale is not None else out_buf,
                         use_scale=int(scale is not None), steps=steps, seed=seed, out=out_buf)

@@ -51,7 +51,8 @@ class RayMarch(Method):
     NAME = "raymarch"
     PARAMS = (
         Param("steps", 32, "samples per segment and light", lo=1),
-        Param("segments_per_launch", 65536, "segments per kernel launch (progress, memory)", lo=1),
+        Param("segments_per_launch", 65536, "most segments per kernel launch; launches are "
+              "timed to about 0.25 s", lo=1),
     )
     TERMS = frozenset({"direct"})
     AUTO = {"direct": AutoRole(priority=10)}

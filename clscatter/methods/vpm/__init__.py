@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...device.launch import timed_launches
 from ...io.stats import Stats, progress
 from ...transport import primitives as prim
 from ...transport.context import PassContext
@@ -159,17 +160,16 @@ def gather_on_device(engine, medium: np.ndarray, pmap: DevicePhotonMap, seg_buf,
     ``max_radius`` in the photons' (normalised) units."""
     med = engine.to_device(np.asarray(medium).reshape(1))
     out_buf, work_buf = engine.empty(16 * max(n, 1)), engine.empty(8 * max(n, 1))
-    chunk = max(1, min(int(per_launch), n))
     try:
         with progress(n, "vpm gather", show_progress) as bar:
-            for start in range(0, n, chunk):
-                m = min(chunk, n - start)
+            for start, m in timed_launches(n, per_launch):
                 engine.call("vpm", "vpm_gather", m, {"KNN": int(knn)}, segs=seg_buf,
                             seg_offset=start, num_segs=m, photons=pmap.photons,
                             num_photons=pmap.count, nodes=pmap.nodes, levels=pmap.levels,
                             power_scale=pmap.power_scale, medium=med, dx=dx,
                             max_r2=max_radius * max_radius, seed=seed & 0xFFFFFFFF,
                             out=out_buf, work_out=work_buf)
+                engine.finish()             # a launch at a time: progress, and a stop heard
                 bar.update(m)
     finally:
         engine.free(med)
@@ -313,7 +313,8 @@ class VolumetricPhotonMapping(Method):
               "twice the photons' median knn-th nearest distance, at most 0.05 (it shrinks as "
               "photons are added, so shadows converge)", lo=0),
         Param("leaf_size", 8, "least photons per kd-tree leaf (at most 2x)", lo=1, hi=4096),
-        Param("segments_per_launch", 16384, "view segments per kernel launch (progress)", lo=1),
+        Param("segments_per_launch", 16384, "most view segments per kernel launch; launches "
+              "are timed to about 0.25 s", lo=1),
         Param("min_light_depth", 0, "deposit photons only on lighting segments with at least "
               "this many specular bounces (1: caustics only)", lo=0),
         Param("targeted", True, "with min_light_depth >= 1, emit only towards mirrors and glass"),
