@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import difflib
 import time
-from typing import Sequence
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -31,7 +31,8 @@ _VECTORS = {"float2": 2, "float4": 4, "int2": 2, "int4": 4}
 
 
 def timed_launches(n: int, most: int, seconds: float = LAUNCH_SECONDS,
-                   first: int = FIRST_LAUNCH, clock=time.perf_counter):
+                   first: int = FIRST_LAUNCH,
+                   clock: Callable[[], float] = time.perf_counter) -> Iterator[tuple[int, int]]:
     """``(start, count)`` of successive launches over ``n`` items, sized so that each takes
     about ``seconds``: the first ``first`` items (at most ``most``), then each the last
     launch's items per second times ``seconds``, at most :data:`LAUNCH_GROWTH` times the
