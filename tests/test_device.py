@@ -84,6 +84,7 @@ def test_binary_cache_skips_recompilation(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("kind, hint", [
     (cl.device_type.CPU, True),
+    (cl.device_type.CPU | cl.device_type.DEFAULT, True),     # a platform's default device
     (cl.device_type.GPU, False),
     # Oclgrind claims every type and cannot lower a prefetch
     (cl.device_type.CPU | cl.device_type.GPU | cl.device_type.ACCELERATOR

@@ -24,11 +24,13 @@ def build_options(defines: dict[str, object] | None) -> list[str]:
 
 def device_defines(cl, device) -> dict[str, object]:
     """The defines every program is built with on ``device``: ``CLSCATTER_CPU_PREFETCH``
-    on a device that is a CPU and nothing else (``PREFETCH_HINT`` in
+    on a CPU device that claims no other kind, GPU or accelerator (``PREFETCH_HINT`` in
     ``cl_kernels/shared/common.h``: a cache prefetch hint where the kernels run on the
     host's cores; a GPU hides memory latency with other work-items, and a simulator that
     claims every device type, such as Oclgrind, has no prefetch to lower it to)."""
-    return {"CLSCATTER_CPU_PREFETCH": 1} if device.type == cl.device_type.CPU else {}
+    kind = cl.device_type
+    cpu_alone = bool(device.type & kind.CPU) and not device.type & (kind.GPU | kind.ACCELERATOR)
+    return {"CLSCATTER_CPU_PREFETCH": 1} if cpu_alone else {}
 
 
 def binary_key(device, name: str, opts: Sequence[str]) -> str:
