@@ -154,11 +154,13 @@ int take_point(uint *m, int b) {
  * it. First in, first out: the pairs are tested, and their estimates added, in the order
  * of the walk, as without the queue. Without a prefetch (PREFETCH_HINT, common.h: a GPU,
  * whose other work-items hide the latency) the queue is one point deep, which keeps its
- * slot in a register. */
+ * slot in a register. A build may set LSG_QUEUE (a power of two; tests compare depths). */
+#ifndef LSG_QUEUE
 #ifdef CLSCATTER_CPU_PREFETCH
 #define LSG_QUEUE 16
 #else
 #define LSG_QUEUE 1
+#endif
 #endif
 typedef struct {
     int item[LSG_QUEUE];
