@@ -61,6 +61,23 @@ def test_other_triangles_or_settings_build_anew(cache):
     assert len(list(cache.glob("*.npz"))) == 3
 
 
+def test_a_changed_builder_builds_anew(cache, tmp_path, monkeypatch):
+    """The key covers the builder's source: an edited bvh.py does not read old files."""
+    tri = _mesh(300)
+    bc.cached_bvh(tri)
+    assert bc.cached_bvh(tri)[1]
+    edited = tmp_path / "bvh_edited.py"
+    edited.write_text(open(bc._builder.__file__).read() + "\n# edited\n")
+    with monkeypatch.context() as m:
+        m.setattr(bc._builder, "__file__", str(edited))
+        bc._maker.cache_clear()
+        try:
+            assert not bc.cached_bvh(tri)[1]
+        finally:
+            bc._maker.cache_clear()
+    assert bc.cached_bvh(tri)[1]                    # the original builder's file again
+
+
 def test_small_meshes_are_built_not_kept(cache):
     bvh, hit = bc.cached_bvh(_mesh(49))
     assert not hit and not cache.exists()

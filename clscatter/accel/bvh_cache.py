@@ -8,13 +8,15 @@ the result in ``bvh/`` beside the other cached results
 (:func:`clscatter.device.cache.cache_dir`) when the mesh has at least
 :data:`MIN_TRIANGLES` triangles (smaller ones build in milliseconds); a later call with
 the same triangles and settings reads it back, array for array the same BVH. The file's
-name is a SHA-256 of the triangles' bytes, the settings and :data:`FORMAT` (raise it when
-the builder changes what it builds). The folder holds at most :data:`MAX_BYTES`, the
+name is a SHA-256 of the triangles' bytes, the settings and what makes the file (the
+builder's source, this module's and the node layout: a changed builder writes new files,
+as an edited kernel is built again). The folder holds at most :data:`MAX_BYTES`, the
 least recently used files going first; a file that cannot be read or written is ignored
 (the BVH is then built).
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import time
@@ -24,14 +26,14 @@ from pathlib import Path
 import numpy as np
 
 from ..device.cache import cache_dir
+from ..device.structs import BVH_NODE
+from . import bvh as _builder
 from .bvh import BVH, MAX_LEAF, build_bvh
 
 #: meshes with fewer triangles are built, not cached
 MIN_TRIANGLES = 20_000
 #: the most the cached BVHs may take on disk together
 MAX_BYTES = 512 << 20
-#: the layout and the builder the cached files come from
-FORMAT = 1
 
 
 def bvh_folder() -> Path:
@@ -39,10 +41,21 @@ def bvh_folder() -> Path:
     return cache_dir() / "bvh"
 
 
+@functools.lru_cache(maxsize=1)
+def _maker() -> bytes:
+    """What the cached files depend on besides their triangles and settings: the builder's
+    source, this module's (the file's layout) and the node layout."""
+    h = hashlib.sha256()
+    for source in (Path(_builder.__file__), Path(__file__)):
+        h.update(source.read_bytes())
+    h.update(str(BVH_NODE.descr).encode())
+    return h.digest()
+
+
 def bvh_key(tri32: np.ndarray, leaf_size: int, bins: int, max_leaf: int) -> str:
     """The cache key of a BVH over ``tri32`` ((T, 3, 3) float32) with these settings."""
-    h = hashlib.sha256()
-    h.update(f"bvh {FORMAT} {tri32.shape} {leaf_size} {bins} {max_leaf}".encode())
+    h = hashlib.sha256(_maker())
+    h.update(f"bvh {tri32.shape} {leaf_size} {bins} {max_leaf}".encode())
     h.update(np.ascontiguousarray(tri32).data)
     return h.hexdigest()
 
