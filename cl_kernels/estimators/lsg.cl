@@ -356,7 +356,9 @@ void scatter_pair(__global const LsgLine *lights, __global const int *light_ids,
  * 1 / fixed_scale, cleared by the host before a chunk; lsg_scatter_finish adds the sums
  * into out[]), and the
  * view's valid-pair count (counts[view].y) is raised atomically; the lighting segment's
- * own (tests, valid pairs, points in the visited leaves, 0) go to light_counts. */
+ * own (tests, valid pairs, points in the visited leaves, 0) go to light_counts. A launch
+ * takes lighting segments light_offset .. light_offset + num_lights - 1 (as lsg_gather
+ * takes its view segments: the work-items of the last group past them return). */
 __kernel void lsg_scatter(__global const float8 *kids, __global const int2 *leaf_ranges,
                           int first_leaf,
                           __global const ViewSegment *views, __global const float8 *points,
@@ -368,8 +370,9 @@ __kernel void lsg_scatter(__global const float8 *kids, __global const int2 *leaf
                           volatile __global uint *acc, volatile __global int *counts,
                           __global int4 *light_counts,
                           __global int2 *pairs, volatile __global int *pair_count, int max_pairs) {
-    int li = light_offset + get_global_id(0);
-    if (li >= num_lights) return;
+    int gid = get_global_id(0);
+    if (gid >= num_lights) return;
+    int li = light_offset + gid;
     LsgLine L = lights[li];
     ViewQuery q;                                   /* the lighting segment walks the tree */
     q.a = L.a;

@@ -552,7 +552,7 @@ class Gatherer:
                                      first_leaf=vt.tree.first_leaf, views=tb["views"],
                                      points=tb["points"], view_ids=tb["ids"],
                                      max_m1=vt.max_m1, lights=lines_buf, light_ids=ids_buf,
-                                     light_offset=start, num_lights=n, scale=scale,
+                                     light_offset=start, num_lights=m, scale=scale,
                                      pl_centre=structs.vec4(fr.centre),
                                      pl_inv_scale=1.0 / fr.scale, radius=self.radius,
                                      min_sin=self.min_sin, medium=self.medium_buf,
