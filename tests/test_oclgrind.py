@@ -26,8 +26,10 @@ TINY = ["camera.resolution=[12,9]", "camera.spp=1", "render.lsg.light_rays=2000"
         "render.voxel.outer_resolution=8", "render.epipolar.shadow_map=64",
         "render.epipolar.light_rays=32"]
 METHODS = ["raymarch", "epipolar", "lsg", "vpm", "raymap", "photonmap", "voxel"]
-# every method at its defaults, and lsg once more with its queries from the lighting side
-RUNS = [(m, []) for m in METHODS] + [("lsg", ['render.lsg.queries="lights"'])]
+# every method at its defaults (lsg's queries: "screen"), and lsg once more with each of
+# its other sides of queries
+RUNS = [(m, []) for m in METHODS] + [("lsg", [f'render.lsg.queries="{q}"'])
+                                     for q in ("lights", "views")]
 # what Oclgrind prints when it finds a defect
 REPORTS = ("Invalid read", "Invalid write", "data race", "Uninitialized", "error:",
            "Undefined external function", "Work-group divergence", "out-of-bounds")
@@ -47,7 +49,7 @@ def oclgrind():
 
 
 @pytest.mark.parametrize("method, extra", RUNS,
-                         ids=[m + ("-lights" if e else "") for m, e in RUNS])
+                         ids=[m + ("-" + e[0].split('"')[1] if e else "") for m, e in RUNS])
 def test_method_runs_clean_under_oclgrind(method, extra, tmp_path):
     out = tmp_path / "img.npy"
     args = ["oclgrind", "--data-races", sys.executable, "-m", "clscatter", "render",

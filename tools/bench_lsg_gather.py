@@ -10,12 +10,16 @@ rays at ``--size``, with ``render.lsg.leaf_size`` set to each of ``--leaf-sizes`
 on the Plücker coordinates only) and ``render.lsg.queries`` to each of ``--queries``
 (``views``: a tree over the lighting segments, a query per view segment; ``lights``: a
 tree over the view segments, a query per lighting segment; its tree seconds are the view
-tree's, built once per render); the settings take turns ``--repeats`` times, so drift
-on a shared machine falls on all alike. Recorded from
+tree's, built once per render; ``screen``: the camera's rays in screen cells, which each
+lighting segment crosses, and the other view segments from the side with fewer segments;
+its tree seconds hold the cells' build, once per render, and the tree the others need);
+the settings take turns ``--repeats`` times, so drift on a shared machine falls on all
+alike. Recorded from
 ``--stats`` for every run: the gather's and the tree build's seconds, the view and kept
 lighting segments, the pairs an exhaustive gather would test, the points in the leaves
-the walk reached (the culling of the tree: Plücker slabs and the nodes' 3-D boxes), the
-exact pair tests and the valid pairs. Prints a markdown table of the medians and writes
+the walk reached (the culling of the tree: Plücker slabs and the nodes' 3-D boxes; for
+the screen cells, the view segments of the cells visited), the exact pair tests and the
+valid pairs. Prints a markdown table of the medians and writes
 bench_out/<record>.json (and docs/bench/<record>.json unless ``--no-copy``; ``--record``,
 default ``lsg_gather``).
 
@@ -64,7 +68,8 @@ def main() -> None:
     ap.add_argument("--rays", type=int, nargs="+", default=[50_000])
     ap.add_argument("--leaf-sizes", type=int, nargs="+", default=[4, 16])
     ap.add_argument("--spatial-splits", type=float, nargs="+", default=[0.0, 8.0])
-    ap.add_argument("--queries", nargs="+", default=["views"], choices=["views", "lights"])
+    ap.add_argument("--queries", nargs="+", default=["views"],
+                    choices=["views", "lights", "screen"])
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--no-copy", action="store_true")
     ap.add_argument("--record", default="lsg_gather",

@@ -1,7 +1,8 @@
 /* lsg.cl: line space gathering (Sun et al. 2010, sections 3-4).
  *
  * lsg_scatter (below) forms the same pairs with the roles swapped: a tree over the view
- * segments, one work-item per lighting segment.
+ * segments, one work-item per lighting segment; lsg_splat (at the end) forms them for the
+ * view segments on a pinhole camera's rays without a tree, from screen cells.
  *
  * lsg_gather: one work-item per view segment. The view line is the 6-D hyperplane
  * w = (m_v, u_v) (moment in the Plücker frame); a depth-first walk of the perfect 8-ary
@@ -48,16 +49,21 @@ typedef struct {
 
 /* Exact test of one pair (lighting segment L, view segment q): count, record, and
  * return its estimate (0 beyond r). The lighting segment's id, line_ids[line], is read
- * only to record the pair (max_pairs > 0): in a render it costs no load. */
+ * only to record the pair (max_pairs > 0): in a render it costs no load. A pair whose
+ * closest point on L (parameter s from L's start) lies outside [own_lo, own_hi) is not
+ * this call's (lsg_splat tests a lighting segment in pieces that own their s ranges);
+ * the tree walks pass -INFINITY and INFINITY, which own every pair. */
 float4 test_pair(__global const LsgLine *L, __global const int *line_ids, int line,
                  const ViewQuery *q, float r, float min_sin, float4 kappa, float g, int4 *cnt,
-                 __global int2 *pairs, volatile __global int *pair_count, int max_pairs) {
+                 __global int2 *pairs, volatile __global int *pair_count, int max_pairs,
+                 float own_lo, float own_hi) {
     cnt->x += 1;
     float4 la = L->a, lu = L->u;
     float llen = la.w;
     la.w = 0.0f;
     float s, t;
     if (seg_seg_dist2(la, lu, llen, q->a, q->u, q->len, &s, &t) >= r * r) return (float4)(0.0f);
+    if (s < own_lo || s >= own_hi) return (float4)(0.0f);
     cnt->y += 1;
     if (max_pairs > 0) {
         int k = atomic_inc(pair_count);
@@ -287,7 +293,7 @@ __kernel void lsg_gather(__global const float8 *kids, __global const int2 *leaf_
             cnt.z = num_lines;
             for (int i = 0; i < num_lines; ++i)
                 acc += test_pair(lines + i, line_ids, i, &q, radius, min_sin, kappa, g, &cnt,
-                                 pairs, pair_count, max_pairs);
+                                 pairs, pair_count, max_pairs, -INFINITY, INFINITY);
         } else {
             Walk k = walk_of(&q, pl_centre, pl_inv_scale, radius, max_m1);
             TreeWalk walk;
@@ -306,13 +312,14 @@ __kernel void lsg_gather(__global const float8 *kids, __global const int2 *leaf_
                         PREFETCH_HINT(&lines[p].flux);
                         if ((i = pending_push(&queue, p)) >= 0)
                             acc += test_pair(lines + i, line_ids, i, &q, radius, min_sin, kappa,
-                                             g, &cnt, pairs, pair_count, max_pairs);
+                                             g, &cnt, pairs, pair_count, max_pairs, -INFINITY,
+                                             INFINITY);
                     }
                 }
             }
             while ((i = pending_pop(&queue)) >= 0)
                 acc += test_pair(lines + i, line_ids, i, &q, radius, min_sin, kappa, g, &cnt,
-                                 pairs, pair_count, max_pairs);
+                                 pairs, pair_count, max_pairs, -INFINITY, INFINITY);
         }
         acc *= medium->sigma_s * (views[vi].weight * scale);
     }
@@ -328,13 +335,13 @@ void scatter_pair(__global const LsgLine *lights, __global const int *light_ids,
                   float radius, float min_sin, __global const Medium *medium, float scale,
                   float fixed_scale, volatile __global uint *acc, volatile __global int *counts,
                   int4 *cnt, __global int2 *pairs, volatile __global int *pair_count,
-                  int max_pairs) {
+                  int max_pairs, float own_lo, float own_hi) {
     ViewQuery v;
     if (!load_query(views, i, &v)) return;
     v.index = view_ids[i];
     int before = cnt->y;
     float4 e = test_pair(lights + li, light_ids, li, &v, radius, min_sin, medium->kappa,
-                         medium->g, cnt, pairs, pair_count, max_pairs);
+                         medium->g, cnt, pairs, pair_count, max_pairs, own_lo, own_hi);
     if (cnt->y == before) return;
     atomic_inc(&counts[4 * v.index + 1]);
     e *= medium->sigma_s * (views[i].weight * scale) * fixed_scale;
@@ -400,13 +407,14 @@ __kernel void lsg_scatter(__global const float8 *kids, __global const int2 *leaf
                     if ((i = pending_push(&queue, p)) >= 0)
                         scatter_pair(lights, light_ids, li, views, view_ids, i, radius, min_sin,
                                      medium, scale, fixed_scale, acc, counts, &cnt, pairs,
-                                     pair_count, max_pairs);
+                                     pair_count, max_pairs, -INFINITY, INFINITY);
                 }
             }
         }
         while ((i = pending_pop(&queue)) >= 0)
             scatter_pair(lights, light_ids, li, views, view_ids, i, radius, min_sin, medium,
-                         scale, fixed_scale, acc, counts, &cnt, pairs, pair_count, max_pairs);
+                         scale, fixed_scale, acc, counts, &cnt, pairs, pair_count, max_pairs,
+                         -INFINITY, INFINITY);
     }
     light_counts[li] = cnt;
 }
@@ -419,4 +427,175 @@ __kernel void lsg_scatter_finish(__global const uint *acc, __global const int *v
     if (i >= num_views) return;
     out[view_ids[i]] += (float4)(fixed_read(acc, 3 * i), fixed_read(acc, 3 * i + 1),
                                  fixed_read(acc, 3 * i + 2), 0.0f) * inv_scale;
+}
+
+/* ---- The lighting side over camera rays: screen cells (lsg_splat) ----
+ *
+ * A view segment on a camera ray (a line through the eye: the camera is a pinhole) needs
+ * no tree. The host sorts such segments by the cell of a grid over the image plane that
+ * their direction falls in (tangent coordinates X = x / z, Y = y / z in the camera frame
+ * ex, ey, ez; grid: the lower corner (X, Y) and the inverse cell size in x and y, nx by ny
+ * cells, cell_start[c] .. cell_start[c + 1] the segments of cell c = row nx + column),
+ * and a lighting segment's candidates are the segments of the cells whose rays can pass
+ * within r of it. Exact tests, estimates and sums are lsg_scatter's (scatter_pair), so
+ * the pairs and the fixed-point sums are the same as from the tree; only the candidates
+ * differ.
+ *
+ * The cells: the lighting segment is clipped to the frustum of the grid's rays grown by
+ * reach (r, plus the host's bound on how far a segment's line passes from the eye, plus
+ * a rounding allowance: no point within r of a camera ray is outside it) and cut into
+ * pieces. A piece whose depth z stays above NEAR_REACHES reaches projects to a 2-D segment
+ * in the tangent plane, and a ball of radius R around a point of it at depth z to within
+ * R sqrt(1 + X^2 + Y^2) / (z - R) of the point's projection (|dX| <= (|dxy| + |X||dz|) /
+ * (z + dz), Cauchy-Schwarz): the piece's cells are those its 2-D segment, widened by the
+ * largest such radius on the piece (depth halves at most along a piece, so this is at
+ * most about twice the narrowest), crosses, taken column by column along its longer
+ * axis. A piece nearer the eye than that (a lighting segment passing beside the camera)
+ * takes every cell. Pieces own the pairs whose closest point on the lighting segment lies
+ * in their part of it (test_pair's own_lo, own_hi; the first and last extend to
+ * infinity), so a view segment that two pieces' cells both hold is counted once. */
+#define NEAR_REACHES 4.0f
+#define SPLAT_MAX_PIECES 32
+
+/* Narrow [*s0, *s1] to where f0 + f1 s <= 0 (empty: *s0 > *s1). */
+void clip_below(float f0, float f1, float *s0, float *s1) {
+    if (f1 > 0.0f) *s1 = fmin(*s1, -f0 / f1);
+    else if (f1 < 0.0f) *s0 = fmax(*s0, -f0 / f1);
+    else if (f0 > 0.0f) *s0 = INFINITY;
+}
+
+/* floor(v) as a cell index, clamped to [-1, n] (v may be huge or infinite). */
+int cell_floor(float v, int n) { return (int)floor(clamp(v, -1.0f, (float)n)); }
+
+/* Test lighting segment li against the view segments FIRST .. LAST - 1 of the cell order,
+ * owning the pairs whose closest point on it lies in [own_lo, own_hi): first the plane
+ * test of the two lines (a camera ray's moment about the eye is at most reach, so |P . w|
+ * = |u_v . m_l + u_l . m_v| <= d sin(theta) needs |u_v . m_l| <= d + reach: thr), then
+ * the exact one. */
+#define SPLAT_TEST(I) \
+    scatter_pair(lights, light_ids, li, views, view_ids, (I), radius, min_sin, medium, scale, \
+                 fixed_scale, acc, counts, &cnt, pairs, pair_count, max_pairs, own_lo, own_hi)
+#define SPLAT_RANGE(FIRST, LAST) \
+    for (int v_ = (FIRST); v_ < (LAST); ++v_) { \
+        cnt.z += 1; \
+        if (fabs(dot3(dirs[v_], ml)) <= thr) { \
+            PREFETCH_HINT(views + v_); \
+            int due_ = pending_push(&queue, v_); \
+            if (due_ >= 0) SPLAT_TEST(due_); \
+        } \
+    }
+
+__kernel void lsg_splat(__global const ViewSegment *views, __global const float4 *dirs,
+                        __global const int *view_ids,
+                        __global const int *cell_start, int nx, int ny, float4 eye,
+                        float4 ex, float4 ey, float4 ez, float4 grid, float reach,
+                        __global const LsgLine *lights, __global const int *light_ids,
+                        int light_offset, int num_lights, float scale, float radius,
+                        float min_sin, __global const Medium *medium, float fixed_scale,
+                        volatile __global uint *acc, volatile __global int *counts,
+                        __global int4 *light_counts, __global int2 *pairs,
+                        volatile __global int *pair_count, int max_pairs) {
+    int gid = get_global_id(0);
+    if (gid >= num_lights) return;
+    int li = light_offset + gid;
+    float4 la = lights[li].a, lu = lights[li].u;
+    float len = la.w;
+    la.w = 0.0f;
+    int4 cnt = (int4)(0, 0, 0, 0);
+    float4 w = la - eye;
+    float3 p = (float3)(dot3(w, ex), dot3(w, ey), dot3(w, ez));
+    float3 d = (float3)(dot3(lu, ex), dot3(lu, ey), dot3(lu, ez));
+    float R = (radius + reach) * 1.001f + 2e-6f * (1.0f + length(p) + len);
+    float4 ml = cross3(w, lu);                   /* the lighting line's moment about the eye */
+    float thr = radius * 1.0001f + reach + 1e-5f * (1.0f + fabs(ml.x) + fabs(ml.y) + fabs(ml.z));
+    /* the frustum of the grid's rays grown by R: its four sides and z >= -R */
+    float xlo = grid.x, xhi = grid.x + (float)nx / grid.z;
+    float ylo = grid.y, yhi = grid.y + (float)ny / grid.w;
+    float s0 = 0.0f, s1 = len > 0.0f ? len : -1.0f;
+    clip_below(p.x - xhi * p.z - R * sqrt(1.0f + xhi * xhi), d.x - xhi * d.z, &s0, &s1);
+    clip_below(xlo * p.z - p.x - R * sqrt(1.0f + xlo * xlo), xlo * d.z - d.x, &s0, &s1);
+    clip_below(p.y - yhi * p.z - R * sqrt(1.0f + yhi * yhi), d.y - yhi * d.z, &s0, &s1);
+    clip_below(ylo * p.z - p.y - R * sqrt(1.0f + ylo * ylo), ylo * d.z - d.y, &s0, &s1);
+    clip_below(-p.z - R, -d.z, &s0, &s1);
+    if (s0 <= s1) {
+        /* the near part (z < NEAR_REACHES R: every cell) on one side, the far part in
+         * pieces of depth ratio <= 2 on the other, in the order of s */
+        float zg = NEAR_REACHES * R;
+        float za = p.z + s0 * d.z, zb = p.z + s1 * d.z;
+        float sg = d.z != 0.0f ? clamp((zg - p.z) / d.z, s0, s1) : (za < zg ? s1 : s0);
+        /* [n0, n1]: near, [f0, f1]: far (either may be empty) */
+        float n0 = s0, n1 = s0, f0 = s0, f1 = s1;
+        int near_first = 1;
+        if (za < zg || zb < zg) {
+            if (za >= zg) { f1 = sg; n0 = sg; n1 = s1; near_first = 0; }   /* far, near */
+            else if (zb >= zg) { n1 = sg; f0 = sg; }                       /* near, far */
+            else { n1 = s1; f0 = s1; f1 = s1 - 1.0f; }                    /* near only */
+        }
+        float zlo = fmin(p.z + f0 * d.z, p.z + f1 * d.z), zhi = fmax(p.z + f0 * d.z, p.z + f1 * d.z);
+        int pieces = f1 >= f0 ? (zhi > 2.0f * zlo ? (int)ceil(log2(zhi / zlo)) : 1) : 0;
+        pieces = min(pieces, SPLAT_MAX_PIECES);
+        int has_near = n1 > n0 || (za < zg && zb < zg);
+        int total = pieces + has_near;
+        for (int j = 0; j < total; ++j) {
+            int is_near = has_near && (near_first ? j == 0 : j == total - 1);
+            float sa, sb;
+            if (is_near) {
+                sa = n0;
+                sb = n1;
+            } else {
+                /* far piece k in the order of s: boundaries where z = zlo 2^m */
+                int k = j - (has_near && near_first);
+                int m0 = d.z > 0.0f ? k : pieces - 1 - k;       /* its lower depth index */
+                float zs0 = zlo * exp2((float)m0), zs1 = m0 + 1 == pieces ? zhi : zlo * exp2((float)(m0 + 1));
+                float b0 = m0 == 0 ? (p.z + f0 * d.z <= p.z + f1 * d.z ? f0 : f1)
+                                   : (zs0 - p.z) / d.z;
+                float b1 = m0 + 1 == pieces ? (p.z + f0 * d.z <= p.z + f1 * d.z ? f1 : f0)
+                                            : (zs1 - p.z) / d.z;
+                if (pieces == 1) { b0 = f0; b1 = f1; }
+                sa = fmin(b0, b1);
+                sb = fmax(b0, b1);
+            }
+            float own_lo = j == 0 ? -INFINITY : sa, own_hi = j == total - 1 ? INFINITY : sb;
+            Pending queue;      /* exact tests behind a prefetch, as in the tree walks */
+            queue.pushed = queue.taken = 0;
+            if (is_near) {
+                SPLAT_RANGE(0, cell_start[nx * ny]);
+                for (int i; (i = pending_pop(&queue)) >= 0;) SPLAT_TEST(i);
+                continue;
+            }
+            float3 A = p + sa * d, B = p + sb * d;
+            float zmin = fmin(A.z, B.z);
+            float XA = A.x / A.z, YA = A.y / A.z, XB = B.x / B.z, YB = B.y / B.z;
+            float S = fmax(sqrt(1.0f + XA * XA + YA * YA), sqrt(1.0f + XB * XB + YB * YB));
+            float rho = R * S / (zmin - R) * 1.001f + 1e-5f * S;
+            /* cell coordinates; m along the longer axis, n across */
+            float cxa = (XA - grid.x) * grid.z, cya = (YA - grid.y) * grid.w;
+            float cxb = (XB - grid.x) * grid.z, cyb = (YB - grid.y) * grid.w;
+            int major_x = fabs(cxb - cxa) >= fabs(cyb - cya);
+            float ma = major_x ? cxa : cya, mb = major_x ? cxb : cyb;
+            float na = major_x ? cya : cxa, nb = major_x ? cyb : cxb;
+            float rm = rho * (major_x ? grid.z : grid.w), rn = rho * (major_x ? grid.w : grid.z);
+            int Nm = major_x ? nx : ny, Nn = major_x ? ny : nx;
+            if (ma > mb) {
+                float t = ma; ma = mb; mb = t;
+                t = na; na = nb; nb = t;
+            }
+            float span = mb - ma;
+            float slope = span > 1e-6f ? (nb - na) / span : 0.0f;
+            int c0 = max(cell_floor(ma - rm, Nm), 0), c1 = min(cell_floor(mb + rm, Nm), Nm - 1);
+            for (int c = c0; c <= c1; ++c) {
+                float lo_m = fmax(ma, (float)c - rm), hi_m = fmin(mb, (float)(c + 1) + rm);
+                float e1 = span > 1e-6f ? na + slope * (lo_m - ma) : fmin(na, nb);
+                float e2 = span > 1e-6f ? na + slope * (hi_m - ma) : fmax(na, nb);
+                int r0 = max(cell_floor(fmin(e1, e2) - rn, Nn), 0);
+                int r1 = min(cell_floor(fmax(e1, e2) + rn, Nn), Nn - 1);
+                for (int r = r0; r <= r1; ++r) {
+                    int cell = major_x ? r * nx + c : c * nx + r;
+                    SPLAT_RANGE(cell_start[cell], cell_start[cell + 1]);
+                }
+            }
+            for (int i; (i = pending_pop(&queue)) >= 0;) SPLAT_TEST(i);
+        }
+    }
+    light_counts[li] += cnt;
 }

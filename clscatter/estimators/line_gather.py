@@ -6,7 +6,9 @@ points in a perfect 8-ary tree (:mod:`.line_tree`), and every view segment's pla
 gathers the pairs within the radius on the device (``cl_kernels/lsg.cl``), as in the
 paper; or, the roles swapped, the view segments are the tree (built once and kept over
 passes and light moves) and every lighting segment's plane query adds its pairs to the
-view segments it meets (:class:`Gatherer`'s ``queries``)."""
+view segments it meets; or the view segments on the camera's rays are sorted by screen
+cell (:mod:`.screen_cells`) and every lighting segment visits the cells it crosses
+(:class:`Gatherer`'s ``queries``)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -34,6 +36,7 @@ from .line_tree import (
     point_blocks,
 )
 from .row_chunks import map_row_chunks
+from .screen_cells import ScreenCells, build_screen_cells, on_camera_rays, splat_order
 
 F4 = structs.F4
 
@@ -78,11 +81,13 @@ LEAF_SIZE = 16
 # chunk's lighting segments and one query per view segment (the paper's way); "lights", a
 # tree over the view segments, built once and kept (every pass, chunk and light move
 # reuses it), and one query per lighting segment, which adds each pair to its view
-# segment's sum atomically. The two find the same pairs. On the glass ball (CPU device)
-# "lights" tests fewer leaf points and gathers in about 0.6x the time, but its tree over
-# the view segments costs more than a pass's tree over lighting segments, and whole
-# budgeted renders came out the same (tools/bench_lsg_gather.py, tools/bench_budget.py).
-QUERIES = ("views", "lights")
+# segment's sum atomically; "screen", the view segments on a pinhole camera's rays in
+# screen cells (screen_cells.py), kept like the tree, which every lighting segment crosses
+# (lsg_splat), and the other view segments (after a mirror or glass) from the side with
+# fewer segments, as "views" or as "lights". All three find the same pairs. On the
+# caustic scenes of tools/bench_lsg_gather.py the cells test 0.2-0.3x the candidates of
+# the tree walks.
+QUERIES = ("views", "lights", "screen")
 
 
 def sample_groups(views: np.ndarray, groups: int, spp: int) -> np.ndarray:
@@ -364,10 +369,13 @@ class Gatherer:
     view segment (``lsg_gather``); ``lights`` walks a tree over the view segments
     (:class:`ViewTree`, built at the first use and kept; with ``derived``, a
     :meth:`~clscatter.transport.view_paths.DeviceSegments.derived` of the same view
-    segments, kept as long as they are) once per lighting segment (``lsg_scatter``); the
-    two find the same pairs and the same estimate (to float rounding: the lighting side's
-    sums are exact fixed-point ones). :attr:`last_queries` says which the last
-    :meth:`add` took.
+    segments, kept as long as they are) once per lighting segment (``lsg_scatter``);
+    ``screen`` (with ``camera``, a CAMERA record; else as ``views``) puts the view
+    segments on the camera's rays in :class:`~.screen_cells.ScreenCells`, kept likewise,
+    which every lighting segment crosses (``lsg_splat``), and gathers the others from
+    the side with fewer segments. All find the same pairs and the same estimate (to
+    float rounding: the lighting side's sums are exact fixed-point ones).
+    :attr:`last_queries` says which the last :meth:`add` took.
 
     Per view segment, the estimate and the work counters (tests, valid pairs, leaf points)
     accumulate on the device; an :meth:`add` reads back the counters' totals only, and
@@ -381,7 +389,7 @@ class Gatherer:
                  record_pairs: int = 0, show_progress: bool = False, clip: bool = True,
                  frame: PluckerFrame | None = None, views_buf=None, region: int = 0,
                  spatial_split: float = SPATIAL_SPLIT, queries: str = "views",
-                 derived=None):
+                 derived=None, camera: np.ndarray | None = None):
         if queries not in QUERIES:
             raise ValueError(f"queries must be one of {QUERIES}, not {queries!r}")
         self.queries = queries
@@ -418,6 +426,7 @@ class Gatherer:
         self._group_idx: dict[tuple[int, int, int], np.ndarray] = {}
         self._view_trees: dict = {}          # group key (None: all) -> ViewTree
         self._derived = derived              # keeps view trees beyond this gatherer
+        self.camera = camera                 # a pinhole's rays: screen cells, not a tree
         self.last_queries = ""               # the side the last add() queried from
 
     @property
@@ -454,14 +463,44 @@ class Gatherer:
         with t_build:
             clipped = continue_and_clip(segs, self.medium, self.radius, self.lo, self.hi, kappa)
         queries = "views" if bruteforce else self.queries
+        if queries == "screen" and self.camera is None:
+            queries = "views"
         self.last_queries = queries
         if queries == "lights" and self.active:
-            return self._add_from_lights(segs, clipped, t_build, t_gather)
+            with t_build:
+                vt = self._view_tree(None)
+            return self._add_from_lights(segs, clipped, vt, None, t_build, t_gather)
+        if queries == "screen" and self.active:
+            return self._add_from_screen(segs, clipped, t_build, t_gather)
         return self._add_from_views(segs, clipped, bruteforce, t_build, t_gather)
 
+    def _add_from_screen(self, segs, clipped, t_build: Timer, t_gather: Timer) -> ChunkResult:
+        """The camera's rays in screen cells from the lighting side; the other view
+        segments from the side with fewer segments (a tree over them, or one over the
+        lighting segments queried by them alone)."""
+        rest_from_views = False
+        with t_build:
+            sc, rest, rest_buf = self._screen()
+            rest_from_views = 0 < len(rest) <= len(clipped[0])
+            vt = None if len(rest) == 0 or rest_from_views else self._view_tree(rest)
+        res = self._add_from_lights(segs, clipped, vt, sc, t_build, t_gather)
+        if not rest_from_views:
+            return res
+        scale = self._group[2] if self._group is not None else 1.0
+        more = self._add_from_views(segs, clipped, False, Timer(), Timer(),
+                                    group=(rest_buf, len(rest), scale))
+        return ChunkResult(res.pair_tests + more.pair_tests, res.valid_pairs + more.valid_pairs,
+                           res.kept, max(res.nbytes, more.nbytes),
+                           res.tree_seconds + more.tree_seconds,
+                           res.gather_seconds + more.gather_seconds,
+                           None if res.pairs is None else np.concatenate([res.pairs, more.pairs]),
+                           res.leaf_points + more.leaf_points)
+
     def _add_from_views(self, segs, clipped, bruteforce: bool, t_build: Timer,
-                        t_gather: Timer) -> ChunkResult:
-        """A tree over the lighting segments, a query per view segment (``lsg_gather``)."""
+                        t_gather: Timer, group: tuple | None = None) -> ChunkResult:
+        """A tree over the lighting segments, a query per view segment (``lsg_gather``);
+        ``group``: (index buffer, count, scale) of the view segments that query, instead
+        of the selected group's (or all)."""
         eng = self.eng
         kappa = self.medium["kappa"][0]
         # bruteforce: a one-leaf tree (the lines in input order, clipped like the tree's)
@@ -486,7 +525,7 @@ class Gatherer:
             centre = structs.vec4(fr.centre)
             tests = valid = leaf = 0
             # (index list, its length, scale); all views: any buffer, unread with indexed = 0
-            index_buf, count, scale = self._group or (self.pair_count, self.n, 1.0)
+            index_buf, count, scale = group or self._group or (self.pair_count, self.n, 1.0)
             if len(prep.lines) and count:
                 with progress(count, "lsg gather", self.show_progress) as bar:
                     for start, m in timed_launches(count, self.per_launch):
@@ -496,7 +535,7 @@ class Gatherer:
                                  points=points_buf, line_ids=ids_buf, num_lines=len(prep.lines),
                                  max_m1=prep.max_m1, views=self.views_buf, view_offset=start,
                                  num_views=m, view_index=index_buf,
-                                 indexed=int(self._group is not None), scale=scale,
+                                 indexed=int((group or self._group) is not None), scale=scale,
                                  pl_centre=centre, pl_inv_scale=1.0 / fr.scale,
                                  radius=self.radius, min_sin=self.min_sin, medium=self.medium_buf,
                                  region=self.region, exhaustive=int(bruteforce), out=self.out_buf,
@@ -512,14 +551,17 @@ class Gatherer:
         return ChunkResult(tests, valid, len(prep.lines), int(prep.nbytes + dev_bytes),
                            t_build.seconds, t_gather.seconds, pairs, leaf)
 
-    def _add_from_lights(self, segs, clipped, t_build: Timer, t_gather: Timer) -> ChunkResult:
-        """A tree over the view segments (built at the first use for this group of camera
-        samples, then kept), a query per lighting segment (``lsg_scatter``)."""
+    def _add_from_lights(self, segs, clipped, vt: ViewTree | None, sc: ScreenCells | None,
+                         t_build: Timer, t_gather: Timer) -> ChunkResult:
+        """A query per lighting segment: over the tree ``vt`` of view segments
+        (``lsg_scatter``) and over the camera's rays in the screen cells ``sc``
+        (``lsg_splat``), either of which may be None."""
         eng = self.eng
         ids, a, u, length, flux = clipped
-        with t_build:
-            vt = self._view_tree()
         n = len(ids)
+        if sc is not None and sc.count and n:
+            o = splat_order(sc, a, u, length)
+            ids, a, u, length, flux = ids[o], a[o], u[o], length[o], flux[o]
         lines = np.zeros(n, LSG_LINE)
         lines["a"][:, :3] = a
         lines["a"][:, 3] = length
@@ -527,43 +569,42 @@ class Gatherer:
         lines["flux"][:, :3] = flux
         nbytes = int(segs.nbytes + 80 * len(segs) + 2 * lines.nbytes + 24 * n)
         tests = valid = leaf = 0
+        sides = [x for x in (vt, sc) if x is not None and x.count]
         with t_gather:
             eng.note_host(nbytes)
             _, _, scale = self._group or (None, self.n, 1.0)
-            if n and vt.count:
+            if n and sides:
                 sigma_s = float(np.max(self.medium["sigma_s"][0][:3]))
                 g = float(self.medium["g"][0])
                 bound = (float(np.sum(flux.max(axis=1) * length)) * phase_max(g)
-                         / (np.pi * self.radius ** 2) * sigma_s * vt.weight_max * scale)
+                         / (np.pi * self.radius ** 2) * sigma_s
+                         * max(x.weight_max for x in sides) * scale)
                 fixed = fixed_scale(bound)
                 bufs = [eng.to_device(lines), eng.to_device(ids.astype(np.int32)),
                         eng.zeros(16 * n)]
                 lines_buf, ids_buf, counts_buf = bufs
                 self._clear_pair_count()
-                eng.cl.enqueue_fill_buffer(eng.queue, vt.bufs["acc"], np.zeros(1, np.uint32),
-                                           0, 24 * max(vt.count, 1))
-                fr = vt.frame
-                tb = vt.bufs
+                for x in sides:
+                    eng.cl.enqueue_fill_buffer(eng.queue, x.bufs["acc"], np.zeros(1, np.uint32),
+                                               0, 24 * x.count)
+                common = dict(lights=lines_buf, light_ids=ids_buf, scale=scale,
+                              radius=self.radius, min_sin=self.min_sin, medium=self.medium_buf,
+                              fixed_scale=fixed, counts=self.counts_buf,
+                              light_counts=counts_buf, pairs=self.pairs_buf,
+                              pair_count=self.pair_count, max_pairs=self.record)
                 try:
                     with progress(n, "lsg gather", self.show_progress) as bar:
                         for start, m in timed_launches(n, self.per_launch):
-                            eng.call("lsg", "lsg_scatter", m, kids=tb["kids"],
-                                     leaf_ranges=tb["ranges"],
-                                     first_leaf=vt.tree.first_leaf, views=tb["views"],
-                                     points=tb["points"], view_ids=tb["ids"],
-                                     max_m1=vt.max_m1, lights=lines_buf, light_ids=ids_buf,
-                                     light_offset=start, num_lights=m, scale=scale,
-                                     pl_centre=structs.vec4(fr.centre),
-                                     pl_inv_scale=1.0 / fr.scale, radius=self.radius,
-                                     min_sin=self.min_sin, medium=self.medium_buf,
-                                     fixed_scale=fixed, acc=tb["acc"], counts=self.counts_buf,
-                                     light_counts=counts_buf, pairs=self.pairs_buf,
-                                     pair_count=self.pair_count, max_pairs=self.record)
+                            if vt is not None and vt.count:
+                                self._scatter(vt, start, m, common)
+                            if sc is not None and sc.count:
+                                self._splat(sc, start, m, common)
                             eng.finish()
                             bar.update(m)
-                    eng.call("lsg", "lsg_scatter_finish", vt.count, acc=tb["acc"],
-                             view_ids=tb["ids"], num_views=vt.count, inv_scale=1.0 / fixed,
-                             out=self.out_buf)
+                    for x in sides:
+                        eng.call("lsg", "lsg_scatter_finish", x.count, acc=x.bufs["acc"],
+                                 view_ids=x.bufs["ids"], num_views=x.count,
+                                 inv_scale=1.0 / fixed, out=self.out_buf)
                     tests, valid, leaf = (int(x) for x in prim.int_totals(eng, counts_buf, n, 4)[:3])
                     self._totals[1] += valid        # the views' valid counts rose by as many
                 finally:
@@ -572,26 +613,67 @@ class Gatherer:
         return ChunkResult(tests, valid, n, nbytes, t_build.seconds, t_gather.seconds, pairs,
                            leaf)
 
-    def _view_tree(self) -> ViewTree:
-        """The :class:`ViewTree` of the active view segments of this gatherer's region:
-        built at its first use, kept by ``derived`` when given (it outlives the gatherer:
-        a later render over the same view segments, e.g. after a light move, reuses it)."""
+    def _scatter(self, vt: ViewTree, start: int, m: int, common: dict) -> None:
+        """``lsg_scatter`` of lighting segments start .. start + m - 1 over the tree."""
+        fr, tb = vt.frame, vt.bufs
+        self.eng.call("lsg", "lsg_scatter", m, kids=tb["kids"], leaf_ranges=tb["ranges"],
+                      first_leaf=vt.tree.first_leaf, views=tb["views"], points=tb["points"],
+                      view_ids=tb["ids"], max_m1=vt.max_m1, light_offset=start, num_lights=m,
+                      pl_centre=structs.vec4(fr.centre), pl_inv_scale=1.0 / fr.scale,
+                      acc=tb["acc"], **common)
+
+    def _splat(self, sc: ScreenCells, start: int, m: int, common: dict) -> None:
+        """``lsg_splat`` of lighting segments start .. start + m - 1 over the screen cells."""
+        eye, ex, ey, ez = sc.frame
+        b = sc.bufs
+        self.eng.call("lsg", "lsg_splat", m, views=b["views"], dirs=b["dirs"], view_ids=b["ids"],
+                      cell_start=b["start"], nx=sc.nx, ny=sc.ny, eye=eye, ex=ex, ey=ey, ez=ez,
+                      grid=sc.grid, reach=sc.reach, light_offset=start, num_lights=m,
+                      acc=b["acc"], **common)
+
+    def _active_region(self) -> np.ndarray:
+        """Indices of the active view segments (the selected group's, or all) in this
+        gatherer's region."""
         key = self._group_key
+        idx = self._group_idx[key] if key is not None else np.arange(self.n)
+        return idx[np.rint(self.views["a"][idx, 3]).astype(np.int64) == self.region]
+
+    def _kept(self, part: str, build):
+        """``build()``'s result for ``part`` of the active view segments, made once: kept by
+        ``derived`` when given (it outlives the gatherer: a later render over the same view
+        segments, e.g. after a light move, reuses it), else until :meth:`release`."""
+        key = (part, self._group_key)
         if key not in self._view_trees:
-            def build() -> tuple[list, ViewTree]:
-                idx = self._group_idx[key] if key is not None else np.arange(self.n)
-                regions = np.rint(self.views["a"][idx, 3]).astype(np.int64)
-                vt = build_view_tree(self.eng, self.views, idx[regions == self.region],
-                                     self.leaf_size, self.spatial_split)
-                self.eng.note_host(vt.nbytes)
-                return list(vt.bufs.values()), vt
             if self._derived is None:
                 self._view_trees[key] = build()[1]
             else:
-                name = (f"lsg_view_tree region={self.region} group={key} "
+                name = (f"lsg_view_{part} region={self.region} group={self._group_key} "
                         f"leaf={self.leaf_size} split={self.spatial_split:g}")
                 self._view_trees[key] = self._derived(name, build)
         return self._view_trees[key]
+
+    def _view_tree(self, rest: np.ndarray | None) -> ViewTree:
+        """The :class:`ViewTree` of the active view segments of this gatherer's region
+        (``rest``: of those off the camera's rays, :meth:`_screen`)."""
+        def build() -> tuple[list, ViewTree]:
+            idx = self._active_region() if rest is None else rest
+            vt = build_view_tree(self.eng, self.views, idx, self.leaf_size, self.spatial_split)
+            self.eng.note_host(vt.nbytes)
+            return list(vt.bufs.values()), vt
+        return self._kept("tree" if rest is None else "rest_tree", build)
+
+    def _screen(self) -> tuple[ScreenCells, np.ndarray, object]:
+        """The active view segments of this gatherer's region on the camera's rays in
+        :class:`ScreenCells`, the indices of the others and a device copy of them."""
+        def build() -> tuple[list, tuple[ScreenCells, np.ndarray, object]]:
+            idx = self._active_region()
+            ray, reach = on_camera_rays(self.views[idx], self.camera)
+            sc = build_screen_cells(self.eng, self.views, idx[ray], self.camera, reach)
+            rest = idx[~ray].astype(np.int32)
+            rest_buf = self.eng.to_device(rest if len(rest) else np.zeros(1, np.int32))
+            self.eng.note_host(sc.nbytes + rest.nbytes)
+            return [*sc.bufs.values(), rest_buf], (sc, rest, rest_buf)
+        return self._kept("screen", build)
 
     def _clear_pair_count(self) -> None:
         self.eng.cl.enqueue_fill_buffer(self.eng.queue, self.pair_count, np.zeros(1, np.int32),
@@ -636,8 +718,12 @@ class Gatherer:
                       *(g[0] for g in self._groups.values()))
         self._groups.clear()
         if self._derived is None:
-            for vt in self._view_trees.values():
-                vt.release(self.eng)
+            for kept in self._view_trees.values():
+                if isinstance(kept, tuple):                  # _screen's
+                    kept[0].release(self.eng)
+                    self.eng.free(kept[2])
+                else:
+                    kept.release(self.eng)
         self._view_trees.clear()
 
 

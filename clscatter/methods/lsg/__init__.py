@@ -21,6 +21,7 @@ from ...estimators.line_gather import (
     region_media,
     sample_groups,
 )
+from ...estimators.screen_cells import BYTES_PER_SCREEN_VIEW
 from ...io.stats import Stats, progress
 from ...transport.context import PassContext
 from ...transport.emission import targeted_fraction
@@ -198,7 +199,9 @@ class LineSpaceGathering(Method):
     Statistics: ``light_segments``, ``lsg_light_segments_kept``, ``view_segments``,
     ``pair_tests``, ``pair_tests_bruteforce``, ``valid_pairs``, ``lsg_cull_fraction``,
     ``lsg_valid_fraction`` (and the paper's way of counting them, sec. 4.3:
-    ``lsg_leaf_points_tested``, ``lsg_cull_fraction_paper``, ``lsg_valid_fraction_paper``),
+    ``lsg_leaf_points_tested``, ``lsg_cull_fraction_paper``, ``lsg_valid_fraction_paper``;
+    with ``queries = "screen"`` the leaf points include the view segments of the screen
+    cells visited),
     ``tree_build_seconds``, ``gather_seconds``, ``chunks``, ``lsg_chunks_retraced``,
     ``lsg_chunk_bytes_max``, ``lsg_radius`` (normalised; ``lsg_radius_world`` in scene
     units), ``lsg_radius_last``, ``lsg_passes``, ``lsg_pass_seconds``, ``lsg_time_budget``,
@@ -235,11 +238,13 @@ class LineSpaceGathering(Method):
         Param("leaf_size", LEAF_SIZE, "least points per tree leaf (at most 8x)", lo=1),
         Param("spatial_split", SPATIAL_SPLIT, "weight of where lighting segments start against "
               "their Plücker coordinates when the tree splits (0: Plücker coordinates only)", lo=0),
-        Param("queries", "views", "which side walks the line tree: 'views' (a tree over each "
-              "chunk's lighting segments, a query per view segment, as in the paper) or "
+        Param("queries", "screen", "which side walks the line tree: 'views' (a tree over each "
+              "chunk's lighting segments, a query per view segment, as in the paper), "
               "'lights' (a tree over the view segments, built once and kept while the view "
-              "paths are, a query per lighting segment); the same pairs either way",
-              choices=QUERIES),
+              "paths are, a query per lighting segment) or 'screen' (the view segments on "
+              "camera rays in screen cells that each lighting segment crosses, kept like "
+              "'lights'; the others from the side with fewer segments); the same pairs "
+              "every way", choices=QUERIES),
         Param("min_sin", 1e-6, "sin(theta) below this counts as parallel", lo=0, hi=1, hi_open=True),
         Param("segments_per_launch", 65536, "most segments (view or lighting) per kernel "
               "launch; launches are timed to about 0.25 s", lo=1),
@@ -270,12 +275,14 @@ class LineSpaceGathering(Method):
     def estimate(cls, scene, params):
         """Working set: one chunk of lighting segments (bounded by ``max_bytes``; ~3
         segments per ray at BYTES_PER_SEGMENT each) plus 80 bytes per view segment, and
-        BYTES_PER_VIEW more for the tree over them with ``queries = "lights"``; work:
-        the segments traced over all passes times :data:`PAIRS_PER_SEGMENT`."""
+        BYTES_PER_VIEW more for the tree over them with ``queries = "lights"``
+        (BYTES_PER_SCREEN_VIEW for the screen cells with ``"screen"``); work: the segments
+        traced over all passes times :data:`PAIRS_PER_SEGMENT`."""
         views = 2.0 * camera_samples(scene)
         rays = float(params["light_rays"])
         chunk = min(float(params["max_bytes"]), rays * 3 * BYTES_PER_SEGMENT)
-        per_view = 80 + (BYTES_PER_VIEW if params["queries"] == "lights" else 0)
+        per_view = 80 + {"lights": BYTES_PER_VIEW,
+                         "screen": BYTES_PER_SCREEN_VIEW}.get(params["queries"], 0)
         return [Estimate("lsg", "render.lsg.light_rays", chunk + views * per_view,
                          rays * 3 * params["passes"] * PAIRS_PER_SEGMENT + views * 200,
                          "pair tests (order of magnitude)")]
@@ -388,7 +395,7 @@ class LineSpaceGathering(Method):
             return Gatherer(ps.engine, v, medium, radius, p["min_sin"], p["leaf_size"],
                             p["segments_per_launch"], show_progress=show_progress,
                             views_buf=segs.buf, region=region, spatial_split=p["spatial_split"],
-                            queries=p["queries"], derived=segs.derived)
+                            queries=p["queries"], derived=segs.derived, camera=ps.camera)
         if inside is None:
             return make(views, ps.medium, dev, 0)
         parts = []
@@ -442,7 +449,7 @@ class LineSpaceGathering(Method):
             gat = Gatherer(ps.engine, views, ps.medium, gat.radius, p["min_sin"],
                            p["leaf_size"], p["segments_per_launch"],
                            show_progress=gat.show_progress, spatial_split=p["spatial_split"],
-                           queries=p["queries"])
+                           queries=p["queries"], camera=ps.camera)
         try:
             return self._pilot(ps, gat, views, prog, pilot, stride)
         finally:
