@@ -117,8 +117,8 @@ def test_camera_rays_are_told_from_other_segments():
     assert 0.0 <= reach < 1e-6
 
 
-@pytest.mark.parametrize("r", [0.002, 0.02, 0.08])
-@pytest.mark.parametrize("size, others", [((24, 16), 150), ((7, 31), 2500)])
+@pytest.mark.parametrize("r, size, others", [(0.002, (24, 16), 150), (0.02, (24, 16), 150),
+                                             (0.08, (24, 16), 150), (0.01, (7, 31), 2500)])
 def test_screen_cells_find_exactly_the_exhaustive_pairs(engine, r, size, others):
     """``queries = "screen"``: lsg_splat (camera rays in screen cells) and, for the other
     view segments, a query per view segment (150 of them, fewer than the lighting

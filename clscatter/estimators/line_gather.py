@@ -560,8 +560,9 @@ class Gatherer:
         ids, a, u, length, flux = clipped
         n = len(ids)
         if sc is not None and sc.count and n:
-            o = splat_order(sc, a, u, length)
-            ids, a, u, length, flux = ids[o], a[o], u[o], length[o], flux[o]
+            with t_build:
+                o = splat_order(sc, a, u, length)
+                ids, a, u, length, flux = ids[o], a[o], u[o], length[o], flux[o]
         lines = np.zeros(n, LSG_LINE)
         lines["a"][:, :3] = a
         lines["a"][:, 3] = length

@@ -90,8 +90,7 @@ def build_screen_cells(engine: Engine, views: np.ndarray, idx: np.ndarray, camer
     cam = np.asarray(camera).reshape(-1)[0]
     eye, ex, ey, ez = camera_axes(camera)
     idx = np.asarray(idx, np.int64)
-    v = views[idx]
-    d = v["b"][:, :3].astype(np.float64) - v["a"][:, :3].astype(np.float64)
+    d = views["b"][idx, :3].astype(np.float64) - views["a"][idx, :3]
     zc = d @ ez
     tx, ty = (d @ ex) / zc, (d @ ey) / zc
     nx, ny = max(int(cam["width"]), 1), max(int(cam["height"]), 1)
@@ -112,13 +111,13 @@ def build_screen_cells(engine: Engine, views: np.ndarray, idx: np.ndarray, camer
     np.cumsum(np.bincount(cell, minlength=nx * ny), out=start[1:])
     dirs = np.zeros((len(idx), 4), np.float32)       # unit directions, for the plane test
     dirs[:, :3] = d[order] / np.linalg.norm(d[order], axis=1)[:, None] if len(idx) else 0.0
-    host = {"views": v[order], "dirs": dirs, "ids": idx[order].astype(np.int32),
-            "start": start}
+    ids = idx[order]
+    host = {"views": views[ids], "dirs": dirs, "ids": ids.astype(np.int32), "start": start}
     bufs = {k: engine.to_device(x if len(x) else np.zeros(1, x.dtype)) for k, x in host.items()}
     n = len(idx)
     bufs["acc"] = engine.zeros(24 * max(n, 1))
     frame = (structs.vec4(eye), structs.vec4(ex), structs.vec4(ey), structs.vec4(ez))
-    w_max = float(np.max(v["weight"][:, :3])) if n else 0.0
+    w_max = float(np.max(host["views"]["weight"][:, :3])) if n else 0.0
     return ScreenCells(n, nx, ny, frame, grid, float(reach), max(w_max, 0.0), bufs,
                        int(sum(x.nbytes for x in host.values()) + 24 * n))
 
