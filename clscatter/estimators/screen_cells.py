@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..device import Engine, structs
+from .row_chunks import map_row_chunks
 
 # Bytes one view segment on a camera ray costs in ScreenCells: its record (64), direction
 # (16), index (4) and fixed-point sums (24) on the device, a host copy of all but the sums
@@ -69,17 +70,24 @@ def camera_axes(camera: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
 def on_camera_rays(views: np.ndarray, camera: np.ndarray) -> tuple[np.ndarray, float]:
     """Which of ``views`` (VIEW_SEGMENT) lie on camera rays (their line within
     :data:`ON_RAY` of the eye, heading away from it, in front of the camera, of positive
-    length), and the largest distance of those lines from the eye."""
-    eye, _, _, z = camera_axes(camera)
-    a = views["a"][:, :3].astype(np.float64)
-    d = views["b"][:, :3].astype(np.float64) - a
-    length = np.linalg.norm(d, axis=1)
-    u = d / np.maximum(length, 1e-300)[:, None]
-    w = a - eye
-    along = np.einsum("ij,ij->i", w, u)
-    miss = np.linalg.norm(w - along[:, None] * u, axis=1)
-    ok = (length > 0) & (miss <= ON_RAY) & (along >= -ON_RAY) & (u @ z > 1e-3)
-    return ok, float(miss[ok].max()) if ok.any() else 0.0
+    length), and the largest distance of those lines from the eye (float32, in chunks of
+    rows on threads: :func:`~.row_chunks.map_row_chunks`)."""
+    eye, _, _, z = (x.astype(np.float32) for x in camera_axes(camera))
+    n = len(views)
+    ok = np.zeros(n, bool)
+
+    def chunk(s: int, e: int) -> float:
+        a = views["a"][s:e, :3]
+        d = views["b"][s:e, :3] - a
+        length = np.sqrt(np.einsum("ij,ij->i", d, d))
+        w = a - eye
+        c = np.cross(w, d)
+        inv = 1.0 / np.maximum(length, np.float32(1e-30))
+        miss = np.sqrt(np.einsum("ij,ij->i", c, c)) * inv
+        ok[s:e] = ((length > 0) & (miss <= ON_RAY) & (np.einsum("ij,ij->i", w, d) * inv >= -ON_RAY)
+                   & (d @ z > 1e-3 * length))
+        return float(miss[ok[s:e]].max()) if ok[s:e].any() else 0.0
+    return ok, max(map_row_chunks(chunk, n), default=0.0) if n else 0.0
 
 
 def build_screen_cells(engine: Engine, views: np.ndarray, idx: np.ndarray, camera: np.ndarray,
