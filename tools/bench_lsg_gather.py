@@ -39,7 +39,8 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-KEYS = ("gather_seconds", "tree_build_seconds", "view_segments", "lsg_light_segments_kept",
+KEYS = ("gather_seconds", "tree_build_seconds", "view_segments", "lsg_screen_segments",
+        "lsg_light_segments_kept",
         "pair_tests_bruteforce", "lsg_leaf_points_tested", "pair_tests", "valid_pairs")
 
 

@@ -697,6 +697,13 @@ class Gatherer:
         self._totals[:] = 0
 
     @property
+    def screen_segments(self) -> int:
+        """View segments this gatherer keeps in screen cells (``queries = "screen"``: those
+        on the camera's rays, over the sample groups gathered so far)."""
+        return sum(kept[0].count for (part, _), kept in self._view_trees.items()
+                   if part == "screen")
+
+    @property
     def valid_per_view(self) -> np.ndarray:
         """Valid pairs per view segment, summed over the add() calls since the last
         reset(), (n_views,) int64 (read from the device)."""
@@ -834,6 +841,10 @@ class RegionGatherer:
     @property
     def active(self) -> int:
         return sum(p.gatherer.active for p in self.parts)
+
+    @property
+    def screen_segments(self) -> int:
+        return sum(p.gatherer.screen_segments for p in self.parts)
 
     @property
     def valid_per_view(self) -> np.ndarray:

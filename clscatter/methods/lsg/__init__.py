@@ -205,6 +205,8 @@ class LineSpaceGathering(Method):
     ``tree_build_seconds``, ``gather_seconds``, ``chunks``, ``lsg_chunks_retraced``,
     ``lsg_chunk_bytes_max``, ``lsg_radius`` (normalised; ``lsg_radius_world`` in scene
     units), ``lsg_radius_last``, ``lsg_passes``, ``lsg_pass_seconds``, ``lsg_time_budget``,
+    ``lsg_screen_segments`` (view segments gathered from screen cells, ``queries =
+    "screen"``: those on camera rays, over the sample groups gathered),
     ``lsg_auto_radius``, ``lsg_targeted``, ``light_rays_specular_fraction``, ``lsg_pass_rays``,
     ``lsg_stopped_by`` (passes, time_budget or target_error), ``lsg_sample_groups`` (G),
     ``lsg_error_estimate``,
@@ -345,6 +347,7 @@ class LineSpaceGathering(Method):
             image, totals, pass_seconds = self._progressive(ps, gat, dev, r1, measured, prog,
                                                             stats, show_progress)
             self._budget_note(ctx, prog, pass_seconds)
+            stats.set(lsg_screen_segments=gat.screen_segments)
         finally:
             gat.release()
             if inside is not None:
