@@ -84,9 +84,8 @@ LEAF_SIZE = 16
 # segment's sum atomically; "screen", the view segments on a pinhole camera's rays in
 # screen cells (screen_cells.py), kept like the tree, which every lighting segment crosses
 # (lsg_splat), and the other view segments (after a mirror or glass) from the side with
-# fewer segments, as "views" or as "lights". All three find the same pairs. On the
-# caustic scenes of tools/bench_lsg_gather.py the cells test 0.2-0.3x the candidates of
-# the tree walks.
+# fewer segments, as "views" or as "lights". All three find the same pairs; the cells
+# test fewer candidates than either tree walk (tools/bench_lsg_gather.py).
 QUERIES = ("views", "lights", "screen")
 
 
