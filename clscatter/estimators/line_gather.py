@@ -647,8 +647,9 @@ class Gatherer:
             if self._derived is None:
                 self._view_trees[key] = build()[1]
             else:
-                name = (f"lsg_view_{part} region={self.region} group={self._group_key} "
-                        f"leaf={self.leaf_size} split={self.spatial_split:g}")
+                name = (f"lsg_view_{part} views={self.n} region={self.region} "
+                        f"group={self._group_key} leaf={self.leaf_size} "
+                        f"split={self.spatial_split:g}")
                 self._view_trees[key] = self._derived(name, build)
         return self._view_trees[key]
 
