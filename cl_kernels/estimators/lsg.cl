@@ -442,16 +442,16 @@ __kernel void lsg_scatter_finish(__global const uint *acc, __global const int *v
  * differ.
  *
  * The cells: the lighting segment is clipped to the frustum of the grid's rays grown by
- * reach (r, plus the host's bound on how far a segment's line passes from the eye, plus
- * a rounding allowance: no point within r of a camera ray is outside it) and cut into
- * pieces. A piece whose depth z stays above NEAR_REACHES reaches projects to a 2-D segment
+ * R (r, plus reach, the host's bound on how far a segment's line passes from the eye,
+ * plus a rounding allowance: no point within r of a camera ray is outside it) and cut
+ * into pieces. A piece whose depth z stays above NEAR_REACHES R projects to a 2-D segment
  * in the tangent plane, and a ball of radius R around a point of it at depth z to within
  * R sqrt(1 + X^2 + Y^2) / (z - R) of the point's projection (|dX| <= (|dxy| + |X||dz|) /
  * (z + dz), Cauchy-Schwarz): the piece's cells are those its 2-D segment, widened by the
- * largest such radius on the piece (depth halves at most along a piece, so this is at
- * most about twice the narrowest), crosses, taken column by column along its longer
- * axis. A piece nearer the eye than that (a lighting segment passing beside the camera)
- * takes every cell. Pieces own the pairs whose closest point on the lighting segment lies
+ * largest such radius on the piece (the depth at most doubles along a piece, so this is
+ * at most about twice the narrowest), crosses, taken column by column along its longer
+ * axis. The part nearer the camera's plane than that (a lighting segment passing within
+ * a few R of the eye) takes every cell. Pieces own the pairs whose closest point on the lighting segment lies
  * in their part of it (test_pair's own_lo, own_hi; the first and last extend to
  * infinity), so a view segment that two pieces' cells both hold is counted once. */
 #define NEAR_REACHES 4.0f
