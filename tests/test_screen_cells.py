@@ -184,3 +184,24 @@ def test_splat_order_keeps_the_sums(engine):
         assert sc.count == 1200 and sc.nx * sc.ny == 24 * 16
     finally:
         sc.release(engine)
+
+
+def test_prepare_builds_the_cells_before_the_first_gather(engine):
+    """Gatherer.prepare builds the screen cells (what the automatic radius's pilot calls
+    before it times a gather); the gather after it is the same."""
+    rng = np.random.default_rng(12)
+    cam = _camera()
+    lights, views = _scene_set(rng, cam, 0.02)
+    med = _medium()
+    gat = Gatherer(engine, views, med, 0.02, queries="screen", camera=cam)
+    try:
+        assert gat.screen_segments == 0
+        gat.prepare()
+        assert gat.screen_segments == 1200
+        res = gat.add(lights)
+        got = gat.values()
+    finally:
+        gat.release()
+    want, res_plain = _run(engine, lights, views, 0.02, med, queries="screen", camera=cam)
+    assert res.valid_pairs == res_plain.valid_pairs > 300
+    assert np.array_equal(got, want)

@@ -452,6 +452,18 @@ class Gatherer:
             self._group_idx[key] = idx
         self._group, self._group_key = self._groups[key], key
 
+    def prepare(self) -> None:
+        """Build what this gatherer keeps for the active view segments (the view tree with
+        ``queries = "lights"``, the screen cells with ``"screen"``) now rather than in the
+        next :meth:`add`, whose time then holds its own work only (the automatic radius's
+        pilot sizes passes by it)."""
+        if not self.active:
+            return
+        if self.queries == "lights":
+            self._view_tree(None)
+        elif self.queries == "screen" and self.camera is not None:
+            self._screen()
+
     # ---- one chunk ----
     def add(self, segs: np.ndarray, bruteforce: bool = False) -> ChunkResult:
         """Gather the lighting segments ``segs`` into every active view segment's estimate,
@@ -845,6 +857,10 @@ class RegionGatherer:
     @property
     def screen_segments(self) -> int:
         return sum(p.gatherer.screen_segments for p in self.parts)
+
+    def prepare(self) -> None:
+        for p in self.parts:
+            p.gatherer.prepare()
 
     @property
     def valid_per_view(self) -> np.ndarray:

@@ -478,6 +478,7 @@ class LineSpaceGathering(Method):
         segs = self._select(lp.segments)
         r0 = 0.25 * float(np.median(foot)) if len(foot) else 1e-3
         lit = np.zeros(0, np.int64)
+        gat.prepare()               # what it keeps is built once, not part of a pass's cost
         for _ in range(12):
             gat.reset()
             gat.radius = r0
