@@ -423,7 +423,7 @@ class Gatherer:
         self._group: tuple[object, int, float] | None = None    # None: every view segment
         self._group_key: tuple[int, int, int] | None = None
         self._group_idx: dict[tuple[int, int, int], np.ndarray] = {}
-        self._view_trees: dict = {}          # group key (None: all) -> ViewTree
+        self._view_trees: dict = {}          # (part, group key) -> what _kept built
         self._derived = derived              # keeps view trees beyond this gatherer
         self.camera = camera                 # a pinhole's rays: screen cells, not a tree
         self.last_queries = ""               # the side the last add() queried from
