@@ -681,7 +681,8 @@ class Gatherer:
         def build() -> tuple[list, tuple[ScreenCells, np.ndarray, object]]:
             idx = self._active_region()
             ray, reach = on_camera_rays(self.views[idx], self.camera)
-            sc = build_screen_cells(self.eng, self.views, idx[ray], self.camera, reach)
+            sc = build_screen_cells(self.eng, self.views, idx[ray], self.camera, reach,
+                                    self.views_buf)
             rest = idx[~ray].astype(np.int32)
             rest_buf = self.eng.to_device(rest if len(rest) else np.zeros(1, np.int32))
             self.eng.note_host(sc.nbytes + rest.nbytes)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..device import Engine, structs
+from ..transport import primitives as prim
 from .row_chunks import map_row_chunks
 
 # Bytes one view segment on a camera ray costs in ScreenCells: its record (64), direction
@@ -91,18 +92,23 @@ def on_camera_rays(views: np.ndarray, camera: np.ndarray) -> tuple[np.ndarray, f
 
 
 def build_screen_cells(engine: Engine, views: np.ndarray, idx: np.ndarray, camera: np.ndarray,
-                       reach: float) -> ScreenCells:
+                       reach: float, views_buf=None) -> ScreenCells:
     """The :class:`ScreenCells` of ``views[idx]`` (segments on camera rays,
     :func:`on_camera_rays`), on a grid of the camera's pixels over the tangent range of
-    their directions."""
+    their directions. ``views_buf``: the same view segments on the device, from which the
+    records are gathered there (else they are uploaded)."""
     cam = np.asarray(camera).reshape(-1)[0]
     eye, ex, ey, ez = camera_axes(camera)
     idx = np.asarray(idx, np.int64)
-    d = views["b"][idx, :3].astype(np.float64) - views["a"][idx, :3]
-    zc = d @ ez
-    tx, ty = (d @ ex) / zc, (d @ ey) / zc
+    n = len(idx)
+    # the records as rows of 16 floats (a: 0-3, b: 4-7, weight: 8-11): columns of chosen
+    # rows are read far faster than a structured array's fields
+    rows = np.ascontiguousarray(views).view(np.float32).reshape(len(views), -1)
+    d = rows[idx, 4:7] - rows[idx, 0:3]
+    zc = d @ ez.astype(np.float32)
+    tx, ty = (d @ ex.astype(np.float32)) / zc, (d @ ey.astype(np.float32)) / zc
     nx, ny = max(int(cam["width"]), 1), max(int(cam["height"]), 1)
-    if len(idx):
+    if n:
         lo = np.array([tx.min(), ty.min()])
         span = np.maximum(np.array([tx.max(), ty.max()]) - lo, 1e-9)
     else:
@@ -117,17 +123,22 @@ def build_screen_cells(engine: Engine, views: np.ndarray, idx: np.ndarray, camer
     order = np.argsort(cell, kind="stable")
     start = np.zeros(nx * ny + 1, np.int32)
     np.cumsum(np.bincount(cell, minlength=nx * ny), out=start[1:])
-    dirs = np.zeros((len(idx), 4), np.float32)       # unit directions, for the plane test
-    dirs[:, :3] = d[order] / np.linalg.norm(d[order], axis=1)[:, None] if len(idx) else 0.0
-    ids = idx[order]
-    host = {"views": views[ids], "dirs": dirs, "ids": ids.astype(np.int32), "start": start}
-    bufs = {k: engine.to_device(x if len(x) else np.zeros(1, x.dtype)) for k, x in host.items()}
-    n = len(idx)
+    dirs = np.zeros((max(n, 1), 4), np.float32)      # unit directions, for the plane test
+    if n:
+        d = d[order]
+        dirs[:n, :3] = d / np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
+    ids = idx[order].astype(np.int32) if n else np.zeros(1, np.int32)
+    bufs = {"dirs": engine.to_device(dirs), "ids": engine.to_device(ids),
+            "start": engine.to_device(start)}
+    if views_buf is not None and n:
+        bufs["views"] = prim.gather(engine, views_buf, bufs["ids"], n, views.dtype.itemsize)
+    else:
+        bufs["views"] = engine.to_device(views[ids] if n else np.zeros(1, views.dtype))
     bufs["acc"] = engine.zeros(24 * max(n, 1))
     frame = (structs.vec4(eye), structs.vec4(ex), structs.vec4(ey), structs.vec4(ez))
-    w_max = float(np.max(host["views"]["weight"][:, :3])) if n else 0.0
+    w_max = float(rows[idx, 8:11].max()) if n else 0.0
     return ScreenCells(n, nx, ny, frame, grid, float(reach), max(w_max, 0.0), bufs,
-                       int(sum(x.nbytes for x in host.values()) + 24 * n))
+                       int(dirs.nbytes + ids.nbytes + start.nbytes + (64 + 24) * n))
 
 
 def _spread_bits(v: np.ndarray) -> np.ndarray:
