@@ -342,6 +342,20 @@ class ChunkResult:
     pairs: np.ndarray | None   # (k, 2) int32 (view index, input light index) if recorded
     leaf_points: int = 0       # points in the leaves the hierarchy visited (paper's count)
 
+    def plus(self, other: ChunkResult, same_segments: bool = False) -> ChunkResult:
+        """This chunk's counts, times and pairs with ``other``'s added (the larger working
+        set); ``same_segments``: both gathered the same lighting segments (for different
+        view segments), which are then kept once, not twice."""
+        pairs = [p for p in (self.pairs, other.pairs) if p is not None]
+        return ChunkResult(self.pair_tests + other.pair_tests,
+                           self.valid_pairs + other.valid_pairs,
+                           self.kept if same_segments else self.kept + other.kept,
+                           max(self.nbytes, other.nbytes),
+                           self.tree_seconds + other.tree_seconds,
+                           self.gather_seconds + other.gather_seconds,
+                           np.concatenate(pairs) if pairs else None,
+                           self.leaf_points + other.leaf_points)
+
 
 class Gatherer:
     """View segments on the device plus an accumulator; gathers chunks of lighting segments.
@@ -500,12 +514,7 @@ class Gatherer:
         scale = self._group[2] if self._group is not None else 1.0
         more = self._add_from_views(segs, clipped, False, Timer(), Timer(),
                                     group=(rest_buf, len(rest), scale))
-        return ChunkResult(res.pair_tests + more.pair_tests, res.valid_pairs + more.valid_pairs,
-                           res.kept, max(res.nbytes, more.nbytes),
-                           res.tree_seconds + more.tree_seconds,
-                           res.gather_seconds + more.gather_seconds,
-                           None if res.pairs is None else np.concatenate([res.pairs, more.pairs]),
-                           res.leaf_points + more.leaf_points)
+        return res.plus(more, same_segments=True)
 
     def _add_from_views(self, segs, clipped, bruteforce: bool, t_build: Timer,
                         t_gather: Timer, group: tuple | None = None) -> ChunkResult:
@@ -825,22 +834,10 @@ class RegionGatherer:
         """Gather the lighting segments ``segs`` (any regions) into their region's part."""
         regions = structs.segment_regions(segs) if len(segs) else np.zeros(0, np.int32)
         res = ChunkResult(0, 0, 0, 0, 0.0, 0.0, None, 0)
-        pairs = []
         for p in self.parts:
             sub = segs[regions == p.gatherer.region]
-            if not len(sub) or not p.gatherer.n:
-                continue
-            r = p.gatherer.add(sub, bruteforce)
-            res.pair_tests += r.pair_tests
-            res.valid_pairs += r.valid_pairs
-            res.kept += r.kept
-            res.nbytes = max(res.nbytes, r.nbytes)
-            res.tree_seconds += r.tree_seconds
-            res.gather_seconds += r.gather_seconds
-            res.leaf_points += r.leaf_points
-            if r.pairs is not None:
-                pairs.append(r.pairs)
-        res.pairs = np.concatenate(pairs) if pairs else None
+            if len(sub) and p.gatherer.n:
+                res = res.plus(p.gatherer.add(sub, bruteforce))
         return res
 
     def reset(self) -> None:
