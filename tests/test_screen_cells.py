@@ -6,11 +6,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_lsg import _as_dict, _medium, _segments, _unit, reference_gather
+from test_lsg import _as_dict, _gather, _medium, _segments, _unit, reference_gather
 
 from clscatter.device import structs
 from clscatter.estimators.line_gather import Gatherer
-from clscatter.estimators.screen_cells import camera_axes, on_camera_rays, splat_order
+from clscatter.estimators.screen_cells import (
+    build_screen_cells,
+    camera_axes,
+    on_camera_rays,
+    splat_order,
+)
 
 EYE = np.array([0.1, 0.2, 1.6])
 
@@ -89,15 +94,6 @@ def _scene_set(rng, cam, r, n_rays=1200, n_other=150):
     return _segments(rng, len(la), "light", la, lb), views
 
 
-def _run(engine, lights, views, r, medium, bruteforce=False, **kw):
-    gat = Gatherer(engine, views, medium, r, record_pairs=len(views) * len(lights), **kw)
-    try:
-        res = gat.add(lights, bruteforce=bruteforce)
-        return gat.values(), res
-    finally:
-        gat.release()
-
-
 def test_camera_rays_are_told_from_other_segments():
     """on_camera_rays takes the segments on lines through the eye that head away from it
     (from the eye or beyond), and none of the others: segments after a mirror, segments
@@ -133,9 +129,9 @@ def test_screen_cells_find_exactly_the_exhaustive_pairs(engine, r, size, others)
     med = _medium()
     ok, _ = on_camera_rays(views, cam)
     assert ok.sum() == 1200
-    v_cells, res = _run(engine, lights, views, r, med, queries="screen", camera=cam)
-    v_tree, res_tree = _run(engine, lights, views, r, med, queries="lights")
-    v_all, res_all = _run(engine, lights, views, r, med, bruteforce=True)
+    v_cells, res = _gather(engine, lights, views, r, med, queries="screen", camera=cam)
+    v_tree, res_tree = _gather(engine, lights, views, r, med, queries="lights")
+    v_all, res_all = _gather(engine, lights, views, r, med, bruteforce=True)
     got = set(map(tuple, res.pairs.tolist()))
     want = set(map(tuple, res_all.pairs.tolist()))
     assert len(want) > 300
@@ -165,14 +161,13 @@ def test_splat_order_keeps_the_sums(engine):
     cam = _camera()
     lights, views = _scene_set(rng, cam, 0.02)
     med = _medium()
-    v1, r1 = _run(engine, lights, views, 0.02, med, queries="screen", camera=cam)
+    v1, r1 = _gather(engine, lights, views, 0.02, med, queries="screen", camera=cam)
     perm = rng.permutation(len(lights))
-    v2, r2 = _run(engine, lights[perm], views, 0.02, med, queries="screen", camera=cam)
+    v2, r2 = _gather(engine, lights[perm], views, 0.02, med, queries="screen", camera=cam)
     assert r1.valid_pairs == r2.valid_pairs > 300
     ok = on_camera_rays(views, cam)[0]
     assert np.array_equal(v1[ok], v2[ok])
     np.testing.assert_allclose(v1, v2, rtol=1e-5, atol=1e-6 * np.abs(v1).max())
-    from clscatter.estimators.screen_cells import build_screen_cells
     sc = build_screen_cells(engine, views, np.flatnonzero(on_camera_rays(views, cam)[0]), cam,
                             0.0)
     try:
@@ -202,6 +197,6 @@ def test_prepare_builds_the_cells_before_the_first_gather(engine):
         got = gat.values()
     finally:
         gat.release()
-    want, res_plain = _run(engine, lights, views, 0.02, med, queries="screen", camera=cam)
+    want, res_plain = _gather(engine, lights, views, 0.02, med, queries="screen", camera=cam)
     assert res.valid_pairs == res_plain.valid_pairs > 300
     assert np.array_equal(got, want)
