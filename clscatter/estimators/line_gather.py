@@ -85,7 +85,9 @@ LEAF_SIZE = 16
 # screen cells (screen_cells.py), kept like the tree, which every lighting segment crosses
 # (lsg_splat), and the other view segments (after a mirror or glass) from the side with
 # fewer segments, as "views" or as "lights". All three find the same pairs; the cells
-# test fewer candidates than either tree walk (tools/bench_lsg_gather.py).
+# test fewer candidates than either tree walk, which makes them faster on some caustic
+# scenes and slower on others (docs/benchmarks.md, "Camera rays in screen cells"), so
+# "views" stays lsg's default.
 QUERIES = ("views", "lights", "screen")
 
 
@@ -503,7 +505,6 @@ class Gatherer:
         """The camera's rays in screen cells from the lighting side; the other view
         segments from the side with fewer segments (a tree over them, or one over the
         lighting segments queried by them alone)."""
-        rest_from_views = False
         with t_build:
             sc, rest, rest_buf = self._screen()
             rest_from_views = 0 < len(rest) <= len(clipped[0])
