@@ -286,6 +286,29 @@ def test_gather_kernel_matches_numpy_reference(engine, kind, r, queries, grey):
     assert abs(vals[:, :3].sum() / ref.sum() - 1) < 1e-5
 
 
+def test_fixed_sums_in_32_bit_words_match_64_bit_atomics(engine):
+    """Where the device has 64-bit atomics a fixed-point sum takes one per term; built
+    with FIXED_SUM_WORDS (a device without them) it takes two 32-bit words and a carry.
+    The lighting side's sums and per-view valid counts are the same bit for bit."""
+    words = Engine(engine.info)
+    words.device_defines = {**engine.device_defines, "FIXED_SUM_WORDS": 1}
+    rng = np.random.default_rng(21)
+    lights, views = _random_set("random", rng, nl=600, nv=900)
+    got = []
+    for e in (engine, words):
+        gat = Gatherer(e, views, _medium(), 0.03, queries="lights")
+        try:
+            res = gat.add(lights)
+            got.append((gat.values(), gat.valid_per_view, res.valid_pairs))
+        finally:
+            gat.release()
+    (va, ca, na), (vb, cb, nb) = got
+    assert na > 200 and na == nb
+    assert np.array_equal(ca, cb) and ca.sum() == na
+    assert np.array_equal(va, vb)
+    assert np.abs(va).max() > 0
+
+
 @pytest.mark.parametrize("queries", ["views", "lights"])
 def test_prefetch_queue_changes_nothing(engine, queries):
     """The exact tests wait 16 points behind a prefetch of their records (PREFETCH_HINT,

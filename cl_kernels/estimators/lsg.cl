@@ -327,15 +327,18 @@ __kernel void lsg_gather(__global const float8 *kids, __global const int2 *leaf_
     counts[vi] += cnt;
 }
 
+/* Words of a view's record in lsg_scatter's and lsg_splat's sums (see lsg_scatter). */
+#define SCATTER_WORDS 8
+
 /* lsg_scatter's exact test of lighting segment li (lights[li]) against the view segment
  * at tree position i, and for a valid pair its estimate times the view's factor into the
  * view's fixed-point sum and a valid pair into the view's count (see lsg_scatter). */
 void scatter_pair(__global const LsgLine *lights, __global const int *light_ids, int li,
                   __global const ViewSegment *views, __global const int *view_ids, int i,
                   float radius, float min_sin, __global const Medium *medium, float scale,
-                  float fixed_scale, volatile __global uint *acc, volatile __global int *counts,
-                  int4 *cnt, __global int2 *pairs, volatile __global int *pair_count,
-                  int max_pairs, float own_lo, float own_hi) {
+                  float fixed_scale, volatile __global uint *acc, int4 *cnt,
+                  __global int2 *pairs, volatile __global int *pair_count, int max_pairs,
+                  float own_lo, float own_hi) {
     ViewQuery v;
     if (!load_query(views, i, &v)) return;
     v.index = view_ids[i];
@@ -343,11 +346,12 @@ void scatter_pair(__global const LsgLine *lights, __global const int *light_ids,
     float4 e = test_pair(lights + li, light_ids, li, &v, radius, min_sin, medium->kappa,
                          medium->g, cnt, pairs, pair_count, max_pairs, own_lo, own_hi);
     if (cnt->y == before) return;
-    atomic_inc(&counts[4 * v.index + 1]);
+    volatile __global uint *rec = acc + SCATTER_WORDS * i;
+    atomic_inc(rec + 6);
     e *= medium->sigma_s * (views[i].weight * scale) * fixed_scale;
-    fixed_add(acc, 3 * i, e.x);
-    fixed_add(acc, 3 * i + 1, e.y);
-    fixed_add(acc, 3 * i + 2, e.z);
+    fixed_add(rec, 0, e.x);
+    fixed_add(rec, 1, e.y);
+    fixed_add(rec, 2, e.z);
 }
 
 /* lsg_scatter: the same pairs and estimates formed from the lighting side (a Gatherer
@@ -359,10 +363,10 @@ void scatter_pair(__global const LsgLine *lights, __global const int *light_ids,
  * tree position i (its record as lsg_gather reads it, so load_query gives the same
  * floats) and view_ids[i] its index. Each valid pair's estimate (test_pair, as
  * lsg_gather forms it) times the view segment's factor sigma_s (weight scale) goes into
- * that view's exact fixed-point sum at tree position i (fixed_sum.h, in units of
- * 1 / fixed_scale, cleared by the host before a chunk; lsg_scatter_finish adds the sums
- * into out[]), and the
- * view's valid-pair count (counts[view].y) is raised atomically; the lighting segment's
+ * the view's record at tree position i, SCATTER_WORDS words cleared by the host before a
+ * chunk: its exact fixed-point sums (words 0-5, fixed_sum.h, in units of 1 / fixed_scale)
+ * and its valid pairs (word 6), all in one cache line (lsg_scatter_finish adds them into
+ * out[] and counts[view].y); the lighting segment's
  * own (tests, valid pairs, points in the visited leaves, 0) go to light_counts. A launch
  * takes lighting segments light_offset .. light_offset + num_lights - 1 (as lsg_gather
  * takes its view segments: the work-items of the last group past them return). */
@@ -374,8 +378,7 @@ __kernel void lsg_scatter(__global const float8 *kids, __global const int2 *leaf
                           int light_offset, int num_lights, float scale,
                           float4 pl_centre, float pl_inv_scale, float radius, float min_sin,
                           __global const Medium *medium, float fixed_scale,
-                          volatile __global uint *acc, volatile __global int *counts,
-                          __global int4 *light_counts,
+                          volatile __global uint *acc, __global int4 *light_counts,
                           __global int2 *pairs, volatile __global int *pair_count, int max_pairs) {
     int gid = get_global_id(0);
     if (gid >= num_lights) return;
@@ -404,29 +407,34 @@ __kernel void lsg_scatter(__global const float8 *kids, __global const int2 *leaf
                     int p = take_point(&m, b);
                     PREFETCH_HINT(views + p);             /* a 64-byte record */
                     PREFETCH_HINT(view_ids + p);
+                    PREFETCH_HINT((__global const uint *)acc + SCATTER_WORDS * p);
                     if ((i = pending_push(&queue, p)) >= 0)
                         scatter_pair(lights, light_ids, li, views, view_ids, i, radius, min_sin,
-                                     medium, scale, fixed_scale, acc, counts, &cnt, pairs,
+                                     medium, scale, fixed_scale, acc, &cnt, pairs,
                                      pair_count, max_pairs, -INFINITY, INFINITY);
                 }
             }
         }
         while ((i = pending_pop(&queue)) >= 0)
             scatter_pair(lights, light_ids, li, views, view_ids, i, radius, min_sin, medium,
-                         scale, fixed_scale, acc, counts, &cnt, pairs, pair_count, max_pairs,
+                         scale, fixed_scale, acc, &cnt, pairs, pair_count, max_pairs,
                          -INFINITY, INFINITY);
     }
     light_counts[li] = cnt;
 }
 
-/* out[view_ids[i]] += lsg_scatter's sum at tree position i (divided by fixed_scale:
- * times inv_scale). */
+/* out[view_ids[i]] += lsg_scatter's sums at tree position i (divided by fixed_scale:
+ * times inv_scale), and its valid pairs into counts[view_ids[i]].y. */
 __kernel void lsg_scatter_finish(__global const uint *acc, __global const int *view_ids,
-                                 int num_views, float inv_scale, __global float4 *out) {
+                                 int num_views, float inv_scale, __global float4 *out,
+                                 __global int *counts) {
     int i = get_global_id(0);
     if (i >= num_views) return;
-    out[view_ids[i]] += (float4)(fixed_read(acc, 3 * i), fixed_read(acc, 3 * i + 1),
-                                 fixed_read(acc, 3 * i + 2), 0.0f) * inv_scale;
+    __global const uint *rec = acc + SCATTER_WORDS * i;
+    int v = view_ids[i];
+    out[v] += (float4)(fixed_read(rec, 0), fixed_read(rec, 1), fixed_read(rec, 2), 0.0f)
+              * inv_scale;
+    counts[4 * v + 1] += (int)rec[6];
 }
 
 /* ---- The lighting side over camera rays: screen cells (lsg_splat) ----
@@ -474,12 +482,13 @@ int cell_floor(float v, int n) { return (int)floor(clamp(v, -1.0f, (float)n)); }
  * the exact one. */
 #define SPLAT_TEST(I) \
     scatter_pair(lights, light_ids, li, views, view_ids, (I), radius, min_sin, medium, scale, \
-                 fixed_scale, acc, counts, &cnt, pairs, pair_count, max_pairs, own_lo, own_hi)
+                 fixed_scale, acc, &cnt, pairs, pair_count, max_pairs, own_lo, own_hi)
 #define SPLAT_RANGE(FIRST, LAST) \
     for (int v_ = (FIRST); v_ < (LAST); ++v_) { \
         cnt.z += 1; \
         if (fabs(dot3(dirs[v_], ml)) <= thr) { \
             PREFETCH_HINT(views + v_); \
+            PREFETCH_HINT((__global const uint *)acc + SCATTER_WORDS * v_); \
             int due_ = pending_push(&queue, v_); \
             if (due_ >= 0) SPLAT_TEST(due_); \
         } \
@@ -492,8 +501,8 @@ __kernel void lsg_splat(__global const ViewSegment *views, __global const float4
                         __global const LsgLine *lights, __global const int *light_ids,
                         int light_offset, int num_lights, float scale, float radius,
                         float min_sin, __global const Medium *medium, float fixed_scale,
-                        volatile __global uint *acc, volatile __global int *counts,
-                        __global int4 *light_counts, __global int2 *pairs,
+                        volatile __global uint *acc, __global int4 *light_counts,
+                        __global int2 *pairs,
                         volatile __global int *pair_count, int max_pairs) {
     int gid = get_global_id(0);
     if (gid >= num_lights) return;

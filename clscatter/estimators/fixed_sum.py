@@ -8,6 +8,9 @@ from __future__ import annotations
 FIXED_BITS = 62
 #: the least bound a scale is made for, so that the scale stays within float32's range
 MIN_BOUND = 1e-18
+#: bytes of a view segment's record in lsg's lighting-side sums (lsg.cl, SCATTER_WORDS):
+#: its three channels' sums and its valid pairs, within one cache line
+SCATTER_BYTES = 32
 
 
 def fixed_scale(bound: float) -> float:

@@ -21,7 +21,7 @@ from ..geometry import slab_interval
 from ..io.stats import Timer, progress
 from ..transport import primitives as prim
 from ..transport.view_paths import DeviceSegments
-from .fixed_sum import fixed_scale
+from .fixed_sum import SCATTER_BYTES, fixed_scale
 from .line_tree import (
     POINT_LANES,
     LineTree,
@@ -57,11 +57,11 @@ structs.register_struct("lsg.h", "LsgLine", LSG_LINE)
 BYTES_PER_SEGMENT = 544
 
 # Bytes one view segment costs in a kept view tree (queries from the lighting side): its
-# record (64), Plücker point (24), index (4), fixed-point sums (24) and its share of the
-# tree's nodes (under 16) on the device, a host copy of all but the sums, and the build's
-# float64 ends and boxes and per-level arrays (rows of 9 floats twice, key, permutation:
-# about 100) -- about 340.
-BYTES_PER_VIEW = 336
+# record (64), Plücker point (24), index (4), sums and count (SCATTER_BYTES, 32) and its
+# share of the tree's nodes (under 16) on the device, a host copy of all but the sums, and
+# the build's float64 ends and boxes and per-level arrays (rows of 9 floats twice, key,
+# permutation: about 100) -- about 345.
+BYTES_PER_VIEW = 344
 
 # Weight of where a lighting segment starts (normalised frame, in [-1, 1]) against its
 # Plücker coordinates when the line tree chooses its splits (line_tree.build_linetree's
@@ -277,7 +277,8 @@ class ViewTree:
     """View segments in the order of a line tree over their Plücker points, on the device:
     what a query per lighting segment walks (``lsg_scatter``). ``bufs``: the view records
     in tree order (``views``), their Plücker points, their indices (``ids``), the tree's
-    nodes, 3-D boxes and leaf ranges, and the fixed-point sums (``acc``, 3 per view)."""
+    nodes, 3-D boxes and leaf ranges, and the fixed-point sums and valid pairs (``acc``, a
+    record of SCATTER_BYTES per view)."""
 
     tree: LineTree
     frame: PluckerFrame
@@ -319,11 +320,11 @@ def build_view_tree(engine: Engine, views: np.ndarray, idx: np.ndarray,
     host = {"views": v[o], "points": points, "ids": ids[o].astype(np.int32),
             "kids": child_rows(tree, boxes), "ranges": tree.leaf_ranges}
     bufs = {k: engine.to_device(x if len(x) else np.zeros(1, x.dtype)) for k, x in host.items()}
-    bufs["acc"] = engine.zeros(24 * max(n, 1))
+    bufs["acc"] = engine.zeros(SCATTER_BYTES * max(n, 1))
     max_m1 = float(np.abs(pts[:, 3:]).sum(axis=1).max()) if n else 0.0
     w_max = float(np.max(v["weight"][:, :3])) if n else 0.0
     return ViewTree(tree, frame, max_m1, n, max(w_max, 0.0), bufs,
-                    int(sum(x.nbytes for x in host.values()) + 24 * n))
+                    int(sum(x.nbytes for x in host.values()) + SCATTER_BYTES * n))
 
 
 def phase_max(g: float) -> float:
@@ -608,11 +609,10 @@ class Gatherer:
                 self._clear_pair_count()
                 for x in sides:
                     eng.cl.enqueue_fill_buffer(eng.queue, x.bufs["acc"], np.zeros(1, np.uint32),
-                                               0, 24 * x.count)
+                                               0, SCATTER_BYTES * x.count)
                 common = dict(lights=lines_buf, light_ids=ids_buf, scale=scale,
                               radius=self.radius, min_sin=self.min_sin, medium=self.medium_buf,
-                              fixed_scale=fixed, counts=self.counts_buf,
-                              light_counts=counts_buf, pairs=self.pairs_buf,
+                              fixed_scale=fixed, light_counts=counts_buf, pairs=self.pairs_buf,
                               pair_count=self.pair_count, max_pairs=self.record)
                 try:
                     with progress(n, "lsg gather", self.show_progress) as bar:
@@ -626,7 +626,8 @@ class Gatherer:
                     for x in sides:
                         eng.call("lsg", "lsg_scatter_finish", x.count, acc=x.bufs["acc"],
                                  view_ids=x.bufs["ids"], num_views=x.count,
-                                 inv_scale=1.0 / fixed, out=self.out_buf)
+                                 inv_scale=1.0 / fixed, out=self.out_buf,
+                                 counts=self.counts_buf)
                     tests, valid, leaf = (int(x) for x in prim.int_totals(eng, counts_buf, n, 4)[:3])
                     self._totals[1] += valid        # the views' valid counts rose by as many
                 finally:

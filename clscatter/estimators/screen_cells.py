@@ -16,12 +16,13 @@ import numpy as np
 
 from ..device import Engine, structs
 from ..transport import primitives as prim
+from .fixed_sum import SCATTER_BYTES
 from .row_chunks import map_row_chunks
 
 # Bytes one view segment on a camera ray costs in ScreenCells: its record (64), direction
-# (16), index (4) and fixed-point sums (24) on the device, a host copy of all but the sums
-# and the build's float64 directions and cells (about 180) -- about 290.
-BYTES_PER_SCREEN_VIEW = 288
+# (16), index (4) and sums and count (SCATTER_BYTES, 32) on the device, a host copy of all
+# but the sums and the build's float64 directions and cells (about 180) -- about 300.
+BYTES_PER_SCREEN_VIEW = 296
 
 # How far (normalised frame) a view segment's line may pass from the eye and still count
 # as a camera ray: float32 ends of a segment traced from the eye miss it by far less; the
@@ -34,8 +35,8 @@ class ScreenCells:
     """View segments on camera rays in the order of their screen cells, on the device.
     ``bufs``: the records in cell order (``views``), their unit directions (``dirs``,
     float4), their indices (``ids``), each cell's
-    first segment (``start``, ``nx * ny + 1``) and the fixed-point sums (``acc``, 3 per
-    segment). ``frame``: the eye and the camera's axes (float32 4-vectors, normalised
+    first segment (``start``, ``nx * ny + 1``) and the fixed-point sums and valid pairs
+    (``acc``, a record of SCATTER_BYTES per segment). ``frame``: the eye and the camera's axes (float32 4-vectors, normalised
     frame); ``grid``: the lower corner of the cells in tangent coordinates (x / z, y / z)
     and the inverse cell sizes; ``reach``: the largest distance of a segment's line from
     the eye."""
@@ -134,11 +135,11 @@ def build_screen_cells(engine: Engine, views: np.ndarray, idx: np.ndarray, camer
         bufs["views"] = prim.gather(engine, views_buf, bufs["ids"], n, views.dtype.itemsize)
     else:
         bufs["views"] = engine.to_device(views[ids] if n else np.zeros(1, views.dtype))
-    bufs["acc"] = engine.zeros(24 * max(n, 1))
+    bufs["acc"] = engine.zeros(SCATTER_BYTES * max(n, 1))
     frame = (structs.vec4(eye), structs.vec4(ex), structs.vec4(ey), structs.vec4(ez))
     w_max = float(rows[idx, 8:11].max()) if n else 0.0
     return ScreenCells(n, nx, ny, frame, grid, float(reach), max(w_max, 0.0), bufs,
-                       int(dirs.nbytes + ids.nbytes + start.nbytes + (64 + 24) * n))
+                       int(dirs.nbytes + ids.nbytes + start.nbytes + (64 + SCATTER_BYTES) * n))
 
 
 def _spread_bits(v: np.ndarray) -> np.ndarray:
