@@ -457,10 +457,11 @@ __kernel void lsg_scatter_finish(__global const uint *acc, __global const int *v
  * R sqrt(1 + X^2 + Y^2) / (z - R) of the point's projection (|dX| <= (|dxy| + |X||dz|) /
  * (z + dz), Cauchy-Schwarz): the piece's cells are those its 2-D segment, widened by the
  * largest such radius on the piece (the depth at most doubles along a piece, so this is
- * at most about twice the narrowest), crosses, taken column by column along its longer
- * axis. The part nearer the camera's plane than that (a lighting segment passing within
- * a few R of the eye) takes every cell. Pieces own the pairs whose closest point on the lighting segment lies
- * in their part of it (test_pair's own_lo, own_hi; the first and last extend to
+ * at most about twice the narrowest), crosses, taken row by row: a row's cells are
+ * consecutive in the cell order, so each row is one run of the segments, read in order.
+ * The part nearer the camera's plane than that (a lighting segment passing within a few
+ * R of the eye) takes every cell. Pieces own the pairs whose closest point on the
+ * lighting segment lies in their part of it (test_pair's own_lo, own_hi; the first and last extend to
  * infinity), so a view segment that two pieces' cells both hold is counted once. */
 #define NEAR_REACHES 4.0f
 #define SPLAT_MAX_PIECES 32
@@ -577,30 +578,28 @@ __kernel void lsg_splat(__global const ViewSegment *views, __global const float4
             float XA = A.x / A.z, YA = A.y / A.z, XB = B.x / B.z, YB = B.y / B.z;
             float S = fmax(sqrt(1.0f + XA * XA + YA * YA), sqrt(1.0f + XB * XB + YB * YB));
             float rho = R * S / (zmin - R) * 1.001f + 1e-5f * S;
-            /* cell coordinates; m along the longer axis, n across */
-            float cxa = (XA - grid.x) * grid.z, cya = (YA - grid.y) * grid.w;
-            float cxb = (XB - grid.x) * grid.z, cyb = (YB - grid.y) * grid.w;
-            int major_x = fabs(cxb - cxa) >= fabs(cyb - cya);
-            float ma = major_x ? cxa : cya, mb = major_x ? cxb : cyb;
-            float na = major_x ? cya : cxa, nb = major_x ? cyb : cxb;
-            float rm = rho * (major_x ? grid.z : grid.w), rn = rho * (major_x ? grid.w : grid.z);
-            int Nm = major_x ? nx : ny, Nn = major_x ? ny : nx;
-            if (ma > mb) {
-                float t = ma; ma = mb; mb = t;
-                t = na; na = nb; nb = t;
+            /* cell coordinates (x: columns, y: rows), the piece's ends sorted by row */
+            float xa = (XA - grid.x) * grid.z, ya = (YA - grid.y) * grid.w;
+            float xb = (XB - grid.x) * grid.z, yb = (YB - grid.y) * grid.w;
+            float rx = rho * grid.z, ry = rho * grid.w;
+            if (ya > yb) {
+                float t = ya; ya = yb; yb = t;
+                t = xa; xa = xb; xb = t;
             }
-            float span = mb - ma;
-            float slope = span > 1e-6f ? (nb - na) / span : 0.0f;
-            int c0 = max(cell_floor(ma - rm, Nm), 0), c1 = min(cell_floor(mb + rm, Nm), Nm - 1);
+            float span = yb - ya;
+            int c0 = max(cell_floor(ya - ry, ny), 0), c1 = min(cell_floor(yb + ry, ny), ny - 1);
             for (int c = c0; c <= c1; ++c) {
-                float lo_m = fmax(ma, (float)c - rm), hi_m = fmin(mb, (float)(c + 1) + rm);
-                float e1 = span > 1e-6f ? na + slope * (lo_m - ma) : fmin(na, nb);
-                float e2 = span > 1e-6f ? na + slope * (hi_m - ma) : fmax(na, nb);
-                int r0 = max(cell_floor(fmin(e1, e2) - rn, Nn), 0);
-                int r1 = min(cell_floor(fmax(e1, e2) + rn, Nn), Nn - 1);
-                for (int r = r0; r <= r1; ++r) {
-                    int cell = major_x ? r * nx + c : c * nx + r;
-                    SPLAT_RANGE(cell_start[cell], cell_start[cell + 1]);
+                /* the part of the piece within ry of row c, and its columns: one run of
+                 * the cell order */
+                float lo = fmax(ya, (float)c - ry), hi = fmin(yb, (float)(c + 1) + ry);
+                float e1 = span > 1e-6f ? xa + clamp((lo - ya) / span, 0.0f, 1.0f) * (xb - xa)
+                                        : fmin(xa, xb);
+                float e2 = span > 1e-6f ? xa + clamp((hi - ya) / span, 0.0f, 1.0f) * (xb - xa)
+                                        : fmax(xa, xb);
+                int r0 = max(cell_floor(fmin(e1, e2) - rx, nx), 0);
+                int r1 = min(cell_floor(fmax(e1, e2) + rx, nx), nx - 1);
+                if (r0 <= r1) {
+                    SPLAT_RANGE(cell_start[c * nx + r0], cell_start[c * nx + r1 + 1]);
                 }
             }
             for (int i; (i = pending_pop(&queue)) >= 0;) SPLAT_TEST(i);
