@@ -85,9 +85,8 @@ LEAF_SIZE = 16
 # screen cells (screen_cells.py), kept like the tree, which every lighting segment crosses
 # (lsg_splat), and the other view segments (after a mirror or glass) from the side with
 # fewer segments, as "views" or as "lights". All three find the same pairs; the cells
-# test fewer candidates than either tree walk, which makes them faster on some caustic
-# scenes and slower on others (docs/benchmarks.md, "Camera rays in screen cells"), so
-# "views" stays lsg's default.
+# test fewer candidates than either tree walk, which makes them faster on most caustic
+# scenes, not all (docs/benchmarks.md, "Camera rays in screen cells"); lsg's default.
 QUERIES = ("views", "lights", "screen")
 
 

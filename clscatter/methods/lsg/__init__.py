@@ -240,7 +240,7 @@ class LineSpaceGathering(Method):
         Param("leaf_size", LEAF_SIZE, "least points per tree leaf (at most 8x)", lo=1),
         Param("spatial_split", SPATIAL_SPLIT, "weight of where lighting segments start against "
               "their Plücker coordinates when the tree splits (0: Plücker coordinates only)", lo=0),
-        Param("queries", "views", "which side walks the line tree: 'views' (a tree over each "
+        Param("queries", "screen", "which side walks the line tree: 'views' (a tree over each "
               "chunk's lighting segments, a query per view segment, as in the paper), "
               "'lights' (a tree over the view segments, built once and kept while the view "
               "paths are, a query per lighting segment) or 'screen' (the view segments on "
