@@ -231,8 +231,8 @@ def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
         return lo.min(axis=0), hi.max(axis=0)
     box = map_row_chunks(records, k) if k else [(np.zeros(3), np.zeros(3))]
     if frame is None:
-        frame = PluckerFrame.for_box(np.min([b[0] for b in box], axis=0),
-                                     np.max([b[1] for b in box], axis=0))
+        frame = PluckerFrame.for_segments(np.min([b[0] for b in box], axis=0),
+                                          np.max([b[1] for b in box], axis=0))
     signs = canonical_signs(u32)
     pts = np.empty((k, 6), np.float32)                 # (u32, m32), input order
     rows = np.empty((6 + 3 * (spatial_split > 0), k), np.float32)
@@ -304,7 +304,7 @@ def build_view_tree(engine: Engine, views: np.ndarray, idx: np.ndarray,
     v, a, b, length = v[keep], a[keep], b[keep], length[keep]
     ids = np.asarray(idx, np.int64)[keep]
     lo, hi = np.minimum(a, b), np.maximum(a, b)
-    frame = (PluckerFrame.for_box(lo.min(axis=0), hi.max(axis=0)) if len(a)
+    frame = (PluckerFrame.for_segments(lo.min(axis=0), hi.max(axis=0)) if len(a)
              else PluckerFrame.for_box(np.zeros(3), np.zeros(3)))
     u32 = ((b - a) / np.maximum(length, 1e-300)[:, None]).astype(np.float32)
     pts = plucker(a, u32.astype(np.float64), frame).astype(np.float32)
