@@ -103,8 +103,8 @@ class PluckerFrame:
         unbounded medium run on to where its transmittance is 1e-5, tens of units away:
         their moments and the tree's spatial split (``split_extra``) are then measured on
         the scale of the scene they start in, not of where they end. Any frame gives the
-        same pairs; this one culls (an unbounded scene's gather in 0.1x the time,
-        docs/benchmarks.md)."""
+        same pairs; this one culls far better there (docs/benchmarks.md, "Unbounded
+        media: the trees' Plücker frame")."""
         lo = np.asarray(lo, np.float64)
         hi = np.asarray(hi, np.float64)
         clo, chi = np.maximum(lo, -SCENE_REACH), np.minimum(hi, SCENE_REACH)
