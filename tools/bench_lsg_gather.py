@@ -1,10 +1,11 @@
 #!/usr/bin/env python3
 """Benchmark: where LSG's gather spends its work, what the line tree's leaf size and its
 spatial splits are worth, and which side should walk the tree, on the glass-ball caustic
-(``tools/scenes/glass_ball_fog.toml``).
+(``tools/scenes/glass_ball_fog.toml``, or ``--scene``: a file or a built-in scene).
 
 Each run is ``clscatter render --method lsg`` in a fresh process with the caustic
-lighting segments only (``min_light_depth = 1``), one pass of each of ``--rays`` lighting
+lighting segments only (``min_light_depth = 1``; ``--min-light-depth 0``: every lighting
+segment, as ``lsg`` alone gathers them), one pass of each of ``--rays`` lighting
 rays at ``--size``, with ``render.lsg.leaf_size`` set to each of ``--leaf-sizes``,
 ``render.lsg.spatial_split`` to each of ``--spatial-splits`` (0: the paper's tree, split
 on the Plücker coordinates only) and ``render.lsg.queries`` to each of ``--queries``
@@ -45,13 +46,13 @@ KEYS = ("gather_seconds", "tree_build_seconds", "view_segments", "lsg_screen_seg
 
 
 def run(scene: Path, size: tuple[int, int], rays: int, leaf: int, split: float,
-        queries: str = "views") -> dict:
+        queries: str = "views", depth: int = 1) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         st = Path(tmp) / "stats.json"
         cmd = [sys.executable, "-m", "clscatter", "render", str(scene), "--method", "lsg",
                "-o", str(Path(tmp) / "img.npy"), "--stats", str(st), "--no-progress",
                "--time-budget", "0", "--set", f"camera.resolution=[{size[0]},{size[1]}]",
-               "--set", "render.lsg.min_light_depth=1", "--set", f"render.lsg.light_rays={rays}",
+               "--set", f"render.lsg.min_light_depth={depth}", "--set", f"render.lsg.light_rays={rays}",
                "--set", f"render.lsg.leaf_size={leaf}",
                "--set", f"render.lsg.spatial_split={split}",
                "--set", f"render.lsg.queries=\"{queries}\""]
@@ -71,6 +72,8 @@ def main() -> None:
     ap.add_argument("--spatial-splits", type=float, nargs="+", default=[0.0, 8.0])
     ap.add_argument("--queries", nargs="+", default=["views"],
                     choices=["views", "lights", "screen"])
+    ap.add_argument("--min-light-depth", type=int, default=1,
+                    help="render.lsg.min_light_depth (1: the caustic lighting segments only)")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--no-copy", action="store_true")
     ap.add_argument("--record", default="lsg_gather",
@@ -81,7 +84,8 @@ def main() -> None:
     runs: dict[tuple, list[dict]] = {c: [] for c in configs}
     for _ in range(args.repeats):
         for n, ls, sp, q in configs:
-            runs[n, ls, sp, q].append(run(Path(args.scene), tuple(args.size), n, ls, sp, q))
+            runs[n, ls, sp, q].append(run(Path(args.scene), tuple(args.size), n, ls, sp, q,
+                                             args.min_light_depth))
             print(f"rays {n}, leaf_size {ls}, spatial_split {sp:g}, queries {q}: gather "
                   f"{runs[n, ls, sp, q][-1]['gather_seconds']:.2f} s", file=sys.stderr)
     rows = []
@@ -95,7 +99,7 @@ def main() -> None:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
                             capture_output=True, text=True).stdout.strip()
     record = {"scene": Path(args.scene).name, "size": args.size, "rays": args.rays,
-              "queries": args.queries,
+              "queries": args.queries, "min_light_depth": args.min_light_depth,
               "commit": commit, "machine": platform.processor() or platform.machine(),
               "device": next(iter(runs.values()))[0]["device"], "rows": rows}
     out = ROOT / "bench_out" / f"{args.record}.json"
