@@ -326,6 +326,21 @@ def build_view_tree(engine: Engine, views: np.ndarray, idx: np.ndarray,
                     int(sum(x.nbytes for x in host.values()) + SCATTER_BYTES * n))
 
 
+@dataclass
+class ScreenSide:
+    """What ``queries = "screen"`` keeps for a set of view segments: those on the camera's
+    rays in screen ``cells``, the indices of the others (``rest``) and a device copy of
+    them (``rest_buf``)."""
+
+    cells: ScreenCells
+    rest: np.ndarray
+    rest_buf: object
+
+    def release(self, engine) -> None:
+        self.cells.release(engine)
+        engine.free(self.rest_buf)
+
+
 def phase_max(g: float) -> float:
     """The largest value of the Henyey-Greenstein phase function with parameter ``g``:
     ``(1 + |g|) / (4 pi (1 - |g|)^2)`` (forward for g > 0, backward for g < 0)."""
@@ -506,7 +521,8 @@ class Gatherer:
         segments from the side with fewer segments (a tree over them, or one over the
         lighting segments queried by them alone)."""
         with t_build:
-            sc, rest, rest_buf = self._screen()
+            side = self._screen()
+            sc, rest, rest_buf = side.cells, side.rest, side.rest_buf
             rest_from_views = 0 < len(rest) <= len(clipped[0])
             vt = None if len(rest) == 0 or rest_from_views else self._view_tree(rest)
         res = self._add_from_lights(segs, clipped, vt, sc, t_build, t_gather)
@@ -685,10 +701,10 @@ class Gatherer:
             return list(vt.bufs.values()), vt
         return self._kept("tree" if rest is None else "rest_tree", build)
 
-    def _screen(self) -> tuple[ScreenCells, np.ndarray, object]:
+    def _screen(self) -> ScreenSide:
         """The active view segments of this gatherer's region on the camera's rays in
         :class:`ScreenCells`, the indices of the others and a device copy of them."""
-        def build() -> tuple[list, tuple[ScreenCells, np.ndarray, object]]:
+        def build() -> tuple[list, ScreenSide]:
             idx = self._active_region()
             ray, reach = on_camera_rays(self.views[idx], self.camera)
             sc = build_screen_cells(self.eng, self.views, idx[ray], self.camera, reach,
@@ -696,7 +712,7 @@ class Gatherer:
             rest = idx[~ray].astype(np.int32)
             rest_buf = self.eng.to_device(rest if len(rest) else np.zeros(1, np.int32))
             self.eng.note_host(sc.nbytes + rest.nbytes)
-            return [*sc.bufs.values(), rest_buf], (sc, rest, rest_buf)
+            return [*sc.bufs.values(), rest_buf], ScreenSide(sc, rest, rest_buf)
         return self._kept("screen", build)
 
     def _clear_pair_count(self) -> None:
@@ -723,7 +739,7 @@ class Gatherer:
     def screen_segments(self) -> int:
         """View segments this gatherer keeps in screen cells (``queries = "screen"``: those
         on the camera's rays, over the sample groups gathered so far)."""
-        return sum(kept[0].count for (part, _), kept in self._view_trees.items()
+        return sum(kept.cells.count for (part, _), kept in self._view_trees.items()
                    if part == "screen")
 
     @property
@@ -750,11 +766,7 @@ class Gatherer:
         self._groups.clear()
         if self._derived is None:
             for kept in self._view_trees.values():
-                if isinstance(kept, tuple):                  # _screen's
-                    kept[0].release(self.eng)
-                    self.eng.free(kept[2])
-                else:
-                    kept.release(self.eng)
+                kept.release(self.eng)
         self._view_trees.clear()
 
 
