@@ -41,6 +41,7 @@ import numpy as np
 from .io.stats import Stats, progress
 
 PLUGIN_NAME = "clscatter"
+CONNECT_TIMEOUT = "10s"      # how long joining a scheduler at an address may take
 
 
 def _plugin_base():
@@ -166,7 +167,7 @@ class Cluster:
         self._local = None
         if address:
             try:
-                self.client = Client(address, timeout="10s")
+                self.client = Client(address, timeout=CONNECT_TIMEOUT)
             except ValueError as e:      # malformed: an unknown scheme, no port
                 raise ClscatterError(f"--cluster {address}: not a scheduler address "
                                      f"({e})") from None

@@ -98,13 +98,15 @@ def test_cli_workers_renders_the_local_image_on_a_cluster(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("address", ["foo://host:8786", "no-port-here", "tcp://127.0.0.1:{port}"])
-def test_cli_bad_cluster_address_is_one_line_exit_2(tmp_path, capsys, address):
+def test_cli_bad_cluster_address_is_one_line_exit_2(tmp_path, capsys, monkeypatch, address):
     """``--cluster ADDRESS`` that is malformed or where no scheduler listens: one line
     naming the address, exit status 2, nothing written. (The unreachable one waits for the
-    client's 10 s connection timeout.)"""
+    client's connection timeout, shortened here.)"""
     import socket
 
+    from clscatter import cluster
     from clscatter.cli import main
+    monkeypatch.setattr(cluster, "CONNECT_TIMEOUT", "2s")
 
     if "{port}" in address:
         with socket.socket() as sock:              # a port that nothing listens on

@@ -20,7 +20,7 @@ from method_scenes import scene_for
 from setup_installs import setup_installs_here
 
 TINY = ["camera.resolution=[12,9]", "camera.spp=1", "render.lsg.light_rays=2000",
-        "render.vpm.photons=5000", "render.raymap.photons=1000", "render.photonmap.photons=1000",
+        "render.vpm.photons=1500", "render.raymap.photons=250", "render.photonmap.photons=250",
         "render.raymap.passes=2", "render.photonmap.passes=2",
         "render.voxel.resolution=8", "render.voxel.photons=256",
         "render.voxel.outer_resolution=8", "render.epipolar.shadow_map=64",

@@ -252,10 +252,13 @@ def test_newer_change_cancels_the_render_in_flight(server, page):
     assert worker.cancels == 1
 
 
-def test_choosing_a_method_on_the_page_reaches_the_render(page):
+def test_choosing_a_method_on_the_page_reaches_the_render(page, monkeypatch):
     """The page's *Method* menu sends ``render.method="NAME"`` (mode full, as app.js does):
     the state, the preview and the full frame all say the chosen method ran; choosing the
-    first one again goes back."""
+    first one again goes back. (One refine round after lsg's full frame: the rounds are
+    test_progressive_passes_refine_after_the_full_frame's.)"""
+    from clscatter.serve import app as app_mod
+    monkeypatch.setattr(app_mod, "REFINE_ROUNDS", 1)
     js = (REPO / "clscatter" / "serve" / "static" / "app.js").read_text()
     assert '`render.method="${$("method").value}"`' in js     # what the menu sends
     methods = page.hello["state"]["methods"]

@@ -191,10 +191,13 @@ def test_drag_light_type_sigma_and_screenshot(tmp_path):
         print(f"screenshot: {shot}")
 
 
-def test_notes_that_leave_light_out_are_shown():
+def test_notes_that_leave_light_out_are_shown(monkeypatch):
     """raymarch on the glass scene leaves its caustics out: the page shows the command
-    line's note above the image, and hides it again once ``auto`` (which adds them) ran."""
+    line's note above the image, and hides it again once ``auto`` (which adds them) ran
+    (one refine round after its full frame, not the page's usual rounds)."""
     from clscatter.pipeline.planner import DROPS_LIGHT
+    from clscatter.serve import app as app_mod
+    monkeypatch.setattr(app_mod, "REFINE_ROUNDS", 1)
 
     tiny = ["camera.resolution=[32,24]", "camera.spp=1", 'render.method="raymarch"',
             "render.raymarch.steps=16"]
