@@ -11,6 +11,7 @@ cell (:mod:`.screen_cells`) and every lighting segment visits the cells it cross
 (:class:`Gatherer`'s ``queries``)."""
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -519,32 +520,45 @@ class Gatherer:
     def _add_from_screen(self, segs, clipped, t_build: Timer, t_gather: Timer) -> ChunkResult:
         """The camera's rays in screen cells from the lighting side; the other view
         segments from the side with fewer segments (a tree over them, or one over the
-        lighting segments queried by them alone)."""
+        lighting segments queried by them alone). A tree over the lighting segments is
+        built on a host thread while the device splats them over the cells."""
         with t_build:
             side = self._screen()
             sc, rest, rest_buf = side.cells, side.rest, side.rest_buf
             rest_from_views = 0 < len(rest) <= len(clipped[0])
             vt = None if len(rest) == 0 or rest_from_views else self._view_tree(rest)
-        res = self._add_from_lights(segs, clipped, vt, sc, t_build, t_gather)
         if not rest_from_views:
-            return res
+            return self._add_from_lights(segs, clipped, vt, sc, t_build, t_gather)
+        t_wait = Timer()        # the tree's time beyond the splat's (the rest is hidden)
+        pool = ThreadPoolExecutor(1)
+        try:
+            building = pool.submit(prepare_lines, segs, self.lo, self.hi, self.radius,
+                                   self.medium["kappa"][0], self.leaf_size, self.frame,
+                                   self.spatial_split, clipped)
+            res = self._add_from_lights(segs, clipped, None, sc, t_build, t_gather)
+            with t_wait:
+                prep = building.result()
+        finally:                # a cancelled render does not wait for the tree
+            pool.shutdown(wait=False)
         scale = self._group[2] if self._group is not None else 1.0
-        more = self._add_from_views(segs, clipped, False, Timer(), Timer(),
-                                    group=(rest_buf, len(rest), scale))
+        more = self._add_from_views(segs, clipped, False, t_wait, Timer(),
+                                    group=(rest_buf, len(rest), scale), prep=prep)
         return res.plus(more, same_segments=True)
 
     def _add_from_views(self, segs, clipped, bruteforce: bool, t_build: Timer,
-                        t_gather: Timer, group: tuple | None = None) -> ChunkResult:
-        """A tree over the lighting segments, a query per view segment (``lsg_gather``);
-        ``group``: (index buffer, count, scale) of the view segments that query, instead
-        of the selected group's (or all)."""
+                        t_gather: Timer, group: tuple | None = None,
+                        prep: PreparedLines | None = None) -> ChunkResult:
+        """A tree over the lighting segments (``prep``: built already), a query per view
+        segment (``lsg_gather``); ``group``: (index buffer, count, scale) of the view
+        segments that query, instead of the selected group's (or all)."""
         eng = self.eng
         kappa = self.medium["kappa"][0]
         # bruteforce: a one-leaf tree (the lines in input order, clipped like the tree's)
         leaf = 1 << 62 if bruteforce else self.leaf_size
-        with t_build:
-            prep = prepare_lines(segs, self.lo, self.hi, self.radius, kappa, leaf, self.frame,
-                                 self.spatial_split, clipped)
+        if prep is None:
+            with t_build:
+                prep = prepare_lines(segs, self.lo, self.hi, self.radius, kappa, leaf,
+                                     self.frame, self.spatial_split, clipped)
         with t_gather:
             eng.note_host(prep.nbytes)
             lines_buf = eng.to_device(prep.lines)
