@@ -77,7 +77,9 @@ def parse(data: dict, source: str = "keyframes") -> list[tuple[int, dict[str, An
 
 def frames(keyframes: list[tuple[int, dict[str, Any]]]) -> list[list[str]]:
     """Every frame's overrides (``key=value`` strings) from sorted ``keyframes``."""
-    from .scene.builtin.toml_writer import toml_value   # the command line starts without it
+    from .scene.builtin.toml_writer import (
+        toml_value,  # the command line starts without it
+    )
     count = keyframes[-1][0] + 1
     names = sorted({name for _, values in keyframes for name in values})
     tracks = {name: [(f, v[name]) for f, v in keyframes if name in v] for name in names}
@@ -100,7 +102,7 @@ def _at(track: list[tuple[int, Any]], frame: int) -> Any:
 
 def load(path: str | Path) -> list[list[str]]:
     """The frames of keyframe file ``path`` (:func:`parse`, then :func:`frames`)."""
-    from .scene.loader import read_toml       # the command line starts without the loader
+    from .scene.loader import read_toml  # the command line starts without the loader
     if not Path(path).is_file():
         raise ClscatterError(f"{path}: keyframe file not found")
     return frames(parse(read_toml(path), str(path)))

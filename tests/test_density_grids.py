@@ -27,13 +27,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from reference_checks import assert_matches_reference
+from setup_installs import setup_installs_here
 
 import clscatter
 from clscatter.errors import SceneError
 from clscatter.scene import grids
 from clscatter.scene.loader import scene_from_dict
-from reference_checks import assert_matches_reference
-from setup_installs import setup_installs_here
 
 REPO = Path(__file__).resolve().parents[1]
 HAVE_VDB = grids.openvdb() is not None
@@ -195,6 +195,7 @@ def test_sparse_vdb_with_tiles_and_empty_space(tmp_path):
 def test_shipped_smoke_vdb_equals_npy_and_the_tool_reproduces_them():
     sys.path.insert(0, str(REPO / "tools"))
     import make_smoke
+
     from clscatter.scene.builtin.smoke import DATA_DIR, SMOKE_BOUNDS
     npy = np.load(DATA_DIR / "smoke.npy")
     assert np.array_equal(make_smoke.plume(), npy)

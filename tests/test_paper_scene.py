@@ -13,7 +13,12 @@ from conftest import MODELS
 from clscatter.pipeline.render import render
 from clscatter.scene import load_scene, scene_from_dict
 from clscatter.scene.builtin import BUILTIN
-from clscatter.scene.builtin.paper import BUNNY, BUNNY_TRIANGLES, BUNNY_VERTICES, paper_bunny
+from clscatter.scene.builtin.paper import (
+    BUNNY,
+    BUNNY_TRIANGLES,
+    BUNNY_VERTICES,
+    paper_bunny,
+)
 from clscatter.scene.shapes import read_obj
 
 

@@ -33,12 +33,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from bias_scenes import Z, concave_corner, convex_corner, wave, wave_dy, wave_y
 
 from clscatter.estimators.knn_queries import RayMap
 from clscatter.estimators.ray_density import DensitySettings, estimate
 from clscatter.estimators.segment_tree import TreeParams
-
-from bias_scenes import Z, concave_corner, convex_corner, wave, wave_dy, wave_y
 
 N_RAYS, K, REF_FACTOR = 100_000, 200, 50
 Z_EVAL = 0.35        # estimates (and the wave's reference) over |z| <= Z_EVAL: the source is finite in z

@@ -10,10 +10,10 @@ import pytest
 from clscatter.estimators.knn_queries import (
     RayMap,
     intersect,
-    kth_end_distance,
     knn,
     knn_lists,
     knn_np,
+    kth_end_distance,
     meets_np,
 )
 from clscatter.estimators.ray_density import lazy_radius

@@ -525,8 +525,8 @@ def test_a_converted_mitsuba_scene_logs_its_notes(tmp_path, caplog):
     server's log, one warning a note (as the command line prints it)."""
     import logging
 
-    from clscatter.scene.mitsuba_out import write_xml
     from clscatter.scene.builtin import BUILTIN
+    from clscatter.scene.mitsuba_out import write_xml
     from clscatter.serve.app import open_session
 
     xml = tmp_path / "scene.xml"
@@ -567,8 +567,9 @@ def test_keyframes_reach_the_page_and_a_frame_sets_its_keys(tmp_path):
     assert not np.array_equal(first, last)
     with RenderSession.from_source(SPEC, TINY + frames[2]) as s:
         fresh = s.render(show_progress=False)
-    from clscatter.serve.app import png_bytes
     from PIL import Image
+
+    from clscatter.serve.app import png_bytes
     want = np.asarray(Image.open(io.BytesIO(png_bytes(fresh.image))).convert("RGB"))
     assert np.abs(last.astype(int) - want.astype(int)).max() <= 1
     out = subprocess.run([sys.executable, "-m", "clscatter", "serve", SPEC, "--port", "0",

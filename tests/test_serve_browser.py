@@ -21,7 +21,6 @@ import numpy as np
 import pytest
 from setup_installs import setup_installs_here as browser_required
 
-
 REQUIRED = browser_required()
 if REQUIRED:             # installed by scripts/setup.sh: an ImportError fails here
     import playwright.sync_api  # noqa: F401

@@ -15,6 +15,7 @@ from reference_checks import assert_matches_reference
 from scipy.spatial import cKDTree
 
 from clscatter.device import structs
+from clscatter.estimators.segment_tree import POINT_NODE, leaf_ranges
 from clscatter.io.stats import Stats
 from clscatter.methods.vpm import (
     DevicePhotonMap,
@@ -23,7 +24,6 @@ from clscatter.methods.vpm import (
     gather,
     knn_points,
 )
-from clscatter.estimators.segment_tree import POINT_NODE, leaf_ranges
 from clscatter.methods.vpm import photons as pt
 from clscatter.scene import scene_from_dict
 from clscatter.transport.prepared import prepare_scene

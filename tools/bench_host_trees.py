@@ -112,6 +112,7 @@ def _threads(fn, repeats: int) -> dict:
 
 def refinement(repeats: int) -> list[dict]:
     import bench_surface_equal_time as surface
+
     from clscatter.pipeline.render import render
     from clscatter.scene import scene_from_dict
 

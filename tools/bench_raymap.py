@@ -303,6 +303,7 @@ def boundary_run(eng, est: str, gen, n: int, seed: int, pts, nrm, exact, dist) -
     """One estimate of ``est`` from ``n`` rays of ``gen`` at every query point, repeated at
     48 places along z: seconds (map + queries) and the errors named in the module doc."""
     from bias_scenes import Z
+
     from clscatter.estimators.knn_queries import RayMap
     zs = np.linspace(-0.7 * Z, 0.7 * Z, 48)               # the sources are finite in z
     q = np.repeat(pts, len(zs), axis=0)

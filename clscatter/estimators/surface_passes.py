@@ -43,8 +43,14 @@ import numpy as np
 from ..io.stats import Stats
 from ..transport.view_paths import DeviceSegments, trace_diffuse_hits_on_device
 from .disc_splat import HitDiscs
-from .ray_density import (DensitySettings, caustic_pieces, hit_irradiance, pass_image,
-                          read_hits, weighed_image)
+from .ray_density import (
+    DensitySettings,
+    caustic_pieces,
+    hit_irradiance,
+    pass_image,
+    read_hits,
+    weighed_image,
+)
 
 #: under a deadline a pass has at least this many rays (or all of them, if fewer) and at
 #: most RESIZE times (or 1 / RESIZE of) the rays of the pass its cost was measured on

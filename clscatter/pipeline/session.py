@@ -46,7 +46,6 @@ from ..scene.builtin import to_toml
 from ..scene.loader import apply_overrides, scene_from_dict, scene_source
 from ..scene.model import Scene
 from ..transport.context import PassCache, PassContext
-from ..transport.progressive import Cancelled, relmse_estimate
 from ..transport.prepared import (
     PreparedScene,
     geometry_key,
@@ -54,6 +53,7 @@ from ..transport.prepared import (
     refresh,
     same_frame,
 )
+from ..transport.progressive import Cancelled, relmse_estimate
 from ..transport.view_paths import ViewPaths, shade_hits, trace_view_paths
 from . import budget, calibration
 from .check import check, scene_notes

@@ -12,7 +12,13 @@ from typing import Any
 
 import numpy as np
 
-from ..geometry import PARITY_RAY, box_corners, open_edges, perpendicular_axes, ray_crossings
+from ..geometry import (
+    PARITY_RAY,
+    box_corners,
+    open_edges,
+    perpendicular_axes,
+    ray_crossings,
+)
 
 RGB = np.ndarray  # shape (3,), float64
 

@@ -36,7 +36,13 @@ from ...geometry import box_corners, perpendicular_axes
 from ...transport import primitives as prim
 from .grid import GridBox
 from .octree import Octree, build_octree
-from .voxelise import SMOOTH_TAPS, blur_buffers, gradient, interior_gradient, medium_at_centres
+from .voxelise import (
+    SMOOTH_TAPS,
+    blur_buffers,
+    gradient,
+    interior_gradient,
+    medium_at_centres,
+)
 
 
 @dataclass
