@@ -248,6 +248,21 @@ def test_a_share_of_the_render_budget_holds_its_overrun_note(caustic, monkeypatc
     _report_budget(Stats(), _Budget(10.0, "auto's default", now - 100.0, now - 90.0),
                    out.append, [])
     assert len(out) == 1 and "the render took" in out[0]     # no pass's note: the stage
+    # the work before the progressive passes used the budget: one line names the longest
+    # of it (a stage before the passes, or a pass that had time) and the passes left none
+    st = Stats()
+    out = []
+    _report_budget(st, _Budget(1.0, "render.time_budget", now - 4.0, now - 3.0), out.append,
+                   [], {"view_paths": 0.2, "device": 0.4},
+                   [("raymarch", 1.25, False), ("raymap", 1.5, True), ("lsg", 0.62, True)])
+    assert len(out) == 1 and st.values["notes"] == out
+    assert "raymarch alone took 1.25 s" in out[0]
+    assert out[0].endswith("after it raymap and lsg had no time left and ran their smallest "
+                           "passes (1.5 s, 0.62 s)")
+    out = []
+    _report_budget(Stats(), _Budget(1.0, "render.time_budget", now - 9.0, now - 8.0),
+                   out.append, [], {"view_paths": 6.0}, [("raymarch", 1.25, False)])
+    assert len(out) == 1 and "view_paths alone took 6 s" in out[0] and "after it" not in out[0]
 
 
 def test_render_level_budget_and_error_estimate(engine):

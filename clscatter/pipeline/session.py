@@ -308,6 +308,8 @@ class RenderSession:
             return base() + added + medium
 
         overruns: list[str] = []                       # passes' first passes past their share
+        shared = dict(stats.stages)                    # the work before the passes
+        ran: list[tuple[str, float, bool]] = []        # (method, seconds, had no time left)
         for k in order:
             p = run.req.passes[k]
             run.stop_if_asked()
@@ -315,9 +317,12 @@ class RenderSession:
             table = {**p.table(scene), **run.pass_params.get(k, {})}
             method = cls(cls.preview(table) if run.preview else table)
             deadline = None
+            starved = False
             if cls.PROGRESSIVE and run.budget.deadline is not None:
                 now = time.perf_counter()
-                deadline = now + max(run.budget.deadline - now, 0.0) / progressive_left
+                left = max(run.budget.deadline - now, 0.0)
+                starved = left <= 0.0
+                deadline = now + left / progressive_left
                 progressive_left -= 1
             t0 = time.perf_counter()
             with PassContext(run.ps, run.paths, stats, run.show_progress,
@@ -327,7 +332,9 @@ class RenderSession:
                              hold_overruns=True) as ctx:
                 out = method.render(ctx)
                 err = ctx.errors()
-            overruns += ctx.overruns or []
+            if not starved:             # a pass with no time left says so in the budget's note
+                overruns += ctx.overruns or []
+            ran.append((p.method, time.perf_counter() - t0, starved))
             if deadline is None and not run.preview and run.only is None:
                 _calibrate(run, p.method, time.perf_counter() - t0)
             run.ran.append(p.method)
@@ -344,7 +351,7 @@ class RenderSession:
         with stats.stage("compose"):
             image = _finite(surface + medium, stats, run.on_note)
         _report_error(stats, errors, image, scene.render.target_error, run.on_note)
-        _report_budget(stats, run.budget, run.on_note, overruns)
+        _report_budget(stats, run.budget, run.on_note, overruns, shared, ran)
         result = self._result(run, image, surface, medium)
         result.parts = {k: np.asarray(v, np.float32) for k, v in parts.items()
                         if isinstance(v, np.ndarray)}
@@ -545,12 +552,17 @@ def _report_error(stats: Stats, errors: tuple | None, image: np.ndarray,
                 f"{target:g}, when the passes stopped (raise render.time_budget to go on)")
 
 
-def _report_budget(stats: Stats, b: _Budget, on_note, overruns: list[str]) -> None:
+def _report_budget(stats: Stats, b: _Budget, on_note, overruns: list[str],
+                   shared: dict[str, float] | None = None,
+                   ran: list[tuple[str, float, bool]] = ()) -> None:
     """A note when the render ran past its time budget by more than BUDGET_SLACK: the
     passes' own notes where a first pass alone broke its share of the budget
-    (``overruns``: what could not be made smaller), or else the stage that took longest.
-    Within the budget a pass that overran its share says nothing: the others made up
-    for it."""
+    (``overruns``: what could not be made smaller); or else one line naming the longest
+    work that does not shrink with the budget, among the stages before the passes
+    (``shared``: their seconds) and the passes (``ran``: method, seconds, and whether a
+    progressive pass found no time left), and the progressive passes that then had none
+    (each still runs its smallest pass). Within the budget a pass that overran its share
+    says nothing: the others made up for it."""
     if b.deadline is None:
         return
     took = time.perf_counter() - b.started
@@ -561,11 +573,18 @@ def _report_budget(stats: Stats, b: _Budget, on_note, overruns: list[str]) -> No
             stats.note(line)
             on_note(line)
         return
-    stages = stats.stages
-    name = max(stages, key=stages.get) if stages else "the render"
-    on_note(f"{b.source}: the render took {took:.3g} s of its {b.seconds:g} s budget; "
-            f"{name} alone took {stages.get(name, took):.3g} s (work that does not shrink "
+    fixed = dict(shared if shared is not None else stats.stages)
+    fixed.update((m, s) for m, s, starved in ran if not starved)
+    name = max(fixed, key=fixed.get) if fixed else "the render"
+    line = (f"{b.source}: the render took {took:.3g} s of its {b.seconds:g} s budget; "
+            f"{name} alone took {fixed.get(name, took):.3g} s (work that does not shrink "
             f"with the budget: lower the resolution, spp or that stage's parameters)")
+    late = [(m, s) for m, s, starved in ran if starved]
+    if late:
+        line += (f"; after it {' and '.join(m for m, _ in late)} had no time left and ran "
+                 f"their smallest passes ({', '.join(f'{s:.3g} s' for _, s in late)})")
+    stats.note(line)
+    on_note(line)
 
 
 def _finite(image: np.ndarray, stats: Stats, on_note) -> np.ndarray:
