@@ -10,11 +10,14 @@ import pytest
 import trimesh
 from conftest import MODELS
 
+from clscatter.geometry import open_edges
+from clscatter.pipeline.check import scene_notes
 from clscatter.pipeline.render import render
 from clscatter.scene import load_scene, scene_from_dict
 from clscatter.scene.builtin import BUILTIN
 from clscatter.scene.builtin.paper import (
     BUNNY,
+    BUNNY_CLOSED_TRIANGLES,
     BUNNY_TRIANGLES,
     BUNNY_VERTICES,
     paper_bunny,
@@ -37,12 +40,14 @@ def test_mesh_file_is_the_stanford_bunny():
 def test_scene_loads_at_the_papers_scale():
     assert "paper_bunny" in BUILTIN
     s = load_scene("builtin:paper_bunny")
-    assert s.triangle_count() == BUNNY_TRIANGLES + 2        # the bunny and the floor quad
+    assert s.triangle_count() == BUNNY_CLOSED_TRIANGLES + 2  # the bunny and the floor quad
     assert (s.camera.width, s.camera.height, s.camera.spp) == (512, 512, 4)
     assert paper_bunny()["render"]["lsg"]["light_rays"] >= 1_000_000
     assert sorted(light.type for light in s.lights) == ["point", "spot"]
     bunny = s.objects[1]
-    assert len(bunny.faces) == BUNNY_TRIANGLES and bunny.normals is not None
+    assert len(bunny.faces) == BUNNY_CLOSED_TRIANGLES == BUNNY_TRIANGLES + 213
+    assert open_edges(bunny.faces) == 0 and bunny.normals is not None    # holes closed
+    assert not [n for n in scene_notes(s) if "not closed" in n]
     assert bunny.material.type == "dielectric" and bunny.material.ior == pytest.approx(1.5)
     lo, hi = bunny.vertices.min(0), bunny.vertices.max(0)
     assert hi[1] - lo[1] == pytest.approx(1.0, abs=0.01)    # about a unit tall

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Benchmark: the paper-scale scene ``paper_bunny`` (a 69,451-triangle glass bunny, 1 M
+"""Benchmark: the paper-scale scene ``paper_bunny`` (a 69,664-triangle glass bunny, 1 M
 lighting rays, 512 x 512 at 4 spp), laid out like Table 1 of the LSG paper (Sun et al.
 2010: scenes of 43K-93K triangles, 0.7-8.9 M lighting rays, 512 x 512 with 2 x 2
 supersampling; LSG 26-73 min at 229-404 MB where VPM took 7-14 h at 4.5-7.1 GB).

@@ -63,7 +63,8 @@ def _open_surface_notes(scene: Scene) -> list[str]:
         n = open_edges(faces)
         if n:
             notes.append(f"{key}: its surface is not closed ({n} open edges): glass and "
-                         "volumes need a closed surface; light crossing the gaps is wrong")
+                         "volumes need a closed surface; light crossing the gaps is wrong "
+                         "(close_holes = true on a mesh fills its holes)")
     return notes
 
 

@@ -31,8 +31,9 @@ render                      method "auto", max_depth 16, seed 0, time_budget abs
 ==========================  ======================================================
 
 Extensions (keys not in the contract, documented here): ``subdivisions`` on spheres
-(icosphere levels, 0..7, default 4 = 5120 triangles) and ``smooth`` on meshes (bool,
-default false: per-vertex normals from the file or area-weighted, for smooth shading).
+(icosphere levels, 0..7, default 4 = 5120 triangles), and ``smooth`` (bool, default
+false: per-vertex normals from the file or area-weighted, for smooth shading) and
+``close_holes`` (bool, default false: the holes of an open surface triangulated) on meshes.
 """
 from __future__ import annotations
 
@@ -82,7 +83,7 @@ MATERIAL_KEYS = {
     "black": ("type",),
 }
 SHAPE_KEYS = {
-    "mesh": ("file", "smooth"),
+    "mesh": ("file", "smooth", "close_holes"),
     "sphere": ("center", "radius", "subdivisions"),
     "box": ("min", "max"),
     "quad": ("origin", "edge_u", "edge_v"),
@@ -397,7 +398,8 @@ def _shape_geometry(t: _Table, shape: str, base_dir: Path) -> shapes.Mesh:
     if shape == "mesh":
         file = t.string("file")
         smooth = t.boolean("smooth", False)
-        mesh = shapes.load_mesh(base_dir / file, t.k("file"), smooth)
+        mesh = shapes.load_mesh(base_dir / file, t.k("file"), smooth,
+                                t.boolean("close_holes", False))
     elif shape == "sphere":
         center = t.vec3("center")
         radius = t.number("radius", lo=0.0, lo_open=True)

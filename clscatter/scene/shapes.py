@@ -10,7 +10,8 @@ are per-vertex unit shading normals for smooth shapes, None for flat shading.
 * ``quad``    2 triangles origin, origin + edge_u, origin + edge_u + edge_v, origin + edge_v
   (geometric normal edge_u x edge_v; the quad is two-sided anyway), flat.
 * ``mesh``    OBJ files read with NumPy, any other format trimesh reads (vertices merged),
-  flat unless ``smooth`` (area-weighted vertex normals).
+  flat unless ``smooth`` (area-weighted vertex normals); ``close_holes`` triangulates the
+  holes of an open surface (``hole_fill.py``).
 
 A transform ``{translate, rotate = [ax, ay, az, degrees], scale}`` is applied in the order
 scale, rotate, translate (M = T R S). Normals go through the inverse transpose of the
@@ -25,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SceneError
+from .hole_fill import fill_holes
 from .ply import read_ply
 
 Mesh = tuple[np.ndarray, np.ndarray, "np.ndarray | None"]
@@ -158,23 +160,25 @@ _MESH_CACHE: dict[tuple, Mesh] = {}
 _MESH_CACHE_SIZE = 8
 
 
-def load_mesh(path: Path, key: str, smooth: bool = False) -> Mesh:
+def load_mesh(path: Path, key: str, smooth: bool = False, close_holes: bool = False) -> Mesh:
     """Load any mesh trimesh reads (OBJ and PLY by this package's own readers, which do not
-    import trimesh); SceneError ``key`` naming the file on any failure.
+    import trimesh); SceneError ``key`` naming the file on any failure. ``close_holes``:
+    every hole (a loop of edges that one triangle alone uses) triangulated
+    (:func:`~clscatter.scene.hole_fill.fill_holes`) before the normals are formed.
 
-    Parsed meshes are cached by (path, size, mtime, smooth), so a relighting session that
-    re-validates its scene after each change does not parse the file again."""
+    Parsed meshes are cached by (path, size, mtime, smooth, close_holes), so a relighting
+    session that re-validates its scene after each change does not parse the file again."""
     path = Path(path)
     if not path.exists():
         raise SceneError(key, f"mesh file not found: {path}")
     if not path.is_file():
         raise SceneError(key, f"mesh path is not a file: {path}")
     st = path.stat()
-    ck = (str(path.resolve()), st.st_size, st.st_mtime_ns, bool(smooth))
+    ck = (str(path.resolve()), st.st_size, st.st_mtime_ns, bool(smooth), bool(close_holes))
     if ck not in _MESH_CACHE:
         if len(_MESH_CACHE) >= _MESH_CACHE_SIZE:
             _MESH_CACHE.pop(next(iter(_MESH_CACHE)))
-        _MESH_CACHE[ck] = _read_mesh(path, key, smooth)
+        _MESH_CACHE[ck] = _read_mesh(path, key, smooth, close_holes)
     v, f, n = _MESH_CACHE[ck]
     return v.copy(), f.copy(), None if n is None else n.copy()
 
@@ -224,7 +228,7 @@ def vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     return _normalise_rows(n)
 
 
-def _read_mesh(path: Path, key: str, smooth: bool) -> Mesh:
+def _read_mesh(path: Path, key: str, smooth: bool, close_holes: bool = False) -> Mesh:
     try:
         suffix = path.suffix.lower()
         read = read_obj(path) if suffix == ".obj" else read_ply(path) if suffix == ".ply" else None
@@ -248,6 +252,8 @@ def _read_mesh(path: Path, key: str, smooth: bool) -> Mesh:
     if f.min() < 0 or f.max() >= len(v):
         raise SceneError(key, f"mesh {path} has faces that index missing vertices")
     v, f = _merge_vertices(v, f)
+    if close_holes:
+        v, f, _ = fill_holes(v, f)
     n = vertex_normals(v, f) if smooth else None
     return v, f, n
 
