@@ -403,6 +403,9 @@ def test_calibration_learns_seconds_per_unit_of_work(tmp_path, monkeypatch, caps
     out = capsys.readouterr().out
     line = next(ln for ln in out.splitlines() if ln.startswith("estimate raymarch"))
     assert "s on this device" in line
+    lines = [ln for ln in out.splitlines() if ln.startswith("estimate ")]
+    assert [ln.split()[1] for ln in lines] == ["view_paths:", "scene:", "raymarch:"]
+    assert all("s on this device" in ln for ln in lines), lines    # the scene's too
 
 
 def test_an_untracked_pass_is_timed_but_left_out_of_the_estimate():

@@ -225,7 +225,11 @@ class RenderSession:
                 self._release_spare()          # its segments' weights changed too
         else:
             self.release()
+            t0 = time.perf_counter()
             self._ps = prepare_scene(scene, engine, stats)
+            calibration.record(engine.device.name.strip(), "scene",
+                               sum(e.work for e in req.estimates if e.stage == "scene"),
+                               time.perf_counter() - t0)
             self._geometry = geometry
             ran.append("prepare_scene")
             self._pending = ["all"]
