@@ -53,9 +53,11 @@ structs.register_struct("lsg.h", "LsgLine", LSG_LINE)
 # key 8, node index 8, permutation 8, order 8), LsgLine (48) in input order and in tree
 # order on the host and again on the device, Plücker blocks (24) on the host and the
 # device, the id (4) and the tree's share (nodes, leaf ranges, order: < 24 host + 16
-# device) -- about 530. Used to plan chunks against max_bytes; the measured working set
-# of every chunk is reported as lsg_chunk_bytes_max.
-BYTES_PER_SEGMENT = 544
+# device) -- about 530. With screen queries the tree for the view segments off the
+# camera's rays is built while the splat's own arrays (LsgLine on the host and the device,
+# counts: about 120) are alive: about 550 then. Used to plan chunks against max_bytes; the
+# measured working set of every chunk is reported as lsg_chunk_bytes_max.
+BYTES_PER_SEGMENT = 560
 
 # Bytes one view segment costs in a kept view tree (queries from the lighting side): its
 # record (64), Plücker point (24), index (4), sums and count (SCATTER_BYTES, 32) and its
@@ -540,10 +542,16 @@ class Gatherer:
                 prep = building.result()
         finally:                # a cancelled render does not wait for the tree
             pool.shutdown(wait=False)
+        # both working sets at once while the tree was built beside the splat (the traced
+        # and clipped segments, which both count, once)
+        both = res.nbytes + prep.nbytes - int(segs.nbytes + 80 * len(segs))
+        self.eng.note_host(both)
         scale = self._group[2] if self._group is not None else 1.0
         more = self._add_from_views(segs, clipped, False, t_wait, Timer(),
                                     group=(rest_buf, len(rest), scale), prep=prep)
-        return res.plus(more, same_segments=True)
+        out = res.plus(more, same_segments=True)
+        out.nbytes = max(out.nbytes, both)
+        return out
 
     def _add_from_views(self, segs, clipped, bruteforce: bool, t_build: Timer,
                         t_gather: Timer, group: tuple | None = None,
