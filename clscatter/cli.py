@@ -453,7 +453,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
     for e in req.estimates:
         keys = e.key if e.work_by == e.key else f"{e.key}; work: {e.work_by}"
         print(f"estimate {e.stage}: {human_bytes(e.bytes)}, about {e.work:.2g} {e.unit} ({keys})"
-              + _predicted_time(device, e))
+              + _predicted_time(device, e, scene.source))
     max_memory = parse_bytes(args.max_memory) if args.max_memory is not None else None
     limit, source = memory_budget(device, max_memory)
     print(f"peak: about {human_bytes(peak_bytes(req.estimates))} of {human_bytes(limit)} ({source})")
@@ -467,14 +467,15 @@ def _cmd_check(args: argparse.Namespace) -> int:
     return 0
 
 
-def _predicted_time(device, e) -> str:
+def _predicted_time(device, e, source: str = "") -> str:
     """``; about N s on this device`` from earlier renders' measured rates
-    (:mod:`clscatter.pipeline.calibration`), or a word on why there is none."""
+    (:mod:`clscatter.pipeline.calibration`; those of the scene ``source`` where there are
+    any), or a word on why there is none."""
     from .pipeline.calibration import MIN_WORK, predict
     name = getattr(device, "name", None)
     if not isinstance(name, str) or e.work < MIN_WORK:
         return ""
-    seconds = predict(name.strip(), e.stage, e.work)
+    seconds = predict(name.strip(), e.stage, e.work, source)
     if seconds is None:
         return "; time not yet calibrated on this device (a render calibrates it)"
     return f"; about {seconds:.2g} s on this device (before any time budget)"

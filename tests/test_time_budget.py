@@ -366,6 +366,31 @@ def test_calibration_predicts_from_renders_of_a_like_size(tmp_path, monkeypatch)
     assert calibration.predict("dev", "lsg", 0.0) is None
 
 
+def test_calibration_prefers_the_asked_scenes_own_rates(tmp_path, monkeypatch):
+    """Two scenes whose estimates count the same work at rates 8x apart (one breaks its
+    lighting rays into many segments at glass): each scene's prediction comes from its own
+    measurements, even when the other's are newer and as near in size; a scene never
+    measured, or none named, gets the nearest of all. A file names its scene by its
+    absolute path; entries kept without a scene still count."""
+    from clscatter.pipeline import calibration
+    monkeypatch.setenv("CLSCATTER_COSTS", str(tmp_path / "costs.json"))
+    for _ in range(2):
+        calibration.record("dev", "lsg", 1e9, 16.0, "builtin:caustic_torus")
+    for _ in range(3):
+        calibration.record("dev", "lsg", 1e9, 2.0, "builtin:caustic_sphere")
+    assert calibration.predict("dev", "lsg", 1e9, "builtin:caustic_torus") == pytest.approx(16.0)
+    assert calibration.predict("dev", "lsg", 1e9, "builtin:caustic_sphere") == pytest.approx(2.0)
+    assert calibration.predict("dev", "lsg", 1e9, "builtin:glass") == pytest.approx(2.0)
+    assert calibration.predict("dev", "lsg", 1e9) == pytest.approx(2.0)
+    monkeypatch.chdir(tmp_path)
+    calibration.record("dev", "raymarch", 1e9, 5.0, "scene.toml")
+    assert calibration.predict("dev", "raymarch", 1e9, str(tmp_path / "scene.toml")) == 5.0
+    data = json.loads((tmp_path / "costs.json").read_text())
+    data["dev"]["vpm"] = [[1e9, 3.0]]                          # kept before scenes were named
+    (tmp_path / "costs.json").write_text(json.dumps(data))
+    assert calibration.predict("dev", "vpm", 1e9, "builtin:caustic_torus") == pytest.approx(3.0)
+
+
 def test_calibration_file_can_be_named(tmp_path, monkeypatch):
     """$CLSCATTER_COSTS names the calibration file (the suite's own: conftest.py), in place
     of costs.json in the cache folder."""

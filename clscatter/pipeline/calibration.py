@@ -11,9 +11,13 @@ A prediction takes the :data:`NEAR` kept measurements whose work is nearest the 
 work (by ratio; the newer first among equals) and multiplies the work by the median of
 their rates (seconds per unit; with an even count, the geometric mean of the middle two).
 A rate moves with the size of a render (fixed costs weigh more in a small one) and with
-the scene, and a single odd render (another program on the machine, a first compile)
-should not move the prediction: the nearest in size, and their median, keep it to the
-renders like the one asked about. Estimates are orders of magnitude, so the prediction is
+the scene (the estimates count a scene's work without tracing it: how many segments a
+lighting ray breaks into at glass, how many of them pass near the view rays), and a single
+odd render (another program on the machine, a first compile) should not move the
+prediction: the nearest in size, and their median, keep it to the renders like the one
+asked about. Each measurement also names its scene (``Scene.source``: the file or
+``builtin:NAME``); where measurements of the asked scene are kept, the prediction is made
+from those alone. Estimates are orders of magnitude, so the prediction is
 a guide, within a factor of a few, not a promise. The last :data:`KEEP` measurements are
 kept in ``costs.json`` beside the other cached results
 (:func:`clscatter.device.cache.cache_dir`), or in the file ``$CLSCATTER_COSTS`` names (the
@@ -54,18 +58,35 @@ def _load() -> dict:
         return {}
 
 
-def _measurements(entries) -> list[tuple[float, float]]:
-    """The ``(work, seconds)`` pairs among a stage's stored entries, oldest first."""
+def scene_key(source: str) -> str:
+    """What names a scene among the measurements: ``builtin:NAME`` as it is, a file by its
+    absolute path (the same file from any folder)."""
+    source = str(source)
+    if source.startswith(("builtin:", "<")):
+        return source
+    try:
+        return str(Path(source).resolve())
+    except (OSError, RuntimeError):
+        return source
+
+
+def _measurements(entries) -> list[tuple[float, float, str]]:
+    """The ``(work, seconds, scene)`` of a stage's stored entries, oldest first (scene ""
+    for an entry kept without one)."""
     out = []
     for e in entries if isinstance(entries, list) else []:
-        if (isinstance(e, list) and len(e) == 2 and all(isinstance(v, (int, float)) for v in e)
+        if not (isinstance(e, list) and len(e) in (2, 3)):
+            continue
+        scene = e[2] if len(e) == 3 else ""
+        if (all(isinstance(v, (int, float)) for v in e[:2]) and isinstance(scene, str)
                 and e[0] > 0 and e[1] > 0 and math.isfinite(e[0]) and math.isfinite(e[1])):
-            out.append((float(e[0]), float(e[1])))
+            out.append((float(e[0]), float(e[1]), scene))
     return out
 
 
-def record(device: str, stage: str, work: float, seconds: float) -> None:
-    """Keep ``(work, seconds)`` for ``stage`` on ``device`` (nothing for negligible work)."""
+def record(device: str, stage: str, work: float, seconds: float, scene: str = "") -> None:
+    """Keep ``(work, seconds)`` for ``stage`` on ``device``, measured on ``scene`` (its
+    source; nothing for negligible work)."""
     if not (work >= MIN_WORK and math.isfinite(work) and seconds > 0 and math.isfinite(seconds)):
         return
     data = _load()
@@ -73,7 +94,7 @@ def record(device: str, stage: str, work: float, seconds: float) -> None:
     if not isinstance(stages, dict):
         stages = data[device] = {}
     kept = [list(m) for m in _measurements(stages.get(stage))]
-    kept.append([float(work), float(seconds)])
+    kept.append([float(work), float(seconds), scene_key(scene) if scene else ""])
     stages[stage] = kept[-KEEP:]
     try:
         _path().parent.mkdir(parents=True, exist_ok=True)
@@ -84,13 +105,16 @@ def record(device: str, stage: str, work: float, seconds: float) -> None:
         pass
 
 
-def predict(device: str, stage: str, work: float) -> float | None:
-    """Seconds ``work`` of ``stage`` should take on ``device`` (see the module docstring);
-    None before any measurement."""
+def predict(device: str, stage: str, work: float, scene: str = "") -> float | None:
+    """Seconds ``work`` of ``stage`` should take on ``device`` for ``scene`` (its source;
+    see the module docstring); None before any measurement."""
     stages = _load().get(device, {})
     kept = _measurements(stages.get(stage) if isinstance(stages, dict) else None)
     if not kept or not work > 0:
         return None
+    key = scene_key(scene) if scene else ""
+    same = [m for m in kept if key and m[2] == key]
+    kept = same or kept
     newest_first = list(reversed(kept))
     near = sorted(range(len(newest_first)),
                   key=lambda i: (abs(math.log(newest_first[i][0] / work)), i))[:NEAR]

@@ -229,7 +229,7 @@ class RenderSession:
             self._ps = prepare_scene(scene, engine, stats)
             calibration.record(engine.device.name.strip(), "scene",
                                sum(e.work for e in req.estimates if e.stage == "scene"),
-                               time.perf_counter() - t0)
+                               time.perf_counter() - t0, scene.source)
             self._geometry = geometry
             ran.append("prepare_scene")
             self._pending = ["all"]
@@ -267,7 +267,7 @@ class RenderSession:
             ran.append("view_paths")
             calibration.record(engine.device.name.strip(), "view_paths",
                                sum(e.work for e in req.estimates if e.stage == "view_paths"),
-                               stats.stages.get("view_paths", 0.0))
+                               stats.stages.get("view_paths", 0.0), scene.source)
         else:
             reused.append("view_paths")
             stats.set(view_segments=int(len(self._paths)))
@@ -526,16 +526,18 @@ def _budget_order(cls) -> int:
 def _costs(run: "_Run"):
     """The (predict, learn) pair a pass context offers its method: this device's
     calibration (:mod:`clscatter.pipeline.calibration`) under the method's own stage names."""
-    device = run.ps.engine.device.name.strip()
-    return (lambda stage, work: calibration.predict(device, stage, work),
-            lambda stage, work, seconds: calibration.record(device, stage, work, seconds))
+    device, source = run.ps.engine.device.name.strip(), run.scene.source
+    return (lambda stage, work: calibration.predict(device, stage, work, source),
+            lambda stage, work, seconds: calibration.record(device, stage, work, seconds,
+                                                            source))
 
 
 def _calibrate(run: "_Run", stage: str, seconds: float) -> None:
     """Record a pass that ran in full against its estimated work
     (:mod:`clscatter.pipeline.calibration`)."""
     work = sum(e.work for e in run.req.estimates if e.stage == stage)
-    calibration.record(run.ps.engine.device.name.strip(), stage, work, seconds)
+    calibration.record(run.ps.engine.device.name.strip(), stage, work, seconds,
+                       run.scene.source)
 
 
 def _report_error(stats: Stats, errors: tuple | None, image: np.ndarray,
