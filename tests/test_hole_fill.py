@@ -87,3 +87,14 @@ close_holes = {close}
         else:
             assert open_edges(bunny.faces) == 0 and directed_edges_once(bunny.faces)
             assert signed_volume(bunny.vertices, bunny.faces) > 0
+    # a volume's mesh takes the key too
+    scene.write_text(scene.read_text() + f"""
+[[volumes]]
+shape = "mesh"
+file = "{BUNNY}"
+close_holes = true
+ior = 1.1
+transform = {{ scale = 2.0 }}
+""")
+    volume = load_scene(scene).volumes[0]
+    assert open_edges(volume.mesh.faces) == 0 and directed_edges_once(volume.mesh.faces)
