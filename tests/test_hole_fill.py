@@ -59,6 +59,22 @@ def test_two_holes_and_a_closed_mesh():
     assert none == 0 and np.array_equal(same_f, f)
 
 
+def test_random_holes_close_with_one_winding():
+    """300 draws of triangles taken out of an icosphere (holes that touch at corners, share
+    vertices with other holes, or leave a bridge of triangles between them): every hole
+    closes, every directed edge is used once (no diagonal repeats an edge of the mesh,
+    no corner fan spoke twice), and the volume stays the sphere's within the flattened
+    holes."""
+    v, f, _ = sphere(np.zeros(3), 1.0, 3)
+    full = signed_volume(v, f)
+    rng = np.random.default_rng(1)
+    for _ in range(300):
+        cut = np.delete(f, rng.choice(len(f), rng.integers(1, 60), replace=False), axis=0)
+        v2, f2, holes = fill_holes(v, cut)
+        assert holes >= 1 and open_edges(f2) == 0 and directed_edges_once(f2)
+        assert 0.995 * full < signed_volume(v2, f2) <= full * (1 + 1e-12)
+
+
 def test_the_bunny_scan_closes(tmp_path):
     """The Stanford bunny's five holes in its base, through the scene file's key."""
     from clscatter.scene.builtin.paper import BUNNY

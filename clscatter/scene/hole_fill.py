@@ -1,14 +1,15 @@
 """Closing the holes of a scanned mesh (a mesh object's ``close_holes``).
 
 Glass and volumes need a closed surface. A scan often has holes (the Stanford bunny has
-five in its base); each hole is bounded by a loop of edges that one triangle alone uses.
-:func:`fill_holes` triangulates every such loop in the plane that fits it best (ear
-clipping of its projection), so the fill adds no
-vertices and k - 2 triangles a loop. The fill's triangles take the winding of the
-triangles around the hole: each of the loop's edges is used once by its old triangle and
-once, the other way round, by the fill, so a consistently wound surface stays so. Where
-the projection of a loop is not a simple polygon (no ear left, or a loop longer than
-:data:`MAX_CLIPPED`), the rest of the loop is fanned around its centroid, which adds one
+five in its base); each hole is bounded by a loop of edges that one triangle alone uses
+(holes that touch at a vertex are separate loops). :func:`fill_holes` triangulates every
+such loop in the plane that fits it best (ear clipping of its projection, with no ear
+whose new side is an edge of the mesh already), so the fill adds no vertices and k - 2
+triangles a loop of k. The fill's triangles take the winding of the triangles around the
+hole: each of the loop's edges is used once by its old triangle and once, the other way
+round, by the fill, so a consistently wound surface stays so. Where no ear is left (the
+loop's projection is not a simple polygon) or the loop is longer than
+:data:`MAX_CLIPPED`, the rest of the loop is fanned around its centroid, which adds one
 vertex.
 """
 from __future__ import annotations
@@ -23,8 +24,8 @@ MAX_CLIPPED = 512
 def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
     """The loops of edges that only one triangle uses (vertex indices; shared vertices
     merged), each in the direction opposite to its triangles' winding: the order a fill
-    with matching winding runs through it. A vertex where several loops meet is left to
-    whichever loop reaches it first; every boundary edge is in exactly one loop."""
+    with matching winding runs through it. Holes that touch at a vertex are separate loops
+    (each passes a vertex once); every boundary edge is in exactly one loop."""
     f = np.asarray(faces, np.int64)
     if len(f) == 0:
         return []
@@ -51,15 +52,36 @@ def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
                 break
             loop.append(nxt)
             cur = nxt
-        if len(loop) >= 3:
-            loops.append(np.array(loop, np.int64))
+        loops += [np.array(x, np.int64) for x in _simple_loops(loop) if len(x) >= 3]
     return loops
 
 
-def _ear_clip(q: np.ndarray) -> tuple[list[tuple[int, int, int]], list[int]]:
+def _simple_loops(loop: list[int]) -> list[list[int]]:
+    """``loop`` cut at the vertices it passes twice (holes that touch at a corner) into
+    loops that pass each vertex once, in the same order and direction."""
+    path: list[int] = []
+    where: dict[int, int] = {}
+    out = []
+    for x in loop:
+        if x in where:                    # back at x: what ran since is a loop of its own
+            j = where[x]
+            out.append(path[j:])
+            for y in path[j + 1:]:
+                del where[y]
+            del path[j + 1:]
+        else:
+            where[x] = len(path)
+            path.append(x)
+    out.append(path)
+    return out
+
+
+def _ear_clip(q: np.ndarray, joined=lambda a, c: False
+              ) -> tuple[list[tuple[int, int, int]], list[int]]:
     """Triangles (positions in ``q``, kept in its order's winding) that ear clipping of the
     2-D polygon ``q`` cuts off, and the positions left when no ear remains (3 or fewer:
-    the last triangle is among the triangles)."""
+    the last triangle is among the triangles). ``joined(a, c)``: positions a and c are
+    joined by an edge already (an ear there would use that edge a third time)."""
     x, y = q[:, 0], q[:, 1]
     sign = 1.0 if float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y)) >= 0 else -1.0
     rem = list(range(len(q)))
@@ -77,7 +99,7 @@ def _ear_clip(q: np.ndarray) -> tuple[list[tuple[int, int, int]], list[int]]:
     def is_ear(i: int) -> bool:
         m = len(rem)
         a, b, c = rem[(i - 1) % m], rem[i], rem[(i + 1) % m]
-        if cross(a, b, c) <= 0.0:                     # reflex or flat: not an ear
+        if cross(a, b, c) <= 0.0 or joined(a, c):    # reflex or flat, or an edge already
             return False
         others = [p for p in rem if p != a and p != b and p != c]
         pts = q[others]                               # no other corner inside (or on) it
@@ -95,7 +117,7 @@ def _ear_clip(q: np.ndarray) -> tuple[list[tuple[int, int, int]], list[int]]:
         else:
             i += 1
             tried += 1
-    if len(rem) == 3:
+    if len(rem) == 3:                    # its sides: the loop's edges or diagonals cut above
         tris.append((rem[0], rem[1], rem[2]))
         rem = []
     return tris, rem
@@ -111,6 +133,9 @@ def fill_holes(vertices: np.ndarray, faces: np.ndarray
     loops = boundary_loops(f)
     if not loops:
         return v, f, 0
+    n = len(v) + len(loops)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    edges = set((np.minimum(e[:, 0], e[:, 1]) * n + np.maximum(e[:, 0], e[:, 1])).tolist())
     new_faces: list[np.ndarray] = []
     new_verts: list[np.ndarray] = []
     for loop in loops:
@@ -118,7 +143,12 @@ def fill_holes(vertices: np.ndarray, faces: np.ndarray
         centre = p.mean(axis=0)
         _, _, vt = np.linalg.svd(p - centre, full_matrices=False)
         q = (p - centre) @ vt[:2].T                  # the loop in its best-fitting plane
-        tris, rest = _ear_clip(q) if len(loop) <= MAX_CLIPPED else ([], list(range(len(loop))))
+
+        def joined(a: int, c: int, loop=loop) -> bool:
+            x, y = int(loop[a]), int(loop[c])
+            return min(x, y) * n + max(x, y) in edges
+        tris, rest = (_ear_clip(q, joined) if len(loop) <= MAX_CLIPPED
+                      else ([], list(range(len(loop)))))
         if tris:
             new_faces.append(loop[np.array(tris, np.int64)])
         if rest:                                      # fan the rest around its centroid
