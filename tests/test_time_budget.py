@@ -254,15 +254,18 @@ def test_a_share_of_the_render_budget_holds_its_overrun_note(caustic, monkeypatc
     out = []
     _report_budget(st, _Budget(1.0, "render.time_budget", now - 4.0, now - 3.0), out.append,
                    [], {"view_paths": 0.2, "device": 0.4},
-                   [("raymarch", 1.25, False), ("raymap", 1.5, True), ("lsg", 0.62, True)])
+                   [("raymarch", 1.25, "fixed"), ("raymap", 1.5, "starved"),
+                    ("lsg", 0.62, "starved")])
     assert len(out) == 1 and st.values["notes"] == out
     assert "raymarch alone took 1.25 s" in out[0]
     assert out[0].endswith("after it raymap and lsg had no time left and ran their smallest "
                            "passes (1.5 s, 0.62 s)")
     out = []
     _report_budget(Stats(), _Budget(1.0, "render.time_budget", now - 9.0, now - 8.0),
-                   out.append, [], {"view_paths": 6.0}, [("raymarch", 1.25, False)])
+                   out.append, [], {"view_paths": 6.0}, [("raymarch", 1.25, "fixed"),
+                                                          ("lsg", 8.0, "progressive")])
     assert len(out) == 1 and "view_paths alone took 6 s" in out[0] and "after it" not in out[0]
+    # (lsg had a share of the budget and kept to it: not work that does not shrink)
 
 
 def test_render_level_budget_and_error_estimate(engine):

@@ -313,7 +313,7 @@ class RenderSession:
 
         overruns: list[str] = []                       # passes' first passes past their share
         shared = dict(stats.stages)                    # the work before the passes
-        ran: list[tuple[str, float, bool]] = []        # (method, seconds, had no time left)
+        ran: list[tuple[str, float, str]] = []         # (method, seconds, PASS_* kind)
         for k in order:
             p = run.req.passes[k]
             run.stop_if_asked()
@@ -321,11 +321,11 @@ class RenderSession:
             table = {**p.table(scene), **run.pass_params.get(k, {})}
             method = cls(cls.preview(table) if run.preview else table)
             deadline = None
-            starved = False
+            kind = PASS_PROGRESSIVE if cls.PROGRESSIVE else PASS_FIXED
             if cls.PROGRESSIVE and run.budget.deadline is not None:
                 now = time.perf_counter()
                 left = max(run.budget.deadline - now, 0.0)
-                starved = left <= 0.0
+                kind = PASS_STARVED if left <= 0.0 else kind
                 deadline = now + left / progressive_left
                 progressive_left -= 1
             t0 = time.perf_counter()
@@ -336,9 +336,9 @@ class RenderSession:
                              hold_overruns=True) as ctx:
                 out = method.render(ctx)
                 err = ctx.errors()
-            if not starved:             # a pass with no time left says so in the budget's note
+            if kind != PASS_STARVED:    # a pass with no time left says so in the budget's note
                 overruns += ctx.overruns or []
-            ran.append((p.method, time.perf_counter() - t0, starved))
+            ran.append((p.method, time.perf_counter() - t0, kind))
             if deadline is None and not run.preview and run.only is None:
                 _calibrate(run, p.method, time.perf_counter() - t0)
             run.ran.append(p.method)
@@ -517,6 +517,11 @@ def _time_budget(scene: Scene, req, started: float, stats: Stats, exempt: bool,
     return _Budget(seconds, source, started, deadline)
 
 
+#: kinds of pass in a budgeted render (_report_budget): fixed work, progressive passes
+#: with a share of the budget, and progressive passes that found none left
+PASS_FIXED, PASS_PROGRESSIVE, PASS_STARVED = "fixed", "progressive", "starved"
+
+
 def _budget_order(cls) -> int:
     """When a pass runs within a budgeted render: fixed work first, then progressive passes
     of a fixed size, then those that size their passes to the time left."""
@@ -560,15 +565,15 @@ def _report_error(stats: Stats, errors: tuple | None, image: np.ndarray,
 
 def _report_budget(stats: Stats, b: _Budget, on_note, overruns: list[str],
                    shared: dict[str, float] | None = None,
-                   ran: list[tuple[str, float, bool]] = ()) -> None:
+                   ran: list[tuple[str, float, str]] = ()) -> None:
     """A note when the render ran past its time budget by more than BUDGET_SLACK: the
     passes' own notes where a first pass alone broke its share of the budget
     (``overruns``: what could not be made smaller); or else one line naming the longest
     work that does not shrink with the budget, among the stages before the passes
-    (``shared``: their seconds) and the passes (``ran``: method, seconds, and whether a
-    progressive pass found no time left), and the progressive passes that then had none
-    (each still runs its smallest pass). Within the budget a pass that overran its share
-    says nothing: the others made up for it."""
+    (``shared``: their seconds) and the fixed passes (``ran``: method, seconds and kind,
+    :data:`PASS_FIXED` and the others), and the progressive passes that then had no time
+    left (:data:`PASS_STARVED`: each still runs its smallest pass). Within the budget a
+    pass that overran its share says nothing: the others made up for it."""
     if b.deadline is None:
         return
     took = time.perf_counter() - b.started
@@ -580,12 +585,12 @@ def _report_budget(stats: Stats, b: _Budget, on_note, overruns: list[str],
             on_note(line)
         return
     fixed = dict(shared if shared is not None else stats.stages)
-    fixed.update((m, s) for m, s, starved in ran if not starved)
+    fixed.update((m, s) for m, s, kind in ran if kind == PASS_FIXED)
     name = max(fixed, key=fixed.get) if fixed else "the render"
     line = (f"{b.source}: the render took {took:.3g} s of its {b.seconds:g} s budget; "
             f"{name} alone took {fixed.get(name, took):.3g} s (work that does not shrink "
             f"with the budget: lower the resolution, spp or that stage's parameters)")
-    late = [(m, s) for m, s, starved in ran if starved]
+    late = [(m, s) for m, s, kind in ran if kind == PASS_STARVED]
     if late:
         line += (f"; after it {' and '.join(m for m, _ in late)} had no time left and ran "
                  f"their smallest passes ({', '.join(f'{s:.3g} s' for _, s in late)})")
