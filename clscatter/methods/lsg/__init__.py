@@ -106,6 +106,11 @@ class AutoRadius:
     count_median: float        # pilot valid pairs per lit view segment, scaled to light_rays
     footprint: float           # median pixel footprint at the lit view segments
     lit_views: int             # view segments with a pilot pair
+    # the radius sits at its floor, footprint / 16: a typical lit view segment then gathers
+    # about count_median * radius / trial_radius lighting segments (gathered), more than
+    # auto_count (fewer light_rays would cost less for the noise auto_count asks)
+    floored: bool = False
+    gathered: float = 0.0
 
 
 @register
@@ -140,7 +145,11 @@ class LineSpaceGathering(Method):
     median pixel footprint there: a typical lit view segment gathers ``auto_count``
     lighting segments, and no blur is smaller than a sixteenth of a pixel. Both terms are
     measured in the normalised frame, so the radius does not depend on the scene's scale
-    or on objects far away. The pilot's rays are not part of the image.
+    or on objects far away. The pilot's rays are not part of the image. ``--stats`` gives
+    what the radius was chosen from (``lsg_auto_radius``), with ``floored`` where the
+    sixteenth of a pixel decided it and ``gathered``, about how many lighting segments a
+    typical lit view segment then gathers (more than ``auto_count`` where floored: fewer
+    ``light_rays`` would reach ``auto_count`` sooner).
 
     *Progressive passes* (``passes`` > 1, or a time budget or error target): pass i traces
     fresh rays and gathers them with ``r_{i+1} = r_i (i + alpha) / (i + 1)``
@@ -523,7 +532,9 @@ class LineSpaceGathering(Method):
             groups = 1
         self._rays = n_rays
         self._groups_cap = groups
-        return AutoRadius(float(r), float(r0), pilot, count, f, int(len(lit))), measured
+        return AutoRadius(float(r), float(r0), pilot, count, f, int(len(lit)),
+                          bool(r0 * self.params["auto_count"] / count < f / 16),
+                          float(count * r / r0)), measured
 
     def _sized_rays(self, rays: int, seconds: float, prog, limit: float = 0.0) -> int:
         """Rays for a pass that should take ``prog.pass_seconds()``, given that ``rays``
