@@ -10,6 +10,7 @@ import pytest
 import clscatter.estimators.row_chunks as rc
 from clscatter.device import structs
 from clscatter.estimators.line_gather import (
+    BuildStopped,
     clip_lines,
     continue_across_faces,
     continue_and_clip,
@@ -122,3 +123,32 @@ def test_preparing_no_kept_lines(monkeypatch, chunk):
     prep = prepare_lines(segs, lo, hi, 0.01, kappa, 4, clipped=clipped)
     assert len(prep.lines) == 0 and prep.max_m1 == 0.0 and prep.tree.levels == 0
     assert prep.points.shape == (1, 6, POINT_LANES) and not prep.points.any()
+
+
+def test_a_tree_build_told_to_stop_ends_at_its_next_chunk(monkeypatch):
+    """``prepare_lines(stop=...)`` (a build on a thread of its own, for a render that may be
+    cancelled): asked before every chunk of rows and every step, it raises BuildStopped
+    once told to, within the step it was in (its other chunks, already handed to the
+    threads, each stop at their first question); a stop that never says so builds the
+    same tree."""
+    medium, segs = _fog_and_segments(5000)
+    kappa = medium[0]["kappa"]
+    view_lo, view_hi, r = np.array([-0.9, -1.2, -0.8]), np.array([0.7, 1.2, 0.9]), 0.01
+    monkeypatch.setattr(rc, "ROW_CHUNK", 333)
+    clipped = continue_and_clip(segs, medium, r, view_lo, view_hi, kappa)
+    asked = []
+
+    def after(n: int):
+        return lambda: asked.append(1) or len(asked) > n
+
+    chunks = -(-len(clipped[0]) // 333)
+    with pytest.raises(BuildStopped):
+        prepare_lines(segs, view_lo, view_hi, r, kappa, 4, clipped=clipped, stop=after(3))
+    assert 4 <= len(asked) <= chunks                # the first step's chunks, no later step
+    asked.clear()
+    built = prepare_lines(segs, view_lo, view_hi, r, kappa, 4, clipped=clipped,
+                          stop=after(10 ** 9))
+    plain = prepare_lines(segs, view_lo, view_hi, r, kappa, 4, clipped=clipped)
+    assert len(asked) > 3 * (len(clipped[0]) // 333)  # every chunk of three row steps asked
+    for name in ("lines", "points", "ids", "boxes", "kids"):
+        assert np.array_equal(getattr(built, name), getattr(plain, name)), name

@@ -11,8 +11,10 @@ cell (:mod:`.screen_cells`) and every lighting segment visits the cells it cross
 (:class:`Gatherer`'s ``queries``)."""
 from __future__ import annotations
 
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -205,14 +207,25 @@ def continue_and_clip(segs: np.ndarray, medium: np.ndarray, radius: float, view_
     return tuple(np.concatenate(cols) for cols in zip(*parts))
 
 
+class BuildStopped(Exception):
+    """:func:`prepare_lines` was told to stop: its caller no longer needs the tree."""
+
+
 def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
                   leaf_size: int = LEAF_SIZE,
                   frame: PluckerFrame | None = None,
                   spatial_split: float = SPATIAL_SPLIT,
-                  clipped: tuple[np.ndarray, ...] | None = None) -> PreparedLines:
+                  clipped: tuple[np.ndarray, ...] | None = None,
+                  stop: Callable[[], bool] | None = None) -> PreparedLines:
     """Clip lighting segments (:func:`clip_lines`; ``clipped``: that done already), form
     canonical Plücker points and build the 8-ary tree (its splits steered by where the
-    segments start, times ``spatial_split``)."""
+    segments start, times ``spatial_split``). ``stop()`` is asked before every chunk of
+    rows and every step of the build; once it says so, :class:`BuildStopped` is raised
+    (a build on a thread of its own for a render that was cancelled ends soon)."""
+    def check() -> None:
+        if stop is not None and stop():
+            raise BuildStopped()
+
     ids, a, u, length, flux = (clipped if clipped is not None
                                else clip_lines(segs, view_lo, view_hi, radius, kappa))
     k = len(a)
@@ -223,6 +236,7 @@ def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
     u32 = np.empty((k, 3), np.float32)      # commutes with min and max: node_boxes' values)
 
     def records(s: int, e: int) -> tuple[np.ndarray, np.ndarray]:
+        check()
         ends = a[s:e] + length[s:e, None] * u[s:e]
         lo, hi = np.minimum(a[s:e], ends), np.maximum(a[s:e], ends)
         box_in[s:e, :3], box_in[s:e, 3:] = lo, hi
@@ -241,6 +255,7 @@ def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
     rows = np.empty((6 + 3 * (spatial_split > 0), k), np.float32)
 
     def points_and_rows(s: int, e: int) -> None:
+        check()
         p = plucker(a[s:e], u32[s:e].astype(np.float64), frame).astype(np.float32)
         p[:, :3] = u32[s:e]
         pts[s:e] = p
@@ -248,6 +263,7 @@ def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
         if spatial_split > 0:     # the splits are steered by where the segments start
             rows[6:, s:e] = ((a[s:e] - frame.centre) / frame.scale * spatial_split).T
     map_row_chunks(points_and_rows, k)
+    check()
     tree = linetree_from_rows(rows, leaf_size)
     o = tree.order
     # then in tree order: the records, the boxes' rows, point_blocks' layout, the ids
@@ -257,6 +273,7 @@ def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
     sorted_ids = np.empty(k, np.int32)
 
     def in_tree_order(s: int, e: int) -> float:
+        check()
         oc = o[s:e]
         lines[s:e] = lines_in[oc]
         b = box_in[oc]
@@ -266,7 +283,9 @@ def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
         sorted_ids[s:e] = ids[oc]
         return float(np.abs(p[:, 3:]).sum(axis=1).max())
     max_m1 = max(map_row_chunks(in_tree_order, k, align=POINT_LANES)) if k else 0.0
+    check()
     boxes = node_boxes(tree, lo, hi)
+    check()
     kids = child_rows(tree, boxes)
     n = len(segs)
     nbytes = int(segs.nbytes + 80 * n + 96 * k + 56 * k + 2 * lines.nbytes + points.nbytes
@@ -532,15 +551,17 @@ class Gatherer:
         if not rest_from_views:
             return self._add_from_lights(segs, clipped, vt, sc, t_build, t_gather)
         t_wait = Timer()        # the tree's time beyond the splat's (the rest is hidden)
+        halt = threading.Event()
         pool = ThreadPoolExecutor(1)
         try:
             building = pool.submit(prepare_lines, segs, self.lo, self.hi, self.radius,
                                    self.medium["kappa"][0], self.leaf_size, self.frame,
-                                   self.spatial_split, clipped)
+                                   self.spatial_split, clipped, halt.is_set)
             res = self._add_from_lights(segs, clipped, None, sc, t_build, t_gather)
             with t_wait:
                 prep = building.result()
-        finally:                # a cancelled render does not wait for the tree
+        finally:                # a cancelled render stops the tree and does not wait for it
+            halt.set()
             pool.shutdown(wait=False)
         # both working sets at once while the tree was built beside the splat (the traced
         # and clipped segments, which both count, once)
