@@ -55,17 +55,26 @@ def slab_interval(a: np.ndarray, d: np.ndarray, lo, hi, t_max) -> tuple[np.ndarr
     return enter, leave
 
 
-def open_edges(faces: np.ndarray) -> int:
-    """Edges of a triangle mesh (vertex indices, shared vertices merged) that only one
-    triangle uses: 0 for a closed surface."""
+def boundary_edges(faces: np.ndarray) -> np.ndarray:
+    """``(E, 2)`` edges of a triangle mesh (vertex indices, shared vertices merged) that
+    only one triangle uses, each as that triangle winds it (a -> b): none for a closed
+    surface."""
     f = np.asarray(faces, np.int64)
     if len(f) == 0:
-        return 0
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    # an integer key per edge (np.unique(axis=0) compares structured arrays, which turns
-    # a KeyboardInterrupt raised by a signal meanwhile into a TypeError)
-    _, counts = np.unique(e[:, 0] * (int(f.max()) + 1) + e[:, 1], return_counts=True)
-    return int(np.count_nonzero(counts == 1))
+        return np.zeros((0, 2), np.int64)
+    d = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    # an integer key per undirected edge (np.unique(axis=0) compares structured arrays,
+    # which turns a KeyboardInterrupt raised by a signal meanwhile into a TypeError)
+    n = int(f.max()) + 1
+    key = np.minimum(d[:, 0], d[:, 1]) * n + np.maximum(d[:, 0], d[:, 1])
+    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    return d[counts[inv.reshape(-1)] == 1]
+
+
+def open_edges(faces: np.ndarray) -> int:
+    """Edges of a triangle mesh (vertex indices, shared vertices merged) that only one
+    triangle uses (:func:`boundary_edges`): 0 for a closed surface."""
+    return int(len(boundary_edges(faces)))
 
 
 #: the direction of the parity ray from the camera (no symmetry of a box or a sphere lies

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..geometry import boundary_edges
+
 #: loops longer than this are fanned around their centroid (ear clipping takes O(k^2)
 #: corner tests, O(k^3) at worst)
 MAX_CLIPPED = 512
@@ -26,16 +28,8 @@ def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
     merged), each in the direction opposite to its triangles' winding: the order a fill
     with matching winding runs through it. Holes that touch at a vertex are separate loops
     (each passes a vertex once); every boundary edge is in exactly one loop."""
-    f = np.asarray(faces, np.int64)
-    if len(f) == 0:
-        return []
-    d = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    n = int(f.max()) + 1
-    und = np.minimum(d[:, 0], d[:, 1]) * n + np.maximum(d[:, 0], d[:, 1])
-    _, inv, cnt = np.unique(und, return_inverse=True, return_counts=True)
-    edges = d[cnt[inv.reshape(-1)] == 1]             # a -> b as its triangle winds
     ahead: dict[int, list[int]] = {}
-    for a, b in edges.tolist():
+    for a, b in boundary_edges(faces).tolist():     # a -> b as its triangle winds
         ahead.setdefault(b, []).append(a)            # the fill runs b -> a
     loops = []
     while ahead:
