@@ -61,6 +61,10 @@ MAX_PASSES = 1024
 #: share their lighting segments)
 SAMPLES_SHARE_RADIUS = 0.5
 
+#: the automatic radius is at least the median pixel footprint of the lit view segments
+#: over this: no blur is smaller than a sixteenth of a pixel
+RADIUS_FLOOR = 16
+
 
 def _chunk_rays(counts: np.ndarray, k: int, n: int) -> int:
     """Rays that chunk (k, n) of trace_light_paths traces (every light's share)."""
@@ -106,9 +110,9 @@ class AutoRadius:
     count_median: float        # pilot valid pairs per lit view segment, scaled to light_rays
     footprint: float           # median pixel footprint at the lit view segments
     lit_views: int             # view segments with a pilot pair
-    # the radius sits at its floor, footprint / 16: a typical lit view segment then gathers
-    # about count_median * radius / trial_radius lighting segments (gathered), more than
-    # auto_count (fewer light_rays would cost less for the noise auto_count asks)
+    # the radius sits at its floor, footprint / RADIUS_FLOOR: a typical lit view segment
+    # then gathers about count_median * radius / trial_radius lighting segments (gathered),
+    # more than auto_count (fewer light_rays would cost less for the noise it asks)
     floored: bool = False
     gathered: float = 0.0
 
@@ -518,7 +522,7 @@ class LineSpaceGathering(Method):
         def radius(n: int) -> tuple[float, float]:
             """(pairs a lit view segment gathers at r0 with n rays, the radius for n rays)"""
             count = median * n / pilot
-            return count, max(r0 * self.params["auto_count"] / count, f / 16)
+            return count, max(r0 * self.params["auto_count"] / count, f / RADIUS_FLOOR)
 
         # a pass gathers one group of each pixel's camera samples (_sample_groups) unless a
         # pass over every sample would have a radius below half a pixel's footprint: then
@@ -533,8 +537,7 @@ class LineSpaceGathering(Method):
         self._rays = n_rays
         self._groups_cap = groups
         return AutoRadius(float(r), float(r0), pilot, count, f, int(len(lit)),
-                          bool(r0 * self.params["auto_count"] / count < f / 16),
-                          float(count * r / r0)), measured
+                          bool(r == f / RADIUS_FLOOR), float(count * r / r0)), measured
 
     def _sized_rays(self, rays: int, seconds: float, prog, limit: float = 0.0) -> int:
         """Rays for a pass that should take ``prog.pass_seconds()``, given that ``rays``
