@@ -207,6 +207,12 @@ def continue_and_clip(segs: np.ndarray, medium: np.ndarray, radius: float, view_
     return tuple(np.concatenate(cols) for cols in zip(*parts))
 
 
+def segment_bytes(segs: np.ndarray) -> int:
+    """Host bytes of a chunk's traced lighting segments and their clipped float64 copy
+    (ids, a, u, length, flux: 80 a segment): what every way of gathering a chunk holds."""
+    return int(segs.nbytes + 80 * len(segs))
+
+
 class BuildStopped(Exception):
     """:func:`prepare_lines` was told to stop: its caller no longer needs the tree."""
 
@@ -287,8 +293,7 @@ def prepare_lines(segs: np.ndarray, view_lo, view_hi, radius: float, kappa,
     boxes = node_boxes(tree, lo, hi)
     check()
     kids = child_rows(tree, boxes)
-    n = len(segs)
-    nbytes = int(segs.nbytes + 80 * n + 96 * k + 56 * k + 2 * lines.nbytes + points.nbytes
+    nbytes = int(segment_bytes(segs) + 96 * k + 56 * k + 2 * lines.nbytes + points.nbytes
                  + tree.nbytes + boxes.nbytes + kids.nbytes)
     return PreparedLines(lines, points, sorted_ids, tree, boxes, kids, frame, max_m1, nbytes)
 
@@ -565,7 +570,7 @@ class Gatherer:
             pool.shutdown(wait=False)
         # both working sets at once while the tree was built beside the splat (the traced
         # and clipped segments, which both count, once)
-        both = res.nbytes + prep.nbytes - int(segs.nbytes + 80 * len(segs))
+        both = res.nbytes + prep.nbytes - segment_bytes(segs)
         self.eng.note_host(both)
         scale = self._group[2] if self._group is not None else 1.0
         more = self._add_from_views(segs, clipped, False, t_wait, Timer(),
@@ -648,7 +653,7 @@ class Gatherer:
         lines["a"][:, 3] = length
         lines["u"][:, :3] = u.astype(np.float32)
         lines["flux"][:, :3] = flux
-        nbytes = int(segs.nbytes + 80 * len(segs) + 2 * lines.nbytes + 24 * n)
+        nbytes = int(segment_bytes(segs) + 2 * lines.nbytes + 24 * n)
         tests = valid = leaf = 0
         sides = [x for x in (vt, sc) if x is not None and x.count]
         with t_gather:
