@@ -60,9 +60,9 @@ def _load() -> dict:
 
 def scene_key(source: str) -> str:
     """What names a scene among the measurements: ``builtin:NAME`` as it is, a file by its
-    absolute path (the same file from any folder)."""
+    absolute path (the same file from any folder); "" for none."""
     source = str(source)
-    if source.startswith(("builtin:", "<")):
+    if not source or source.startswith(("builtin:", "<")):
         return source
     try:
         return str(Path(source).resolve())
@@ -94,7 +94,7 @@ def record(device: str, stage: str, work: float, seconds: float, scene: str = ""
     if not isinstance(stages, dict):
         stages = data[device] = {}
     kept = [list(m) for m in _measurements(stages.get(stage))]
-    kept.append([float(work), float(seconds), scene_key(scene) if scene else ""])
+    kept.append([float(work), float(seconds), scene_key(scene)])
     stages[stage] = kept[-KEEP:]
     try:
         _path().parent.mkdir(parents=True, exist_ok=True)
@@ -112,7 +112,7 @@ def predict(device: str, stage: str, work: float, scene: str = "") -> float | No
     kept = _measurements(stages.get(stage) if isinstance(stages, dict) else None)
     if not kept or not work > 0:
         return None
-    key = scene_key(scene) if scene else ""
+    key = scene_key(scene)
     same = [m for m in kept if key and m[2] == key]
     kept = same or kept
     newest_first = list(reversed(kept))
