@@ -240,7 +240,9 @@ def test_newer_change_cancels_the_render_in_flight(server, page):
     session = worker.session
     slow = page.set([f"medium.sigma_s={SLOW_SIGMA}"], mode="refine")
     page.next(lambda m: m["type"] == "busy" and m["id"] == slow and m["level"] == "full")
-    assert session.slow_started.is_set() and not session.stopped_by_cancel.is_set()
+    # "busy" goes out before the worker takes the device and calls the session: wait for
+    # the slow render itself to start (an event, not a duration).
+    assert session.slow_started.wait(60) and not session.stopped_by_cancel.is_set()
     fresh = page.set(["medium.sigma_s=0.2"], mode="refine")
     page.next(lambda m: m["type"] == "cancelled" and m["id"] == slow)
     assert session.stopped_by_cancel.is_set()       # stopped by cancel, not by running out
@@ -382,7 +384,7 @@ def test_closed_tab_stops_its_work(server):
     session = worker.session
     slow = p.set([f"medium.sigma_s={SLOW_SIGMA}"], mode="refine")
     p.next(lambda m: m["type"] == "busy" and m["id"] == slow and m["level"] == "full")
-    assert session.slow_started.is_set()
+    assert session.slow_started.wait(60)       # "busy" precedes the call
     p.close()
     assert session.closed_event.wait(60), "the session was never closed"
     assert session.stopped_by_cancel.is_set()       # the render was cancelled, not finished
