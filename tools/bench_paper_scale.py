@@ -32,7 +32,9 @@ references with 8 passes of 4 M rays, VPM up to 16 M photons, up to 1.1 M triang
 hours on a 2-core CPU. ``--parts`` runs some of the parts (table, rays, pixels,
 triangles); the JSON is rewritten after each, so a run cut off keeps what it finished.
 The device is the engine's choice (``$CLSCATTER_DEVICE`` picks one) and is recorded.
-``--no-auto`` leaves out the ``auto`` row and its reference. ``--reference-seconds S``
+``--no-auto`` leaves out the ``auto`` row and its reference. ``--vpm-set KEY=VALUE`` gives
+every VPM run a ``render.vpm`` setting (the engine's own by default; ``knn=128 dx=0.002``
+are the paper's). ``--reference-seconds S``
 runs the lsg row first and gives the references as many passes
 as fit in about S seconds each (at least 2); ``--deadline`` skips VPM runs that would not
 fit in the run's time.
@@ -299,10 +301,17 @@ def main(argv=None) -> dict:
                     help="seconds for the whole run: VPM runs that would not fit are skipped")
     ap.add_argument("--no-auto", action="store_true",
                     help="leave out the table's auto row (and its reference)")
+    ap.add_argument("--vpm-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a render.vpm setting for every VPM run (repeatable), e.g. knn=128 "
+                         "dx=0.002, the LSG paper's; default: the engine's own")
     ap.add_argument("--name", default="paper_scale",
                     help="docs/bench/NAME.{json,png} that the results are copied to")
     args = ap.parse_args(argv)
     cfg = QUICK if args.quick else FULL
+    vpm_sets = [f"render.vpm.{kv.strip()}" for kv in args.vpm_set]
+    bad = [kv for kv in args.vpm_set if "=" not in kv]
+    if bad:
+        ap.error(f"--vpm-set: expected KEY=VALUE, got {bad[0]!r}")
     parts = [x.strip() for x in args.parts.split(",") if x.strip()]
     unknown = sorted(set(parts) - set(PARTS))
     if unknown:
@@ -320,7 +329,7 @@ def main(argv=None) -> dict:
               "commit": commit, "machine": platform.processor() or platform.machine(),
               "cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
               "load_average_start": os.getloadavg(), "max_memory": MAX_MEMORY,
-              "light_rays": cfg["light_rays"]}
+              "light_rays": cfg["light_rays"], "vpm_settings": list(args.vpm_set)}
 
     def save() -> None:                 # after every part: a cut-off run keeps what it did
         result["seconds_total"] = time.perf_counter() - t_start
@@ -382,13 +391,14 @@ def main(argv=None) -> dict:
                       f"{left():.0f} s left)", flush=True)
                 result.setdefault("skipped", []).append(f"vpm_{p}")
                 continue
-            rec, img = run(base, f"vpm_{p}", "vpm", [f"render.vpm.photons={p}"])
+            rec, img = run(base, f"vpm_{p}", "vpm", [f"render.vpm.photons={p}", *vpm_sets])
             if rec is None:                  # beyond --max-memory: refused before it began
                 print(f"vpm_{p}: refused: {img}", flush=True)
                 result.setdefault("refused", []).append({"run": f"vpm_{p}", "message": img})
                 save()
                 continue
-            rec.update(relmse=relmse(img, ref_lsg), reference="lsg", setting=f"{p:,} photons")
+            rec.update(relmse=relmse(img, ref_lsg), reference="lsg",
+                       setting=", ".join([f"{p:,} photons", *args.vpm_set]))
             table.append(rec)
             last = (p, rec["wall_seconds"])
             _log(rec, f", relMSE {rec['relmse']:.2e}")
@@ -515,7 +525,9 @@ def summary(result: dict) -> None:
     mib = 2.0 ** -20
     print(f"\npaper_bunny {result['size']}, {result['spp']} spp, commit {result['commit']}, "
           f"device {result.get('device')}, "
-          f"--max-memory {result['max_memory']}, --time-budget 0; total {result['seconds_total']:.0f} s\n")
+          f"--max-memory {result['max_memory']}, --time-budget 0; VPM "
+          + (", ".join(result["vpm_settings"]) if result.get("vpm_settings") else "at its defaults")
+          + f"; total {result['seconds_total']:.0f} s\n")
     print("| method | setting | whole process s | render s | peak_bytes (MiB) | relMSE (reference) |")
     print("|---|---|---|---|---|---|")
     for r in result.get("table", []):
