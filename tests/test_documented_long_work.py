@@ -85,3 +85,19 @@ def test_the_command_line_prints_the_note_before_the_render(tmp_path, monkeypatc
     first_note = next(i for i, e in enumerate(events) if LONG in e)
     assert first_note < events.index("trace_view_paths"), events
     assert out.is_file()
+
+
+@pytest.mark.parametrize("time_budget, announced", [(0.0, True), (5.0, False)])
+def test_passes_a_deadline_sizes_are_not_announced(engine, monkeypatch, time_budget, announced):
+    """lsg sizes its passes to a deadline: under a time budget its estimate (of the unshrunk
+    passes) says nothing about how long it will take, and it is not announced; the other
+    stages still are, and without a budget lsg is too."""
+    sets = ["camera.resolution=[16,12]", "camera.spp=1", 'render.method="lsg"',
+            "render.lsg.light_rays=2000", f"render.time_budget={time_budget}"]
+    monkeypatch.setattr(budget, "LONG_WORK", 1.0)      # every stage is "long"
+    notes: list[str] = []
+    with RenderSession.from_source("builtin:caustic_sphere", sets, engine=engine) as s:
+        s.render(show_progress=False, on_note=notes.append)
+    stages = [n.split(":", 1)[0] for n in notes if LONG in n]
+    assert "view_paths" in stages
+    assert ("lsg" in stages) == announced, notes

@@ -15,6 +15,7 @@ segment, per photon), stated next to each number; ``clscatter check`` prints the
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable
 
 from ..device.memory import memory_budget
 from ..errors import ClscatterError
@@ -132,7 +133,11 @@ def check_budget(estimates: list[Estimate], budget: float, source: str) -> None:
                 f"{REFUSE_WORK:.0e}); lower {e.work_by}")
 
 
-def long_work_notes(estimates: list[Estimate]) -> list[str]:
-    """One line per stage whose work exceeds :data:`LONG_WORK`."""
+def long_work_notes(estimates: list[Estimate], fitted: Iterable[str] = ()) -> list[str]:
+    """One line per stage whose work exceeds :data:`LONG_WORK`, except the ``fitted``
+    stages: methods whose passes a deadline sizes (their estimate is of the unshrunk
+    work)."""
+    fitted = set(fitted)
     return [f"{e.stage}: about {e.work:.2g} {e.unit} ({e.work_by}); this will take a while "
-            "(Ctrl-C stops cleanly)" for e in estimates if e.work > LONG_WORK]
+            "(Ctrl-C stops cleanly)" for e in estimates
+            if e.work > LONG_WORK and e.stage not in fitted]

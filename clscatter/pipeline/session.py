@@ -192,6 +192,8 @@ class RenderSession:
 
         with stats.stage("configure"):
             req = check(scene, self.method)
+            time_limit = _time_budget(scene, req, started, stats, preview or only is not None,
+                                      default_budget)
         with stats.stage("device"):
             engine = self.engine
             engine.quiet_host_threads()
@@ -201,7 +203,9 @@ class RenderSession:
             limit, source = budget.memory_budget(engine, self.max_memory)
             budget.check_budget(req.estimates, limit, source)
             engine.fit_pool(limit, budget.peak_bytes(req.estimates))
-            for line in (user_notes(req.notes) + budget.long_work_notes(req.estimates)
+            fitted = [p.method for p in req.passes if time_limit.deadline is not None
+                      and get_method(p.method).SIZES_PASSES]
+            for line in (user_notes(req.notes) + budget.long_work_notes(req.estimates, fitted)
                          + scene_notes(scene)):
                 if on_note is not None:
                     on_note(line)
@@ -273,10 +277,8 @@ class RenderSession:
         try:
             return self._run_passes(_Run(scene, req, ps, paths, stats, show_progress,
                                          stop_if_asked, ran, reused, preview, only,
-                                         pass_params or {}, clock, on_note,
-                                         _time_budget(scene, req, started, stats,
-                                                      preview or only is not None,
-                                                      default_budget), cancel))
+                                         pass_params or {}, clock, on_note, time_limit,
+                                         cancel))
         finally:
             engine.trim_pool()      # keep what this render freed for the next one
 
