@@ -231,7 +231,7 @@ class RenderSession:
             self.release()
             t0 = time.perf_counter()
             self._ps = prepare_scene(scene, engine, stats)
-            _calibrate(engine, req, scene, "scene", time.perf_counter() - t0)
+            _calibrate(engine, req, scene, "scene", time.perf_counter() - t0, stats)
             self._geometry = geometry
             ran.append("prepare_scene")
             self._pending = ["all"]
@@ -267,7 +267,8 @@ class RenderSession:
             self._paths_camera, self._paths_lights = ps.camera.tobytes(), ps.lights.tobytes()
             self._pending = []
             ran.append("view_paths")
-            _calibrate(engine, req, scene, "view_paths", stats.stages.get("view_paths", 0.0))
+            _calibrate(engine, req, scene, "view_paths", stats.stages.get("view_paths", 0.0),
+                       stats)
         else:
             reused.append("view_paths")
             stats.set(view_segments=int(len(self._paths)))
@@ -338,7 +339,8 @@ class RenderSession:
                 overruns += ctx.overruns or []
             ran.append((p.method, time.perf_counter() - t0, kind))
             if deadline is None and not run.preview and run.only is None:
-                _calibrate(run.ps.engine, run.req, scene, p.method, time.perf_counter() - t0)
+                _calibrate(run.ps.engine, run.req, scene, p.method, time.perf_counter() - t0,
+                           stats)
             run.ran.append(p.method)
             if err is not None:
                 errors = err if errors is None else (errors[0] + err[0], errors[1] + err[1])
@@ -535,12 +537,15 @@ def _costs(run: "_Run"):
                                                             source))
 
 
-def _calibrate(engine: Engine, req, scene: Scene, stage: str, seconds: float) -> None:
+def _calibrate(engine: Engine, req, scene: Scene, stage: str, seconds: float,
+               stats: Stats) -> None:
     """Record that ``stage`` (the scene's preparation, its view paths, or a pass that ran
     in full) took ``seconds`` for its estimated work in ``req`` on ``engine``'s device, on
-    ``scene`` (:mod:`clscatter.pipeline.calibration`)."""
+    ``scene`` (:mod:`clscatter.pipeline.calibration`); the record's own time (a file read
+    and written) is the stage ``calibrate``."""
     work = sum(e.work for e in req.estimates if e.stage == stage)
-    calibration.record(engine.device.name.strip(), stage, work, seconds, scene.source)
+    with stats.stage("calibrate"):
+        calibration.record(engine.device.name.strip(), stage, work, seconds, scene.source)
 
 
 def _report_error(stats: Stats, errors: tuple | None, image: np.ndarray,

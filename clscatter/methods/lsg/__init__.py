@@ -601,27 +601,29 @@ class LineSpaceGathering(Method):
                                           seed_offset=i + (self.params["light_seed"] << 16))
                 seconds.append(prog.clock() - t0)
                 self._pass_rays.append(int(self._rays))
-                cumulative = gat.image(dev) if keep_images else None
-                own = cumulative if previous is None or cumulative is None else cumulative - previous
-                previous = cumulative
-                tracked, r_tracked = own, r
-                if groups > 1:
-                    acc = by_group.setdefault(i % groups, [0.0, 0])
-                    acc[0] = acc[0] + own
-                    acc[1] += 1
-                    # the error estimate compares whole rounds (one pass of every group):
-                    # two passes of different groups differ by their samples, not only noise
-                    round_.append((i % groups, own, r))
-                    tracked = None
-                    if len(round_) == groups:
-                        w = _group_weights([g for g, _, _ in round_], groups, spp)
-                        tracked = sum(np.float32(w[g]) * img for g, img, _ in round_)
-                        r_tracked = float(np.mean([x for _, _, x in round_]))
-                        round_.clear()
-                prog.add(tracked, seconds[-1], radius=r_tracked)
-                if self.pass_callback is not None:
-                    self.pass_callback(done + 1, r, self._mean_values(gat, by_group, groups, spp,
-                                                                      done + 1))
+                with stats.stage("lsg_gather"):     # the pass's image and error estimate
+                    cumulative = gat.image(dev) if keep_images else None
+                    own = (cumulative if previous is None or cumulative is None
+                           else cumulative - previous)
+                    previous = cumulative
+                    tracked, r_tracked = own, r
+                    if groups > 1:
+                        acc = by_group.setdefault(i % groups, [0.0, 0])
+                        acc[0] = acc[0] + own
+                        acc[1] += 1
+                        # the error estimate compares whole rounds (one pass of every group):
+                        # two passes of different groups differ by their samples, not only noise
+                        round_.append((i % groups, own, r))
+                        tracked = None
+                        if len(round_) == groups:
+                            w = _group_weights([g for g, _, _ in round_], groups, spp)
+                            tracked = sum(np.float32(w[g]) * img for g, img, _ in round_)
+                            r_tracked = float(np.mean([x for _, _, x in round_]))
+                            round_.clear()
+                    prog.add(tracked, seconds[-1], radius=r_tracked)
+                    if self.pass_callback is not None:
+                        values = self._mean_values(gat, by_group, groups, spp, done + 1)
+                        self.pass_callback(done + 1, r, values)
                 for key, v in res.items():
                     tot[key] = max(tot.get(key, 0), v) if key.endswith("_max") else tot.get(key, 0) + v
                 if done + 1 > bar.total:
@@ -666,6 +668,7 @@ class LineSpaceGathering(Method):
         seg_per_ray = 1.0          # lower bound until a chunk has been traced
         n0 = max(1, math.ceil(n_rays * seg_per_ray * BYTES_PER_SEGMENT / budget))
         queue = deque((k, n0) for k in range(n0))
+        started, traced = time.perf_counter(), stats.stages.get("light_paths", 0.0)
         tot = dict(pair_tests=0, valid_pairs=0, light_x_view=0, chunks=0, lsg_light_segments_kept=0,
                    tree_build_seconds=0.0, gather_seconds=0.0, lsg_chunk_bytes_max=0,
                    lsg_chunks_retraced=0, specular_rays=0, rays=0, lsg_leaf_points_tested=0,
@@ -707,6 +710,11 @@ class LineSpaceGathering(Method):
             tot["gather_seconds"] += res.gather_seconds
             tot["lsg_chunk_bytes_max"] = max(tot["lsg_chunk_bytes_max"], res.nbytes)
             eng.note_host(res.nbytes)
+        # the stages: the tree builds the gatherer timed, and the gather all the rest of
+        # the chunks' time outside tracing (their launches, clipping and bookkeeping), so
+        # that the stages cover the pass
+        traced = stats.stages.get("light_paths", 0.0) - traced
+        rest = time.perf_counter() - started - traced - tot["tree_build_seconds"]
         stats.stages["lsg_tree"] = stats.stages.get("lsg_tree", 0.0) + tot["tree_build_seconds"]
-        stats.stages["lsg_gather"] = stats.stages.get("lsg_gather", 0.0) + tot["gather_seconds"]
+        stats.stages["lsg_gather"] = stats.stages.get("lsg_gather", 0.0) + max(rest, 0.0)
         return tot
