@@ -394,6 +394,27 @@ def test_calibration_prefers_the_asked_scenes_own_rates(tmp_path, monkeypatch):
     assert calibration.predict("dev", "vpm", 1e9, "builtin:caustic_torus") == pytest.approx(3.0)
 
 
+def test_calibration_keeps_what_each_scene_taught(tmp_path, monkeypatch):
+    """Many renders of one scene do not push out another scene's measurements: the newest
+    KEEP of each scene are kept, for the KEEP_SCENES scenes measured last."""
+    from clscatter.pipeline import calibration
+    monkeypatch.setenv("CLSCATTER_COSTS", str(tmp_path / "costs.json"))
+    monkeypatch.setattr(calibration, "KEEP", 4)
+    monkeypatch.setattr(calibration, "KEEP_SCENES", 3)
+    calibration.record("dev", "lsg", 1e9, 16.0, "builtin:caustic_torus")
+    for k in range(10):                                     # a later run of many renders
+        calibration.record("dev", "lsg", 1e9, 2.0 + k, "builtin:glass")
+    assert calibration.predict("dev", "lsg", 1e9, "builtin:caustic_torus") == pytest.approx(16.0)
+    kept = json.loads((tmp_path / "costs.json").read_text())["dev"]["lsg"]
+    assert [e[1] for e in kept] == [16.0, 8.0, 9.0, 10.0, 11.0]     # oldest first
+    for name in ("builtin:caustic_sphere", "builtin:caustic_gem"):
+        calibration.record("dev", "lsg", 1e9, 1.0, name)
+    kept = json.loads((tmp_path / "costs.json").read_text())["dev"]["lsg"]
+    assert {e[2] for e in kept} == {"builtin:glass", "builtin:caustic_sphere",
+                                    "builtin:caustic_gem"}      # the torus was measured first
+    assert calibration.predict("dev", "lsg", 1e9, "builtin:glass") == pytest.approx(10.0)
+
+
 def test_calibration_file_can_be_named(tmp_path, monkeypatch):
     """$CLSCATTER_COSTS names the calibration file (the suite's own: conftest.py), in place
     of costs.json in the cache folder."""

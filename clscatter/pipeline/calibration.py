@@ -18,8 +18,9 @@ prediction: the nearest in size, and their median, keep it to the renders like t
 asked about. Each measurement also names its scene (``Scene.source``: the file or
 ``builtin:NAME``); where measurements of the asked scene are kept, the prediction is made
 from those alone. Estimates are orders of magnitude, so the prediction is
-a guide, within a factor of a few, not a promise. The last :data:`KEEP` measurements are
-kept in ``costs.json`` beside the other cached results
+a guide, within a factor of a few, not a promise. The last :data:`KEEP` measurements of
+each of the :data:`KEEP_SCENES` scenes measured last are kept (so renders of one scene do
+not push out what was learnt on others), in ``costs.json`` beside the other cached results
 (:func:`clscatter.device.cache.cache_dir`), or in the file ``$CLSCATTER_COSTS`` names (the
 test suite points it at a file of its own, so that its small renders do not replace a
 user's measurements); a file that cannot be read or written is ignored, and so are entries
@@ -34,8 +35,10 @@ from pathlib import Path
 
 from ..device.cache import cache_dir
 
-#: measurements kept per device and stage
+#: measurements kept per device, stage and scene
 KEEP = 16
+#: scenes whose measurements are kept per device and stage (those measured last)
+KEEP_SCENES = 16
 #: measurements a prediction is made from (those nearest the asked work)
 NEAR = 3
 #: stages whose work estimate is below this are not recorded (their time is noise)
@@ -95,7 +98,7 @@ def record(device: str, stage: str, work: float, seconds: float, scene: str = ""
         stages = data[device] = {}
     kept = [list(m) for m in _measurements(stages.get(stage))]
     kept.append([float(work), float(seconds), scene_key(scene)])
-    stages[stage] = kept[-KEEP:]
+    stages[stage] = _retained(kept)
     try:
         _path().parent.mkdir(parents=True, exist_ok=True)
         tmp = _path().with_suffix(".tmp")
@@ -103,6 +106,23 @@ def record(device: str, stage: str, work: float, seconds: float, scene: str = ""
         tmp.replace(_path())
     except OSError:
         pass
+
+
+def _retained(entries: list[list]) -> list[list]:
+    """Of ``entries`` (oldest first, the scene last in each), the newest :data:`KEEP` of
+    each of the :data:`KEEP_SCENES` scenes whose newest entry is newest, oldest first."""
+    per: dict[str, int] = {}
+    out = []
+    for e in reversed(entries):
+        scene = e[2]
+        if scene not in per:
+            if len(per) == KEEP_SCENES:
+                continue
+            per[scene] = 0
+        if per[scene] < KEEP:
+            per[scene] += 1
+            out.append(e)
+    return out[::-1]
 
 
 def predict(device: str, stage: str, work: float, scene: str = "") -> float | None:
