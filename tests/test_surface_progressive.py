@@ -188,8 +188,8 @@ def test_overrun_note_names_what_a_sized_first_pass_is_left_with(ball, method, m
     assert rays < 40000 and st[f"{method}_sized_from"] == "calibration"
     note = [n for n in st["notes"] if "first pass alone" in n]
     assert len(note) == 1, st["notes"]
-    assert f"a first pass of {rays} lighting rays" in note[0]
-    assert f"{st['diffuse_hits']} diffuse hits" in note[0]
+    assert (f"a first pass, in which each of the {st['diffuse_hits']} diffuse hits gathers "
+            f"its k nearest of {rays} lighting rays, is the smallest unit of work") in note[0]
     assert f"render.{method}.k" in note[0] and f"render.{method}.photons" not in note[0]
 
 

@@ -141,7 +141,7 @@ class SurfaceDensityMethod(Method):
         if rays >= int(self.params["photons"]):
             unit, lower = "a pass of all its photons", f"render.{name}.photons"
         else:   # sized down: what is left is the k-nearest queries of every diffuse hit
-            unit = (f"a first pass of {rays} lighting rays, each of its {res.hits} diffuse hits "
-                    "gathering its k nearest,")
+            unit = (f"a first pass, in which each of the {res.hits} diffuse hits gathers its "
+                    f"k nearest of {rays} lighting rays,")
             lower = f"render.{name}.k, camera.resolution or camera.spp"
         ctx.overrun(prog, prog.overrun_note(name, unit, lower))
