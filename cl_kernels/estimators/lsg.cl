@@ -484,18 +484,37 @@ int cell_floor(float v, int n) { return (int)floor(clamp(v, -1.0f, (float)n)); }
 #define SPLAT_TEST(I) \
     scatter_pair(lights, light_ids, li, views, view_ids, (I), radius, min_sin, medium, scale, \
                  fixed_scale, acc, &cnt, pairs, pair_count, max_pairs, own_lo, own_hi)
-#define SPLAT_RANGE(FIRST, LAST) \
-    for (int v_ = (FIRST); v_ < (LAST); ++v_) { \
-        cnt.z += 1; \
-        if (fabs(dot3(dirs[v_], ml)) <= thr) { \
+#define SPLAT_RANGE(FIRST, LAST) { \
+    int f_ = (FIRST), l_ = (LAST); \
+    cnt.z += max(l_ - f_, 0); \
+    for (int b_ = f_ >> 3; 8 * b_ < l_; ++b_) { \
+        uint m_ = dir_block_near(dirs, b_, ml, thr, f_, l_); \
+        while (m_ != 0u) { \
+            int v_ = take_point(&m_, b_); \
             PREFETCH_HINT(views + v_); \
             PREFETCH_HINT((__global const uint *)acc + SCATTER_WORDS * v_); \
             int due_ = pending_push(&queue, v_); \
             if (due_ >= 0) SPLAT_TEST(due_); \
         } \
-    }
+    } }
 
-__kernel void lsg_splat(__global const ViewSegment *views, __global const float4 *dirs,
+/* The plane test |u_v . ml| <= thr of the 8 view segments of block b of the cell order
+ * (screen_cells.DIR_LANES: rows x, y, z of their unit directions u_v, a segment per lane),
+ * as bits: bit j set where segment 8b + j lies in [first, last) and passes (in the order
+ * of the cell order, as take_point takes them). */
+uint dir_block_near(__global const float8 *dirs, int b, float4 ml, float thr, int first,
+                    int last) {
+    __global const float8 *D = dirs + 3 * b;
+    float8 d = D[0] * ml.x + D[1] * ml.y + D[2] * ml.z;
+    int8 near = islessequal(fabs(d), (float8)(thr));
+    int4 n4 = near.lo | near.hi;
+    int2 n2 = n4.lo | n4.hi;
+    if ((n2.x | n2.y) == 0) return 0u;
+    int8 i = (int8)(8 * b) + (int8)(0, 1, 2, 3, 4, 5, 6, 7);
+    return lane_bits8(near & (i >= (int8)(first)) & (i < (int8)(last)));
+}
+
+__kernel void lsg_splat(__global const ViewSegment *views, __global const float8 *dirs,
                         __global const int *view_ids,
                         __global const int *cell_start, int nx, int ny, float4 eye,
                         float4 ex, float4 ey, float4 ez, float4 grid, float reach,
