@@ -55,6 +55,20 @@ def slab_interval(a: np.ndarray, d: np.ndarray, lo, hi, t_max) -> tuple[np.ndarr
     return enter, leave
 
 
+def edge_keys(a, b, n: int):
+    """One integer per undirected edge between vertices ``a`` and ``b`` (arrays or ints) of
+    a mesh of fewer than ``n`` vertices: the same for a -> b and b -> a. (np.unique(axis=0)
+    on the pairs would compare structured arrays, which turns a KeyboardInterrupt raised
+    by a signal meanwhile into a TypeError.)"""
+    return np.minimum(a, b) * n + np.maximum(a, b)
+
+
+def mesh_edges(faces: np.ndarray) -> np.ndarray:
+    """``(3F, 2)`` the edges of every triangle, each as the triangle winds it (a -> b)."""
+    f = np.asarray(faces, np.int64)
+    return np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+
+
 def boundary_edges(faces: np.ndarray) -> np.ndarray:
     """``(E, 2)`` edges of a triangle mesh (vertex indices, shared vertices merged) that
     only one triangle uses, each as that triangle winds it (a -> b): none for a closed
@@ -62,11 +76,8 @@ def boundary_edges(faces: np.ndarray) -> np.ndarray:
     f = np.asarray(faces, np.int64)
     if len(f) == 0:
         return np.zeros((0, 2), np.int64)
-    d = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    # an integer key per undirected edge (np.unique(axis=0) compares structured arrays,
-    # which turns a KeyboardInterrupt raised by a signal meanwhile into a TypeError)
-    n = int(f.max()) + 1
-    key = np.minimum(d[:, 0], d[:, 1]) * n + np.maximum(d[:, 0], d[:, 1])
+    d = mesh_edges(f)
+    key = edge_keys(d[:, 0], d[:, 1], int(f.max()) + 1)
     _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
     return d[counts[inv.reshape(-1)] == 1]
 

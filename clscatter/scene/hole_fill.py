@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import boundary_edges
+from ..geometry import boundary_edges, edge_keys, mesh_edges
 
 #: loops longer than this are fanned around their centroid (ear clipping takes O(k^2)
 #: corner tests, O(k^3) at worst)
@@ -128,8 +128,8 @@ def fill_holes(vertices: np.ndarray, faces: np.ndarray
     if not loops:
         return v, f, 0
     n = len(v) + len(loops)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    edges = set((np.minimum(e[:, 0], e[:, 1]) * n + np.maximum(e[:, 0], e[:, 1])).tolist())
+    e = mesh_edges(f)
+    edges = set(edge_keys(e[:, 0], e[:, 1], n).tolist())
     new_faces: list[np.ndarray] = []
     new_verts: list[np.ndarray] = []
     for loop in loops:
@@ -140,7 +140,7 @@ def fill_holes(vertices: np.ndarray, faces: np.ndarray
 
         def joined(a: int, c: int, loop=loop) -> bool:
             x, y = int(loop[a]), int(loop[c])
-            return min(x, y) * n + max(x, y) in edges
+            return int(edge_keys(x, y, n)) in edges
         tris, rest = (_ear_clip(q, joined) if len(loop) <= MAX_CLIPPED
                       else ([], list(range(len(loop)))))
         if tris:

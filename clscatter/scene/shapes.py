@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SceneError
+from ..geometry import edge_keys, mesh_edges
 from .hole_fill import fill_holes
 from .ply import read_ply
 
@@ -116,10 +117,8 @@ def unit_icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
                   [8, 6, 7], [9, 8, 1]], np.int64)
     v /= np.linalg.norm(v, axis=1, keepdims=True)
     for _ in range(int(subdivisions)):
-        edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-        # one integer key per edge (not np.unique(axis=0): its structured-array compare
-        # turns a KeyboardInterrupt raised by a signal meanwhile into a TypeError)
-        keys, inv = np.unique(edges[:, 0] * len(v) + edges[:, 1], return_inverse=True)
+        edges = mesh_edges(f)
+        keys, inv = np.unique(edge_keys(edges[:, 0], edges[:, 1], len(v)), return_inverse=True)
         uniq = np.stack([keys // len(v), keys % len(v)], axis=1)
         mid = v[uniq[:, 0]] + v[uniq[:, 1]]
         mid /= np.linalg.norm(mid, axis=1, keepdims=True)
