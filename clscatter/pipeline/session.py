@@ -533,17 +533,23 @@ def _costs(run: "_Run"):
     calibration (:mod:`clscatter.pipeline.calibration`) under the method's own stage names."""
     device, source = run.ps.engine.device.name.strip(), run.scene.source
     return (lambda stage, work: calibration.predict(device, stage, work, source),
-            lambda stage, work, seconds: calibration.record(device, stage, work, seconds,
-                                                            source))
+            lambda stage, work, seconds: _record(run.stats, run.ps.engine, stage, work,
+                                                 seconds, run.scene))
 
 
 def _calibrate(engine: Engine, req, scene: Scene, stage: str, seconds: float,
                stats: Stats) -> None:
     """Record that ``stage`` (the scene's preparation, its view paths, or a pass that ran
-    in full) took ``seconds`` for its estimated work in ``req`` on ``engine``'s device, on
-    ``scene`` (:mod:`clscatter.pipeline.calibration`); the record's own time (a file read
-    and written) is the stage ``calibrate``."""
-    work = sum(e.work for e in req.estimates if e.stage == stage)
+    in full) took ``seconds`` for its estimated work in ``req`` (:func:`_record`)."""
+    _record(stats, engine, stage, sum(e.work for e in req.estimates if e.stage == stage),
+            seconds, scene)
+
+
+def _record(stats: Stats, engine: Engine, stage: str, work: float, seconds: float,
+            scene: Scene) -> None:
+    """Keep that ``work`` of ``stage`` took ``seconds`` on ``engine``'s device, on ``scene``
+    (:mod:`clscatter.pipeline.calibration`); the record's own time (a file read and
+    written) is the stage ``calibrate``."""
     with stats.stage("calibrate"):
         calibration.record(engine.device.name.strip(), stage, work, seconds, scene.source)
 
