@@ -182,11 +182,11 @@ def test_splat_order_keeps_the_sums(engine):
 
 
 def test_cells_hold_the_unit_directions_in_blocks_of_the_cell_order(engine):
-    """The splat's plane test reads the directions 8 segments at once (DIR_LANES): block b
+    """The splat's plane test reads the directions 8 segments at once (POINT_LANES): block b
     holds rows x, y, z of the unit directions of segments 8b .. 8b + 7 of the cell order
     (the order of ``ids``), float32 within 1e-6 of float64's, the last block padded with
     zeros (1203 segments: a partial block)."""
-    from clscatter.estimators.screen_cells import DIR_LANES
+    from clscatter.estimators.line_tree import POINT_LANES
     rng = np.random.default_rng(3)
     cam = _camera()
     va, vb = _camera_rays(rng, cam, 1203)
@@ -195,8 +195,8 @@ def test_cells_hold_the_unit_directions_in_blocks_of_the_cell_order(engine):
     assert len(idx) == 1203
     sc = build_screen_cells(engine, views, idx, cam, 0.0)
     try:
-        blocks = -(-1203 // DIR_LANES)
-        dirs = engine.read(sc.bufs["dirs"], (blocks, 3, DIR_LANES), np.float32)
+        blocks = -(-1203 // POINT_LANES)
+        dirs = engine.read(sc.bufs["dirs"], (blocks, 3, POINT_LANES), np.float32)
         ids = engine.read(sc.bufs["ids"], (1203,), np.int32)
         assert sorted(ids.tolist()) == sorted(idx.tolist())
         d = views["b"][ids, :3].astype(np.float64) - views["a"][ids, :3]

@@ -499,7 +499,7 @@ int cell_floor(float v, int n) { return (int)floor(clamp(v, -1.0f, (float)n)); }
     } }
 
 /* The plane test |u_v . ml| <= thr of the 8 view segments of block b of the cell order
- * (screen_cells.DIR_LANES: rows x, y, z of their unit directions u_v, a segment per lane),
+ * (line_tree.point_blocks of their unit directions u_v: rows x, y, z, a segment per lane),
  * as bits: bit j set where segment 8b + j lies in [first, last) and passes (in the order
  * of the cell order, as take_point takes them). */
 uint dir_block_near(__global const float8 *dirs, int b, float4 ml, float thr, int first,

@@ -223,32 +223,36 @@ def node_boxes(tree: LineTree, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return out
 
 
-#: Plücker points per block of the gather's plane test (``block_near`` in
-#: cl_kernels/estimators/lsg.cl tests a block's points at once, one per vector lane).
+#: Points per block of the plane tests (``block_near`` and ``dir_block_near`` in
+#: cl_kernels/estimators/lsg.cl test a block's points at once, one per vector lane).
 POINT_LANES = 8
 
 
-def point_block_array(n: int) -> np.ndarray:
-    """Zeroed blocks for ``n`` Plücker points in :func:`point_blocks`' layout: ``(ceil(n /
-    L), 6, L)`` float32 (L = :data:`POINT_LANES`), one block for no points."""
-    return np.zeros((max(1, -(-int(n) // POINT_LANES)), 6, POINT_LANES), np.float32)
+def point_block_array(n: int, coords: int = 6) -> np.ndarray:
+    """Zeroed blocks for ``n`` points of ``coords`` coordinates (6: Plücker points) in
+    :func:`point_blocks`' layout: ``(ceil(n / L), coords, L)`` float32 (L =
+    :data:`POINT_LANES`), one block for no points."""
+    return np.zeros((max(1, -(-int(n) // POINT_LANES)), coords, POINT_LANES), np.float32)
 
 
 def point_blocks(points, out: np.ndarray | None = None, start: int = 0) -> np.ndarray:
-    """Plücker points ``(N, 6)`` (in tree order) as blocks of L = :data:`POINT_LANES` for a
-    plane test of L at once (``block_near`` in cl_kernels/estimators/lsg.cl): ``(ceil(N /
-    L), 6, L)`` float32, block ``b`` holding points ``L b .. L b + L - 1`` as columns and
-    their 6 coordinates as rows; the last block padded with zeros, and one block of zeros
-    for no points. With ``out`` (:func:`point_block_array`), the points are written there
-    as points ``start`` (a multiple of L) onwards, and ``out`` is returned."""
+    """Points ``(N, C)`` (Plücker points in tree order, C = 6; or the screen cells' unit
+    directions in cell order, C = 3) as blocks of L = :data:`POINT_LANES` for a plane test
+    of L at once (``block_near``, ``dir_block_near`` in cl_kernels/estimators/lsg.cl):
+    ``(ceil(N / L), C, L)`` float32, block ``b`` holding points ``L b .. L b + L - 1`` as
+    columns and their C coordinates as rows; the last block padded with zeros, and one
+    block of zeros for no points. With ``out`` (:func:`point_block_array`), the points are
+    written there as points ``start`` (a multiple of L) onwards, and ``out`` is returned."""
     lanes = POINT_LANES
-    pts = np.asarray(points, np.float32).reshape(-1, 6)
+    pts = np.asarray(points, np.float32)
+    if pts.ndim != 2:
+        pts = pts.reshape(-1, 6)
     if out is None:
-        out = point_block_array(len(pts))
+        out = point_block_array(len(pts), pts.shape[1])
     if start % lanes:
         raise ValueError(f"point blocks start at a multiple of {lanes}, not {start}")
     b, whole = start // lanes, len(pts) // lanes * lanes
-    out[b:b + whole // lanes] = pts[:whole].reshape(-1, lanes, 6).transpose(0, 2, 1)
+    out[b:b + whole // lanes] = pts[:whole].reshape(-1, lanes, pts.shape[1]).transpose(0, 2, 1)
     if whole < len(pts):                     # the last, padded block
         out[b + whole // lanes, :, :len(pts) - whole] = pts[whole:].T
     return out

@@ -17,16 +17,13 @@ import numpy as np
 from ..device import Engine, structs
 from ..transport import primitives as prim
 from .fixed_sum import SCATTER_BYTES
+from .line_tree import point_blocks
 from .row_chunks import map_row_chunks
 
 # Bytes one view segment on a camera ray costs in ScreenCells: its record (64), direction
 # (12), index (4) and sums and count (SCATTER_BYTES, 32) on the device, a host copy of all
 # but the sums and the build's float64 directions and cells (about 180) -- about 300.
 BYTES_PER_SCREEN_VIEW = 296
-
-# View segments whose directions the splat's plane test reads at once (``dir_block_near``
-# in cl_kernels/estimators/lsg.cl: a float8 per coordinate)
-DIR_LANES = 8
 
 # How far (normalised frame) a view segment's line may pass from the eye and still count
 # as a camera ray: float32 ends of a segment traced from the eye miss it by far less; the
@@ -38,7 +35,7 @@ ON_RAY = 1e-4
 class ScreenCells:
     """View segments on camera rays in the order of their screen cells, on the device.
     ``bufs``: the records in cell order (``views``), their unit directions (``dirs``,
-    blocks of :data:`DIR_LANES`: rows x, y, z), their indices (``ids``), each cell's
+    :func:`~.line_tree.point_blocks` of x, y, z), their indices (``ids``), each cell's
     first segment (``start``, ``nx * ny + 1``) and the fixed-point sums and valid pairs
     (``acc``, a record of SCATTER_BYTES per segment). ``frame``: the eye and the camera's axes (float32 4-vectors, normalised
     frame); ``grid``: the lower corner of the cells in tangent coordinates (x / z, y / z)
@@ -128,15 +125,12 @@ def build_screen_cells(engine: Engine, views: np.ndarray, idx: np.ndarray, camer
     order = np.argsort(cell, kind="stable")
     start = np.zeros(nx * ny + 1, np.int32)
     np.cumsum(np.bincount(cell, minlength=nx * ny), out=start[1:])
-    # unit directions for the plane test, in blocks of DIR_LANES segments of the cell order
-    # (rows x, y, z; a lane per segment; the last block padded with zeros): the kernel tests
-    # a block at once
-    dirs = np.zeros((max(1, -(-n // DIR_LANES)), 3, DIR_LANES), np.float32)
+    # unit directions for the plane test, in the cell order, as blocks of POINT_LANES (rows
+    # x, y, z): the kernel tests a block at once
     if n:
         d = d[order]
-        unit = np.zeros((dirs.shape[0] * DIR_LANES, 3), np.float32)
-        unit[:n] = d / np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
-        dirs[:] = unit.reshape(-1, DIR_LANES, 3).transpose(0, 2, 1)
+        d = d / np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
+    dirs = point_blocks(d if n else np.zeros((0, 3), np.float32))
     ids = idx[order].astype(np.int32) if n else np.zeros(1, np.int32)
     bufs = {"dirs": engine.to_device(dirs), "ids": engine.to_device(ids),
             "start": engine.to_device(start)}
