@@ -130,20 +130,26 @@ uint lane_bits8(int8 ok) {
     return (uint)(h2.x | h2.y);
 }
 
-/* The plane test of the 8 Plücker points of block b (line_tree.point_blocks, POINT_LANES
- * = 8: rows u.x, u.y, u.z, m.x, m.y, m.z, a point per lane; P . w = +-d' sin(theta) of
- * the two lines), as bits: bit j set where point 8b + j lies in the leaf's range [rg.x,
- * rg.y) and |P . w| <= thr. Most blocks have no point near: one branch tells. */
-uint block_near(__global const float8 *points, int b, const Walk *k, int2 rg) {
-    __global const float8 *P = points + 6 * b;
-    float8 d = (P[0] * k->w4.x + P[1] * k->w4.y) + (P[2] * k->w4.z + P[3] * k->w4.w)
-             + (P[4] * k->w2.x + P[5] * k->w2.y);
-    int8 near = islessequal(fabs(d), (float8)(k->thr));
+/* The lanes of block b's plane test near (points 8b .. 8b + 7) that are set and whose
+ * point lies in [first, last), as bits (lane_bits8). Most blocks have no point near: one
+ * branch tells. */
+uint near_in_range(int8 near, int b, int first, int last) {
     int4 n4 = near.lo | near.hi;
     int2 n2 = n4.lo | n4.hi;
     if ((n2.x | n2.y) == 0) return 0u;
     int8 i = (int8)(8 * b) + (int8)(0, 1, 2, 3, 4, 5, 6, 7);
-    return lane_bits8(near & (i >= (int8)(rg.x)) & (i < (int8)(rg.y)));
+    return lane_bits8(near & (i >= (int8)(first)) & (i < (int8)(last)));
+}
+
+/* The plane test of the 8 Plücker points of block b (line_tree.point_blocks, POINT_LANES
+ * = 8: rows u.x, u.y, u.z, m.x, m.y, m.z, a point per lane; P . w = +-d' sin(theta) of
+ * the two lines), as bits: bit j set where point 8b + j lies in the leaf's range [rg.x,
+ * rg.y) and |P . w| <= thr. */
+uint block_near(__global const float8 *points, int b, const Walk *k, int2 rg) {
+    __global const float8 *P = points + 6 * b;
+    float8 d = (P[0] * k->w4.x + P[1] * k->w4.y) + (P[2] * k->w4.z + P[3] * k->w4.w)
+             + (P[4] * k->w2.x + P[5] * k->w2.y);
+    return near_in_range(islessequal(fabs(d), (float8)(k->thr)), b, rg.x, rg.y);
 }
 
 /* The lowest point of block b among the bits *m (block_near), taken from them. A leaf's
@@ -506,12 +512,7 @@ uint dir_block_near(__global const float8 *dirs, int b, float4 ml, float thr, in
                     int last) {
     __global const float8 *D = dirs + 3 * b;
     float8 d = D[0] * ml.x + D[1] * ml.y + D[2] * ml.z;
-    int8 near = islessequal(fabs(d), (float8)(thr));
-    int4 n4 = near.lo | near.hi;
-    int2 n2 = n4.lo | n4.hi;
-    if ((n2.x | n2.y) == 0) return 0u;
-    int8 i = (int8)(8 * b) + (int8)(0, 1, 2, 3, 4, 5, 6, 7);
-    return lane_bits8(near & (i >= (int8)(first)) & (i < (int8)(last)));
+    return near_in_range(islessequal(fabs(d), (float8)(thr)), b, first, last);
 }
 
 __kernel void lsg_splat(__global const ViewSegment *views, __global const float8 *dirs,
