@@ -204,3 +204,24 @@ def test_voxel_says_which_caustics_it_leaves_out(spec, sets, missing):
         assert len(said) == 1 and f"does not compute {', '.join(missing)}:" in said[0], notes
     else:
         assert not said, notes
+
+
+VOLUME = 'volumes=[{shape="sphere", center=[1.6, 1.0, 0.0], radius=0.3, ior=1.3}]'
+
+
+@pytest.mark.parametrize("spec,sets,missing", [
+    ("builtin:caustic_sphere", [], []),                     # voxelised glass, photons on the floor
+    ("builtin:caustic_sphere", ["render.voxel.surface_photons=false"], ["surface_caustics"]),
+    ("builtin:glass", [], ["caustics", "surface_caustics"]),          # a mirror besides the glass
+])
+def test_auto_notes_only_the_light_the_alone_method_leaves_out(spec, sets, missing):
+    """Under auto a volume makes voxel render the whole image alone, in place of the other
+    passes: the terms it does not compute itself (Method.computes) are noted as left out,
+    whether another method could have taken them or not, as for an explicit voxel pass."""
+    from clscatter.scene import load_scene
+    passes, notes = plan(load_scene(spec, [VOLUME, *sets]), "auto")
+    assert _roles(passes) == [("voxel", "all")]
+    left = sorted(n.split()[2] for n in notes
+                  if "voxel, which renders the whole image alone, does not compute it" in n)
+    assert left == sorted(missing), notes
+    assert not [n for n in notes if "no available method" in n], notes

@@ -106,6 +106,7 @@ def _plan(scene: Scene, requested: str) -> tuple[list[Pass], list[str]]:
     if requested != "auto":
         return _explicit(scene, requested, terms, notes)
     passes: list[Pass] = []
+    uncovered: list[str] = []                     # terms no candidate computes
     for term in terms:
         candidates = []
         for name, cls in methods.items():
@@ -118,20 +119,26 @@ def _plan(scene: Scene, requested: str) -> tuple[list[Pass], list[str]]:
                 continue
             candidates.append((role.priority, name, role))
         if not candidates:
-            notes.append(f"scene needs {term} but no available method computes it: {DROPS_LIGHT}")
+            uncovered.append(term)
             continue
         _, name, role = max(candidates)
         passes.append(Pass(name, term, dict(role.params or {}), dict(role.defaults or {})))
         extra = ", ".join(f"{k} = {v}" for k, v in {**(role.defaults or {}),
                                                     **(role.params or {})}.items())
         notes.append(f"{term} by {name}" + (f" ({extra})" if extra else ""))
-    for p in passes:
-        cls = methods[p.method]
-        if cls.ALONE:
-            others = [f"{q.role} by {q.method}" for q in passes if q is not p]
-            notes.append(f"{p.method} renders the whole image alone"
-                         + (f" (instead of {', '.join(others)})" if others else ""))
-            return [Pass(p.method, "all", p.params, p.defaults)], notes
+    alone = next((p for p in passes if methods[p.method].ALONE), None)
+    if alone is not None:        # it computes the terms its own way (Method.computes), and
+        computed = methods[alone.method].computes(scene, configure(alone.method,
+                                                                   alone.table(scene)))
+        uncovered = [t for t in terms if t not in computed]     # the others' passes go
+    why = (f"{alone.method}, which renders the whole image alone, does not compute it"
+           if alone is not None else "no available method computes it")
+    notes += [f"scene needs {t} but {why}: {DROPS_LIGHT}" for t in uncovered]
+    if alone is not None:
+        others = [f"{q.role} by {q.method}" for q in passes if q is not alone]
+        notes.append(f"{alone.method} renders the whole image alone"
+                     + (f" (instead of {', '.join(others)})" if others else ""))
+        return [Pass(alone.method, "all", alone.params, alone.defaults)], notes
     return passes, notes
 
 
