@@ -7,9 +7,10 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from clscatter.scene import scene_from_dict
-from clscatter.transport.light_paths import emission, trace_light_paths
+from clscatter.transport.light_paths import chunk_rays, emission, trace_light_paths
 from clscatter.transport.prepared import prepare_scene
 
 HERE = Path(__file__).resolve().parent
@@ -90,13 +91,30 @@ def test_glass_and_mirror_conserve_flux(engine):
     assert abs(out["flux"][:, 0].sum() / emitted - (1 - 0.5 * hit_fraction)) < 5e-3
 
 
-def test_chunks_reproduce_the_full_trace(engine):
+@pytest.mark.parametrize("interleaved", [False, True])
+def test_chunks_reproduce_the_full_trace(engine, interleaved):
+    """The chunks of a trace are the full trace's rays, each once: contiguous runs of
+    them, or (interleaved) rays k, k + n, ... that spread over all the directions."""
     d = {"camera": CAM, "medium": {"sigma_s": 0.1, "sigma_a": 0.0},
          "lights": [{"type": "point", "position": [0.0, 0.0, 0.0], "intensity": 1.0}]}
     ps = _prep(engine, d)
     full = trace_light_paths(ps, 1000, show_progress=False).segments
-    parts = [trace_light_paths(ps, 1000, show_progress=False, chunk=(k, 3)).segments for k in range(3)]
+    parts = [trace_light_paths(ps, 1000, show_progress=False, chunk=(k, 3),
+                               interleaved=interleaved).segments for k in range(3)]
     ps.release()
     joined = np.concatenate(parts)
     assert np.array_equal(np.sort(joined["ray"]), np.sort(full["ray"]))
     assert np.allclose(np.sort(joined["b"][:, 0]), np.sort(full["b"][:, 0]))
+    for k, part in enumerate(parts):
+        rays = np.unique(part["ray"])
+        assert len(rays) == chunk_rays(np.array([1000]), k, 3, interleaved)
+        # the Hammersley point's first coordinate is the ray's index over the count
+        # (rotated): a contiguous run is a band of a third of the cosines (in at most 3 of
+        # 6 equal bins, 4 if it straddles), an interleaved chunk spans them all
+        d = (part["b"] - part["a"])[:, :3]
+        z = d[:, 2] / np.linalg.norm(d, axis=1)
+        bins = len(np.unique(np.clip(np.floor((z + 1) * 3), 0, 5)))
+        if interleaved:
+            assert np.all(rays % 3 == k) and bins == 6
+        else:
+            assert rays.max() - rays.min() + 1 == len(rays) and bins <= 4

@@ -399,24 +399,26 @@ def test_params_are_validated():
 def test_direct_light_over_optical_depth_against_closed_form(engine, depth):
     """VPM (200k photons, knn 32) on LSG's regime scene (tests/test_lsg.py: a directional
     light through a box of fog of optical depth ``depth`` across, camera outside and
-    inside, light along and across the view) against analytic.directional_slab: image
-    means within 1 % seen from outside at every depth (measured 0.994 .. 1.001), within
-    2 % from inside up to optical depth 3 (0.990 .. 1.016). From inside at depth 10 the
-    camera sees the lit layer, 1/kappa deep, end on through few lighting rays, each
-    depositing correlated photons, and the mean moved between 0.82 and 1.08 with the
-    photon count, knn, step and radius, its sign flipping with photons_per_ray (noise, not
-    a bias: the kNN estimate uses k - 1 photons over the k-th photon's ball clipped to
-    the box): there only that band, widened by its own spread, is asserted."""
+    inside, light along and across the view) against analytic.directional_slab. The
+    tolerances are the spread of the image means over six light seeds (0-5): seen from
+    outside within 2 % at every depth (measured 0.985 .. 1.008), from inside within 3 %
+    up to optical depth 1 (0.980 .. 1.021) and 10 % at depth 3 (0.921 .. 1.057). From
+    inside at depth 10 the camera sees the lit layer, 1/kappa deep, end on through few
+    lighting rays, and the mean moved between 0.82 and 1.20 over the seeds (noise, not a
+    bias: the kNN estimate uses k - 1 photons over the k-th photon's ball clipped to the
+    box): there only that band, widened by its own spread, is asserted."""
     from test_lsg import _slab_mean_ratio, _slab_regime
     for camera, light in [(c, lt) for c in ("outside", "inside") for lt in ("behind", "side")]:
         d = _slab_regime(depth, camera, light)
         d["render"] = {"method": "vpm", "vpm": {"photons": 200_000}}
         ratio = _slab_mean_ratio(engine, d)
         print(f"depth {depth:g} {camera} {light}: mean {ratio:.4f}")
-        if camera == "inside" and depth > 3.0:
-            assert 0.72 <= ratio <= 1.18, (camera, light)     # the noise band 0.82 .. 1.08
+        if camera == "outside":
+            assert abs(ratio - 1.0) <= 0.02, (camera, light)
+        elif depth > 3.0:
+            assert 0.72 <= ratio <= 1.3, (camera, light)      # the noise band 0.82 .. 1.20
         else:
-            assert abs(ratio - 1.0) <= (0.01 if camera == "outside" else 0.02), (camera, light)
+            assert abs(ratio - 1.0) <= (0.03 if depth <= 1.0 else 0.10), (camera, light)
 
 
 def test_automatic_gather_cap_shrinks_like_the_photon_spacing():
@@ -438,3 +440,40 @@ def test_automatic_gather_cap_shrinks_like_the_photon_spacing():
         assert caps[n] == pytest.approx(closed, rel=0.1), (n, caps[n], closed)
     assert caps[160_000] / caps[20_000] == pytest.approx(0.5, rel=0.05)
     assert auto_max_radius(np.zeros((1, 3)), 32) == 0.0
+
+
+def test_photons_are_deposited_part_by_part(engine, monkeypatch):
+    """Traced and deposited in interleaved parts, the photon map holds the same light as
+    in one part: its photon count a Poisson total of the target, its power (the track
+    length of the lighting rays' flux) the same within Poisson noise; the working set
+    (a deposition's segments and arrays, or the tree build) shrinks."""
+    import clscatter.methods.vpm as V
+
+    d = {"camera": {"origin": [0.0, 0.6, 3.0], "target": [0.0, 0.5, 0.0], "fov": 50.0,
+                    "resolution": [8, 6], "spp": 1},
+         "medium": {"sigma_s": 0.5, "sigma_a": 0.5,
+                    "bounds": {"min": [-1.0, 0.0, -1.0], "max": [1.0, 1.0, 1.0]}},
+         "lights": [{"type": "spot", "position": [0.0, 2.0, 0.0], "target": [0.0, 0.0, 0.0],
+                     "cutoff_angle": 40.0, "intensity": 3.0}]}
+    target = 40_000
+    out = {}
+    for per_part in (1 << 20, 8192):
+        monkeypatch.setattr(V, "RAYS_PER_PART", per_part)
+        ps = prepare_scene(scene_from_dict(copy.deepcopy(d), HERE, "t"), engine)
+        try:
+            engine.reset_peak()
+            stats = Stats()
+            tree = VolumetricPhotonMapping({"photons": target}).build_photon_map(ps, stats, False)
+            power = pt.decode_rgb9e5(tree.photons["power"]).sum(0) * tree.power_scale
+            out[per_part] = (stats.to_dict(), tree.count, power, engine.bytes_peak)
+        finally:
+            ps.release()
+    (one, n1, p1, peak1), (parts, n5, p5, peak5) = out[1 << 20], out[8192]
+    assert one["vpm_parts"] == 1 and parts["vpm_parts"] == 5
+    assert one["light_rays"] == parts["light_rays"] == target
+    for n in (n1, n5):                                  # Poisson: sd = sqrt(40k) = 200
+        assert abs(n - target) < 5 * math.sqrt(target)
+    # the power of each photon set is a Poisson sum: relative sd 1/sqrt(40k) = 0.5 %
+    np.testing.assert_allclose(p5, p1, rtol=5 * math.sqrt(2.0 / target))
+    # measured 0.51x: what stays is the tracer's own append buffer (2 launches of records)
+    assert peak5 < 0.6 * peak1

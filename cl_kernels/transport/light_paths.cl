@@ -105,7 +105,8 @@ __kernel void trace_light(__global const BVHNode *nodes, __global const float4 *
                           __global const Material *materials,
                           __global const Light *lights, int light_index,
                           __global const Medium *medium, int max_depth, uint seed,
-                          int ray_offset, int num_rays, int rays_total, float4 flux_per_ray,
+                          int ray_offset, int ray_stride, int num_rays, int rays_total,
+                          float4 flux_per_ray,
                           float4 rect_origin, float4 rect_u, float4 rect_v,
                           __global const float4 *targets, __global const int *target_offsets,
                           int num_targets, __global int *ray_flags,
@@ -113,7 +114,7 @@ __kernel void trace_light(__global const BVHNode *nodes, __global const float4 *
                           volatile __global int *seg_count) {
     int gid = get_global_id(0);
     if (gid >= num_rays) return;
-    int ray = ray_offset + gid;
+    int ray = ray_offset + gid * ray_stride;   /* ray_stride > 1: an interleaved chunk */
     __global const Light *L = &lights[light_index];
     Rng rot = rng_seed(seed, (uint)light_index, 0x9e3779b9u);   /* same rotation for all rays */
     /* targeted emission (num_targets > 0, point/spot; clscatter/emission.py): rays

@@ -71,15 +71,25 @@ class LightPaths:
     specular_rays: np.ndarray | None = None   # per light: rays whose first hit is specular
 
 
+def chunk_rays(counts: np.ndarray, k: int, n: int, interleaved: bool = False) -> int:
+    """Rays that chunk ``(k, n)`` of :func:`trace_light_paths` traces, of ``counts`` rays
+    per light (every light's share)."""
+    if interleaved:
+        return int(sum(max(0, (int(c) - k + n - 1) // n) for c in counts))
+    return int(sum(int(c) * (k + 1) // n - int(c) * k // n for c in counts))
+
+
 def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = None,
                       show_progress: bool = True, rays_per_launch: int = 1 << 16,
                       chunk: tuple[int, int] | None = None, pieces: bool = False,
                       targeted: bool = False, seed_offset: int = 0,
-                      interior: bool = False) -> LightPaths:
+                      interior: bool = False, interleaved: bool = False) -> LightPaths:
     """Trace ``num_rays`` lighting rays (shared among lights by power).
 
     ``chunk = (k, n)`` traces only the k-th of n equal parts of every light's rays (the
-    same rays a full trace would give), so callers can bound memory and sum results.
+    same rays a full trace would give), so callers can bound memory and sum results: with
+    ``interleaved`` rays k, k + n, k + 2n, ... of every light, a subset spread over all of
+    its directions (or its rectangle) like the whole set, else a contiguous run of them.
     ``pieces=True`` returns, instead of the medium segments, the
     :data:`~clscatter.device.structs.RAY_PIECE` on which every branch ends (diffuse or black
     surface, or leaving the scene box) with the flux arriving there, with or without a
@@ -110,8 +120,8 @@ def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = No
     no_targets = eng.to_device(np.zeros((1, 4), np.float32))
     no_offsets = eng.to_device(np.zeros(2, np.int32))
     flags = eng.empty(4 * launch)
-    total = int(counts.sum())
-    with stats.stage("light_paths"), progress(total, "light paths", show_progress) as bar:
+    mine = int(counts.sum()) if chunk is None else chunk_rays(counts, *chunk, interleaved)
+    with stats.stage("light_paths"), progress(mine, "light paths", show_progress) as bar:
         for li in range(ps.num_lights):
             n_li = int(counts[li])
             em = emission(ps, li)
@@ -131,22 +141,22 @@ def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = No
                 continue
             # cone mode: the kernel weights each ray itself from the intensity
             flux_arg = ps.lights[li]["power"][:3].astype(np.float64) if n_tg else flux
-            lo, hi = 0, n_li
+            lo, hi, stride = 0, n_li, 1
             if chunk is not None:
                 k, n = chunk
-                lo, hi = n_li * k // n, n_li * (k + 1) // n
+                lo, hi, stride = (k, n_li, n) if interleaved else (n_li * k // n, n_li * (k + 1) // n, 1)
             start = lo
             while start < hi:
-                m = min(launch, hi - start)
+                m = min(launch, (hi - start + stride - 1) // stride)
                 parts.append(segs.call(
                     "light_paths", "trace_light", m, defines,
                     **ps.scene_args("light_paths", "trace_light"), light_index=li,
                     max_depth=ps.scene.render.max_depth, seed=seed, ray_offset=start,
-                    num_rays=m, rays_total=n_li, flux_per_ray=flux_arg, rect_origin=em.rect[0],
+                    ray_stride=stride, num_rays=m, rays_total=n_li, flux_per_ray=flux_arg, rect_origin=em.rect[0],
                     rect_u=em.rect[1], rect_v=em.rect[2], targets=tg_buf,
                     target_offsets=off_buf, num_targets=n_tg, ray_flags=flags))
                 spec[li] += int(eng.read(flags, m, np.int32).sum())
-                start += m
+                start += m * stride
                 bar.update(m)
             if n_tg:
                 eng.free(tg_buf, off_buf)
@@ -156,8 +166,7 @@ def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = No
     out = np.concatenate(parts) if parts else np.zeros(0, record)
     out = out[np.lexsort((out["branch"], out["ray"], out["light"]))]
     eng.note_host(out.nbytes)
-    stats.add("light_rays", int(total if chunk is None else sum(
-        int(c) * (chunk[0] + 1) // chunk[1] - int(c) * chunk[0] // chunk[1] for c in counts)))
+    stats.add("light_rays", mine)
     stats.add("light_ray_pieces" if pieces else "light_segments", int(len(out)))
     return LightPaths(out, counts, fluxes, spec)
 

@@ -25,7 +25,7 @@ from ...estimators.screen_cells import BYTES_PER_SCREEN_VIEW
 from ...io.stats import Stats, progress
 from ...transport.context import PassContext
 from ...transport.emission import targeted_fraction
-from ...transport.light_paths import ray_counts, trace_light_paths
+from ...transport.light_paths import chunk_rays, ray_counts, trace_light_paths
 from ...transport.prepared import PreparedScene
 from ...transport.view_paths import DeviceSegments, trace_interior_segments
 from .. import register
@@ -64,11 +64,6 @@ SAMPLES_SHARE_RADIUS = 0.5
 #: the automatic radius is at least the median pixel footprint of the lit view segments
 #: over this: no blur is smaller than a sixteenth of a pixel
 RADIUS_FLOOR = 16
-
-
-def _chunk_rays(counts: np.ndarray, k: int, n: int) -> int:
-    """Rays that chunk (k, n) of trace_light_paths traces (every light's share)."""
-    return int(sum(int(c) * (k + 1) // n - int(c) * k // n for c in counts))
 
 
 def _group_weights(gathered, groups: int, spp: int) -> dict[int, float]:
@@ -675,7 +670,7 @@ class LineSpaceGathering(Method):
                    lsg_kept_x_view=0)
         while queue:
             k, n = queue.popleft()
-            rays = _chunk_rays(counts, k, n)
+            rays = chunk_rays(counts, k, n)
             if rays == 0:
                 continue
             split = math.ceil(rays * seg_per_ray * BYTES_PER_SEGMENT / budget)

@@ -7,10 +7,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...device.launch import timed_launches
-from ...io.stats import Stats, progress
+from ...io.stats import Stats, Timer, progress
 from ...transport import primitives as prim
 from ...transport.context import PassContext
-from ...transport.light_paths import trace_light_paths
+from ...transport.light_paths import chunk_rays, trace_light_paths
 from ...transport.prepared import PreparedScene
 from .. import register
 from ..base import Estimate, Method, Param, PassResult, camera_samples
@@ -25,6 +25,9 @@ from .photons import (
 
 # photons deposited per NumPy batch (bounds the float64 temporaries of the deposition)
 DEPOSIT_BATCH = 1 << 16
+#: lighting rays traced and deposited at a time: the deposition's working set (the
+#: segments and their per-segment arrays) is one part's, beside the photons kept so far
+RAYS_PER_PART = 1 << 17
 #: the automatic largest gather radius: this many times the photons' median knn-th
 #: nearest distance (from a sample of AUTO_RADIUS_SAMPLE photons, AUTO_RADIUS_QUERIES of
 #: them queried), at most AUTO_RADIUS_MAX of the scene's extent
@@ -54,7 +57,8 @@ def auto_max_radius(positions: np.ndarray, knn: int, seed: int = 0) -> float:
 
 
 def deposit_photons(segments: np.ndarray, kappa: np.ndarray, num_photons: int, seed: int,
-                    batch: int = DEPOSIT_BATCH, independent: bool = False) -> tuple[np.ndarray, float]:
+                    batch: int = DEPOSIT_BATCH, independent: bool = False,
+                    unit: float | None = None) -> tuple[np.ndarray, float]:
     """Photons along lighting segments: ``(packed PHOTON array, power_scale W)``.
 
     Each segment carries flux ``Phi(s) = Phi_a exp(-kappa s)`` (rgb) along its length.
@@ -75,6 +79,9 @@ def deposit_photons(segments: np.ndarray, kappa: np.ndarray, num_photons: int, s
     another (a photon mapper's classic photons; with ~1 photon per ray also independent
     of each other's rays), which is what the kNN estimate's ``(k - 1) / V`` assumes.
     The total is ``num_photons`` in expectation.
+
+    ``unit``: the power the stored RGB9E5 values are relative to (default ``W``), so that
+    photons deposited part by part share one scale; ``W`` is returned either way.
     """
     kappa = np.asarray(kappa, np.float64)[:3]
     kbar = float(kappa.mean())
@@ -125,7 +132,7 @@ def deposit_photons(segments: np.ndarray, kappa: np.ndarray, num_photons: int, s
             out = photons[done:done + len(idx)]
             out["x"], out["y"], out["z"] = pos.T
             out["dir"] = dir_code[idx]
-            out["power"] = encode_rgb9e5(power / W)
+            out["power"] = encode_rgb9e5(power / (unit or W))
         first = last
     return photons, W
 
@@ -280,12 +287,14 @@ class VolumetricPhotonMapping(Method):
     *Cost.* Gather time is proportional to the number of march samples (view segments x
     length in the medium / ``dx``) times the kNN cost (~log photons + a few x ``knn``);
     samples farther than ``max_radius`` from every photon are skipped. Memory: the photon
-    map (~26 bytes per photon with the tree); the peak is while depositing the photons: the
-    lighting segments (64 bytes each, :data:`SEGMENTS_PER_RAY` a ray in the estimate) with
-    ~180 bytes of per-segment arrays beside the photons, or while building the tree
-    (~72 bytes per photon), the larger.
+    map (~26 bytes per photon with the tree). The lighting rays are traced and deposited in
+    parts of at most :data:`RAYS_PER_PART` rays, so that the peak is while depositing a part
+    (its lighting segments, 64 bytes each, :data:`SEGMENTS_PER_RAY` a ray in the estimate,
+    with ~180 bytes of per-segment arrays, beside the photons kept so far) or while
+    building the tree (~72 bytes per photon), the larger: it grows with the photons, not
+    with the segments that carry them.
 
-    Statistics: ``photons`` (stored), ``light_rays``, ``light_segments``,
+    Statistics: ``photons`` (stored), ``light_rays``, ``light_segments``, ``vpm_parts``,
     ``gather_steps`` (kNN queries), ``knn_boxes_tested``, ``knn_photons_tested``,
     ``photon_trace_seconds``, ``photon_build_seconds`` (deposition and tree, NumPy: the
     benchmarks report it apart from the device gather), ``vpm_targeted``,
@@ -328,9 +337,10 @@ class VolumetricPhotonMapping(Method):
         photons = float(params["photons"])
         segs = 2.0 * camera_samples(scene)
         steps = segs / params["dx"]                # an upper bound: every segment spans the scene
-        # the peak is the deposition's (the lighting segments, 64 bytes, with ~180 bytes of
-        # per-segment arrays, beside the photons) or the tree build's, the larger
-        light_segs = SEGMENTS_PER_RAY * photons / params["photons_per_ray"]
+        # the peak is a part's deposition (its lighting segments, 64 bytes, with ~180 bytes
+        # of per-segment arrays, beside the photons) or the tree build's, the larger
+        rays = photons / params["photons_per_ray"]
+        light_segs = SEGMENTS_PER_RAY * min(rays, RAYS_PER_PART)
         peak = max(light_segs * (64 + 180) + photons * PHOTON.itemsize,
                    photons * (PHOTON.itemsize + BUILD_BYTES_PER_PHOTON))
         return [Estimate("vpm", "render.vpm.photons", peak,
@@ -345,33 +355,61 @@ class VolumetricPhotonMapping(Method):
 
     def build_photon_map(self, ps: PreparedScene, stats: Stats,
                          show_progress: bool = True) -> PhotonMap:
-        """Trace the lighting rays and build the photon map (host arrays)."""
+        """Trace the lighting rays and deposit their photons part by part (at most
+        :data:`RAYS_PER_PART` rays a part, interleaved so that every part spreads over the
+        lights' directions like the whole set and carries about the same power: each takes
+        its share of the photons, all in one power unit), then build the photon map (host
+        arrays)."""
         eng = ps.engine
-        with stats.stage("photon_trace") as t_trace:
-            lp = trace_light_paths(ps, self.rays(), stats, show_progress,
-                                   targeted=self.targeted(), seed_offset=self.params["light_seed"])
-        stats.set(photon_trace_seconds=t_trace.seconds, vpm_targeted=self.targeted(),
-                  light_rays_specular_fraction=float(lp.specular_rays.sum()) / max(int(lp.rays.sum()), 1))
-        with stats.stage("photon_build") as t_build:
-            segs = lp.segments
-            if self.params["min_light_depth"] > 0:
-                segs = segs[segs["depth"] >= self.params["min_light_depth"]]
-            del lp
-            seed = (ps.scene.render.seed * 1000003 + 7 + 7919 * self.params["light_seed"]) & 0xFFFFFFFF
-            photons, scale = deposit_photons(segs, ps.medium["kappa"], self.params["photons"], seed,
-                                             independent=self.params["deposit"] == "independent")
-            # working sets (measured with tracemalloc): the deposition holds the segments,
-            # ~180 bytes of per-segment arrays, the photons and one batch's temporaries;
-            # the tree build ~BUILD_BYTES_PER_PHOTON per photon beyond the photons
+        rays = self.rays()
+        parts = max(1, math.ceil(rays / RAYS_PER_PART))
+        total = self.params["photons"]
+        base_seed = (ps.scene.render.seed * 1000003 + 7 + 7919 * self.params["light_seed"])
+        kept: list[np.ndarray] = []
+        kept_bytes = specular = traced = 0
+        unit = None
+        t_trace, t_build = Timer(), Timer()
+        for k in range(parts):
+            with stats.stage("photon_trace"), t_trace:
+                lp = trace_light_paths(ps, rays, stats, show_progress, chunk=(k, parts),
+                                       targeted=self.targeted(),
+                                       seed_offset=self.params["light_seed"], interleaved=True)
+            specular += int(lp.specular_rays.sum())
+            traced += chunk_rays(lp.rays, k, parts, interleaved=True)
+            with stats.stage("photon_build"), t_build:
+                segs = lp.segments
+                if self.params["min_light_depth"] > 0:
+                    segs = segs[segs["depth"] >= self.params["min_light_depth"]]
+                del lp
+                share = total * (k + 1) // parts - total * k // parts
+                seed = (base_seed + 0x9E3779B1 * k) & 0xFFFFFFFF
+                photons, w = deposit_photons(segs, ps.medium["kappa"], share, seed,
+                                             independent=self.params["deposit"] == "independent",
+                                             unit=unit)
+                if len(photons) and unit is None:
+                    unit = w
+                # working sets (measured with tracemalloc): the deposition holds the part's
+                # segments, ~180 bytes of per-segment arrays, its photons and one batch's
+                # temporaries beside the photons kept so far
+                eng.note_host(segs.nbytes + 180 * len(segs) + photons.nbytes + kept_bytes
+                              + 160 * min(DEPOSIT_BATCH, len(photons)))
+                del segs
+                kept.append(photons)
+                kept_bytes += photons.nbytes
+                del photons
+        with stats.stage("photon_build"), t_build:
+            photons = np.concatenate(kept) if kept else np.zeros(0, PHOTON)
+            del kept
+            # the parts and their concatenation, then the tree build ~BUILD_BYTES_PER_PHOTON
+            # per photon beyond the photons
             n = len(photons)
-            eng.note_host(max(segs.nbytes + 180 * len(segs) + photons.nbytes
-                              + 160 * min(DEPOSIT_BATCH, n),
-                              photons.nbytes + BUILD_BYTES_PER_PHOTON * n))
-            del segs
-            tree = build_photon_map(photons, self.params["leaf_size"], scale)
+            eng.note_host(max(2 * photons.nbytes, photons.nbytes + BUILD_BYTES_PER_PHOTON * n))
+            tree = build_photon_map(photons, self.params["leaf_size"], unit or 1.0)
             del photons
-        stats.set(photon_build_seconds=t_build.seconds, photons=tree.count,
-                  photon_map_bytes=tree.nbytes, photon_tree_levels=tree.levels)
+        stats.set(photon_trace_seconds=t_trace.seconds, vpm_targeted=self.targeted(),
+                  light_rays_specular_fraction=specular / max(traced, 1),
+                  photon_build_seconds=t_build.seconds, photons=tree.count,
+                  photon_map_bytes=tree.nbytes, photon_tree_levels=tree.levels, vpm_parts=parts)
         return tree
 
     def render(self, ctx: PassContext) -> PassResult:
