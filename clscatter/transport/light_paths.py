@@ -88,8 +88,12 @@ def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = No
 
     ``chunk = (k, n)`` traces only the k-th of n equal parts of every light's rays (the
     same rays a full trace would give), so callers can bound memory and sum results: with
-    ``interleaved`` rays k, k + n, k + 2n, ... of every light, a subset spread over all of
-    its directions (or its rectangle) like the whole set, else a contiguous run of them.
+    ``interleaved`` rays k, k + n, k + 2n, ... of every light, else a contiguous run of
+    them. A ray's Hammersley point is (index / count, radical inverse of the index): a
+    contiguous run is a band of the first coordinate, and an interleaved chunk spreads
+    over all of a light's directions (or its rectangle) like the whole set only for odd
+    ``n`` (an even stride fixes the index's low bits, so the radical inverse stays in a
+    band: a wedge of directions).
     ``pieces=True`` returns, instead of the medium segments, the
     :data:`~clscatter.device.structs.RAY_PIECE` on which every branch ends (diffuse or black
     surface, or leaving the scene box) with the flux arriving there, with or without a

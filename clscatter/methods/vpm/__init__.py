@@ -356,13 +356,14 @@ class VolumetricPhotonMapping(Method):
     def build_photon_map(self, ps: PreparedScene, stats: Stats,
                          show_progress: bool = True) -> PhotonMap:
         """Trace the lighting rays and deposit their photons part by part (at most
-        :data:`RAYS_PER_PART` rays a part, interleaved so that every part spreads over the
-        lights' directions like the whole set and carries about the same power: each takes
-        its share of the photons, all in one power unit), then build the photon map (host
-        arrays)."""
+        :data:`RAYS_PER_PART` rays a part, an odd number of interleaved parts, so that every
+        part spreads over the lights' directions like the whole set and carries about the
+        same power: each takes its share of the photons, all in one power unit), then
+        build the photon map (host arrays)."""
         eng = ps.engine
         rays = self.rays()
-        parts = max(1, math.ceil(rays / RAYS_PER_PART))
+        parts = math.ceil(rays / RAYS_PER_PART)
+        parts += parts > 1 and parts % 2 == 0        # an odd stride: see trace_light_paths
         total = self.params["photons"]
         base_seed = (ps.scene.render.seed * 1000003 + 7 + 7919 * self.params["light_seed"])
         kept: list[np.ndarray] = []
