@@ -95,7 +95,9 @@ def test_lsg_matches_converged_vpm_on_caustic_sphere(engine):
     raymarch 2.1e-3 .. 2.3e-3. The light raymarch lacks, summed over the 12 brightest
     caustic pixels of both: LSG / VPM = 0.71 .. 0.94 over VPM's light seeds 0-3, its
     photons deposited in one part or in parts (relMSE 1.24e-3 .. 1.51e-3 then): the
-    pixels are picked where the sum is brightest, so VPM's noisier peaks weigh in."""
+    pixels are picked where the sum is brightest, so VPM's noise weighs in, and its
+    k-nearest estimate spreads a caustic's light beyond it (its region totals come out
+    above an independent tracer's: tests/test_caustic_reference.py)."""
     pytest.importorskip("clscatter.methods.lsg")
     d = _small(CAUSTIC_SCENES["caustic_sphere"](), 64, 48)
     d["render"]["vpm"] = {"photons": 2_000_000, "knn": 32, "dx": 0.003}
