@@ -432,6 +432,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
     """Validate the scene and the method parameters, print the plan and the estimates."""
     from .pipeline.budget import (
         check_budget,
+        fit_memory,
         human_bytes,
         memory_budget,
         parse_bytes,
@@ -444,18 +445,19 @@ def _cmd_check(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene or f"builtin:{DEFAULT_BUILTIN}", args.overrides, on_note=_note)
     req = check(scene, args.method)
     device = _device_for_budget(args.device)        # before printing: a bad --device is one line
+    max_memory = parse_bytes(args.max_memory) if args.max_memory is not None else None
+    limit, source = memory_budget(device, max_memory)
+    fitted = fit_memory(scene, req, limit, source)
     c = scene.camera
     print(f"{scene.source}: valid; {c.width}x{c.height}, {c.spp} spp, "
           f"{scene.triangle_count()} triangles")
     print("plan: " + (", ".join(f"{p.method} ({p.role})" for p in req.passes) or "no passes"))
-    for n in req.notes:
+    for n in req.notes + fitted:
         print(f"  {n}")
     for e in req.estimates:
         keys = e.key if e.work_by == e.key else f"{e.key}; work: {e.work_by}"
         print(f"estimate {e.stage}: {human_bytes(e.bytes)}, about {e.work:.2g} {e.unit} ({keys})"
               + _predicted_time(device, e, scene.source))
-    max_memory = parse_bytes(args.max_memory) if args.max_memory is not None else None
-    limit, source = memory_budget(device, max_memory)
     print(f"peak: about {human_bytes(peak_bytes(req.estimates))} of {human_bytes(limit)} ({source})")
     seconds, origin = time_budget(scene, req.requested)
     line = (f"{seconds:g} s for the whole render ({origin}); progressive passes share what "

@@ -101,3 +101,37 @@ def test_work_beyond_one_allocation_is_chunked_not_refused(engine):
         chunks.append(res.stats["chunks"])
     assert chunks[0] == 1 and chunks[1] > 4
     np.testing.assert_allclose(images[1], images[0], rtol=1e-4, atol=1e-6 * images[0].max())
+
+
+def test_a_pass_over_the_memory_budget_is_fitted_in_smaller_chunks(engine):
+    """A render whose LSG pass, as set, needs more than ``max_memory`` is not refused: its
+    chunk bound (``max_bytes``) is lowered to what the budget leaves beside the view paths
+    and the scene, with a note naming the key; the estimated peak then fits, the rays are
+    gathered in more chunks, and (fixed radius) the image is the one without a budget.
+    Below what the smallest chunk needs it is still refused, naming the key to lower."""
+    from clscatter.errors import ClscatterError
+    from clscatter.pipeline import budget
+    from clscatter.pipeline.check import check
+    from clscatter.pipeline.render import render
+    from clscatter.scene import load_scene
+
+    sets = ["camera.resolution=[24,18]", "camera.spp=1", "render.lsg.light_rays=60000",
+            "render.lsg.radius=0.01"]
+    scene = load_scene("builtin:caustic_sphere", sets)
+    req = check(scene, "lsg")
+    kept = sum(e.bytes for e in req.estimates[:2])
+    whole = budget.peak_bytes(req.estimates)            # one chunk: 60k rays x 3 x 560 bytes
+    views = req.estimates[2].bytes - 60000 * 3 * 560
+    limit = kept + views + 12e6                         # leaves 12 MB for a chunk
+    assert whole > limit
+    notes: list[str] = []
+    fitted = render(scene, "lsg", engine=engine, show_progress=False, max_memory=limit,
+                    on_note=notes.append)
+    free = render(scene, "lsg", engine=engine, show_progress=False)
+    assert any("render.lsg.max_bytes" in n and "to fit" in n for n in notes), notes
+    assert fitted.stats["estimated_peak_bytes"] <= limit < free.stats["estimated_peak_bytes"]
+    assert free.stats["chunks"] == 1 and fitted.stats["chunks"] > 1
+    np.testing.assert_allclose(fitted.image, free.image, rtol=1e-4, atol=1e-6 * free.image.max())
+    with pytest.raises(ClscatterError, match="render.lsg.light_rays"):
+        render(scene, "lsg", engine=engine, show_progress=False,
+               max_memory=kept + views + 2e6)               # under the least chunk, 4 MiB

@@ -245,6 +245,13 @@ class Method:
         checked ``params``, made before anything is allocated; [] when negligible."""
         return []
 
+    @classmethod
+    def fit_memory(cls, scene, params: dict[str, Any], room: float) -> dict[str, Any]:
+        """Parameter values with which this pass's estimated working set fits in ``room``
+        bytes at the same result (a method that splits its work into parts it sums: a
+        smaller part), or {} when none do. Default: {} (what the pass needs, it needs)."""
+        return {}
+
     #: True when the method's progressive passes can run apart (``first_pass``/``passes``
     #: parameters; pass k's rays and radius depend on k alone) and be averaged: a cluster
     #: then splits the pass's lighting rays across workers, one task per pass

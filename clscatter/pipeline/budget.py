@@ -4,8 +4,10 @@ Every render estimates, from the scene and the checked method parameters alone, 
 working set (host + device bytes) and the amount of work of each stage: the view paths
 (camera samples) and every planned pass (``Method.estimate``). The sum is compared with a
 memory budget, the smaller of the device's global memory and the machine's physical
-memory, or ``--max-memory``; a render over budget is refused with one line that names the
-scene key to lower and the estimate, before any buffer exists. Work above
+memory, or ``--max-memory``. A pass that splits its work into parts it sums (LSG's chunks
+of lighting rays) is first fitted to the budget with smaller parts (:func:`fit_memory`,
+with a note); a render still over budget is refused with one line that names the scene
+key to lower and the estimate, before any buffer exists. Work above
 :data:`LONG_WORK` is allowed but announced (the progress bars show the ETA; Ctrl-C stops
 between kernel launches and writes nothing).
 
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterable
+from dataclasses import replace
 
 from ..device.memory import memory_budget
 from ..errors import ClscatterError
@@ -25,7 +28,8 @@ from ..transport.progressive import BUDGET_SLACK
 
 __all__ = ["Estimate", "camera_samples", "memory_budget", "estimate", "view_path_estimate",
            "scene_estimate", "time_budget", "AUTO_TIME_BUDGET", "BUDGET_SLACK",
-           "check_budget", "peak_bytes", "human_bytes", "parse_bytes", "long_work_notes"]
+           "check_budget", "fit_memory", "peak_bytes", "human_bytes", "parse_bytes",
+           "long_work_notes"]
 
 # bytes per camera sample kept by the view-path stage on the device: surface + escaped
 # (2 x float4), the diffuse hits a warm session keeps for re-shading (80 bytes, about one
@@ -113,6 +117,34 @@ def peak_bytes(estimates: list[Estimate]) -> float:
     another: peak = both + the largest pass (:func:`estimate`'s order)."""
     kept, passes = estimates[:2], estimates[2:]
     return sum(e.bytes for e in kept) + max((e.bytes for e in passes), default=0.0)
+
+
+def fit_memory(scene, req, budget: float, source: str) -> list[str]:
+    """Where the peak of ``req`` (a checked request: ``passes``, ``estimates``) exceeds
+    ``budget``, give every pass whose estimate does not fit beside the view paths and the
+    scene the parameters with which it does (``Method.fit_memory``: smaller parts of the
+    same work), and estimate again. Returns a note per pass changed; a pass that cannot
+    shrink is left as it is (:func:`check_budget` then refuses the render)."""
+    if peak_bytes(req.estimates) <= budget:
+        return []
+    room = budget - sum(e.bytes for e in req.estimates[:2])
+    notes = []
+    for i, p in enumerate(req.passes):
+        cls = get_method(p.method)
+        params = configure(p.method, p.table(scene))
+        if sum(e.bytes for e in cls.estimate(scene, params)) <= room:
+            continue
+        more = cls.fit_memory(scene, params, room)
+        if more:
+            req.passes[i] = replace(p, params={**p.params, **more})
+            notes.append(f"{p.method}: " + ", ".join(
+                f"render.{p.method}.{k} = {human_bytes(v) if k.endswith('bytes') else v}"
+                for k, v in more.items())
+                + f" to fit the {human_bytes(budget)} allowed ({source}): the same work in "
+                "smaller parts")
+    if notes:
+        req.estimates = estimate(scene, req.passes, {})
+    return notes
 
 
 def check_budget(estimates: list[Estimate], budget: float, source: str) -> None:

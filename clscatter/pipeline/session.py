@@ -201,12 +201,13 @@ class RenderSession:
         clock = (time.perf_counter(), engine.wait_seconds)
         with stats.stage("configure"):
             limit, source = budget.memory_budget(engine, self.max_memory)
+            fitted_memory = budget.fit_memory(scene, req, limit, source)
             budget.check_budget(req.estimates, limit, source)
             engine.fit_pool(limit, budget.peak_bytes(req.estimates))
             fitted = [p.method for p in req.passes if time_limit.deadline is not None
                       and get_method(p.method).SIZES_PASSES]
-            for line in (user_notes(req.notes) + budget.long_work_notes(req.estimates, fitted)
-                         + scene_notes(scene)):
+            for line in (user_notes(req.notes) + fitted_memory
+                         + budget.long_work_notes(req.estimates, fitted) + scene_notes(scene)):
                 if on_note is not None:
                     on_note(line)
             if scene.dropped_triangles():

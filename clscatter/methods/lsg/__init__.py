@@ -34,8 +34,13 @@ from ..base import AutoRole, Estimate, Method, Param, PassResult, camera_samples
 #: pair tests one lighting segment costs the gather, as an order of magnitude (the plane
 #: queries of a few hundred to a few thousand view segments): the work estimate's unit
 PAIRS_PER_SEGMENT = 1000
-#: most rays the automatic radius's pilot traces (in one piece: its segments stay in memory)
+#: most rays the automatic radius's pilot traces (in one piece: its segments stay in memory;
+#: no more than a chunk of max_bytes holds, at least PILOT_MIN)
 PILOT_MAX = 1 << 18
+PILOT_MIN = 2000
+#: least max_bytes that fitting a pass into a memory budget sets: a chunk of the pilot's
+#: least rays (~3 segments a ray in the estimate)
+MIN_CHUNK_BYTES = 4 << 20
 #: view segments the pilot gathers at most (every k-th: it needs medians, not an image)
 PILOT_VIEWS = 16384
 #: ... and under a time budget (the pilot also measures the cost that sizes passes)
@@ -138,7 +143,8 @@ class LineSpaceGathering(Method):
     them that reaches the mirrors and glass.
 
     *Automatic radius* (``radius = 0``). A pilot of ``light_rays / 8`` rays (at least 2000,
-    at most :data:`PILOT_MAX`) is gathered at a trial radius r0; the median number c of
+    at most :data:`PILOT_MAX` and what a chunk of ``max_bytes`` holds) is gathered at a
+    trial radius r0; the median number c of
     pairs per lit view segment,
     scaled to ``light_rays``, gives ``r = max(r0 * auto_count / c, f / 16)`` with f the
     median pixel footprint there: a typical lit view segment gathers ``auto_count``
@@ -202,7 +208,9 @@ class LineSpaceGathering(Method):
     surfaces do not). ``interior = false`` leaves this light out, with a note.
 
     Rays are processed in chunks whose working set stays within ``max_bytes``; a chunk that
-    turns out larger is traced again in smaller parts.
+    turns out larger is traced again in smaller parts. Where the render's memory budget
+    (``--max-memory``, or the device's) cannot hold a pass as set, ``max_bytes`` is lowered
+    to fit it (:meth:`fit_memory`, with a note) rather than the render refused.
 
     Statistics: ``light_segments``, ``lsg_light_segments_kept``, ``view_segments``,
     ``pair_tests``, ``pair_tests_bruteforce``, ``valid_pairs``, ``lsg_cull_fraction``,
@@ -296,6 +304,16 @@ class LineSpaceGathering(Method):
         return [Estimate("lsg", "render.lsg.light_rays", chunk + views * per_view,
                          rays * 3 * params["passes"] * PAIRS_PER_SEGMENT + views * 200,
                          "pair tests (order of magnitude)")]
+
+    @classmethod
+    def fit_memory(cls, scene, params, room):
+        """A smaller ``max_bytes``: the lighting rays of a pass are gathered in more chunks
+        (the same rays and radius: the same image up to the order of its sums), down to
+        :data:`MIN_CHUNK_BYTES`."""
+        (est,) = cls.estimate(scene, params)
+        chunk = min(float(params["max_bytes"]), float(params["light_rays"]) * 3 * BYTES_PER_SEGMENT)
+        fits = int(room - (est.bytes - chunk))
+        return {"max_bytes": fits} if fits >= MIN_CHUNK_BYTES else {}
 
     #: optional ``f(passes_done, radius, mean values per view segment)`` called after every
     #: pass (:meth:`_mean_values`; tests and benchmarks: the error after each pass from one
@@ -450,7 +468,8 @@ class LineSpaceGathering(Method):
         medians only, so it gathers at most about :data:`PILOT_VIEWS` view segments (every
         k-th of them)."""
         n_rays = self._rays
-        pilot = int(min(n_rays, max(2000, n_rays // 8), PILOT_MAX))
+        fits = int(self.params["max_bytes"] // (3 * BYTES_PER_SEGMENT))
+        pilot = int(min(n_rays, max(PILOT_MIN, min(n_rays // 8, fits)), PILOT_MAX))
         if prog is not None and prog.budgeted:
             pilot = min(pilot, PILOT_BUDGETED)
         stride = max(1, len(views) // PILOT_VIEWS) if isinstance(gat, Gatherer) else 1
