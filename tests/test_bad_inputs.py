@@ -234,19 +234,21 @@ def test_bad_cli_input(case, tmp_path, capsys):
 
 # ---- resource budgets: refused quickly, with the estimate, naming the key ---------------
 
-BUDGET_CASES = [
-    (["--set", "camera.resolution=[100000,100000]"], "camera.resolution"),
-    (["--set", "camera.spp=100000000"], "camera.spp"),
-    (["--set", "camera.resolution=[4000,3000]", "--set", "camera.spp=64", "--max-memory", "1G"], "camera"),
-    (["--method", "vpm", "--set", "render.vpm.photons=100000000000"], "render.vpm.photons"),
+BUDGET_CASES = [     # (arguments, the key named, the estimate's unit in the message)
+    (["--set", "camera.resolution=[100000,100000]"], "camera.resolution", "iB"),
+    (["--set", "camera.spp=100000000"], "camera.spp", "iB"),
+    (["--set", "camera.resolution=[4000,3000]", "--set", "camera.spp=64", "--max-memory", "1G"],
+     "camera", "iB"),
+    (["--method", "vpm", "--set", "render.vpm.photons=100000000000"], "render.vpm.photons", "iB"),
+    # lsg's chunks are fitted to the memory (max_bytes lowered), so the work refuses it
     (["--method", "lsg", "--set", "render.lsg.light_rays=1000000000000",
-      "--set", "render.lsg.max_bytes=1000000000000"], "render.lsg.light_rays"),
-    (["--max-memory", "1K"], "--max-memory"),
+      "--set", "render.lsg.max_bytes=1000000000000"], "render.lsg.light_rays", "pair tests"),
+    (["--max-memory", "1K"], "--max-memory", "iB"),
 ]
 
 
-@pytest.mark.parametrize("args, key", BUDGET_CASES, ids=[c[1] for c in BUDGET_CASES])
-def test_oversized_requests_are_refused_quickly(args, key, tmp_path, capsys, monkeypatch):
+@pytest.mark.parametrize("args, key, unit", BUDGET_CASES, ids=[c[1] for c in BUDGET_CASES])
+def test_oversized_requests_are_refused_quickly(args, key, unit, tmp_path, capsys, monkeypatch):
     """Refused from the estimates, before the scene is prepared on the device (no BVH, no
     upload, no launch): preparing it fails the test (an event, not a wall-clock bound)."""
     from clscatter.pipeline import session
@@ -258,7 +260,7 @@ def test_oversized_requests_are_refused_quickly(args, key, tmp_path, capsys, mon
     out = tmp_path / "o.png"
     line = _expect_error(capsys, ["render", str(_scene_file(tmp_path, BASE_TOML)), "-o", str(out),
                                   "--no-progress", *args], key, [out])
-    assert "about" in line and "iB" in line            # the estimate is in the message
+    assert "about" in line and unit in line            # the estimate is in the message
 
 
 def test_check_bounds_the_budget_by_the_device_as_render_does(tmp_path, capsys, monkeypatch):
