@@ -135,3 +135,19 @@ def test_a_pass_over_the_memory_budget_is_fitted_in_smaller_chunks(engine):
     with pytest.raises(ClscatterError, match="render.lsg.light_rays"):
         render(scene, "lsg", engine=engine, show_progress=False,
                max_memory=kept + views + 2e6)               # under the least chunk, 4 MiB
+
+
+@pytest.mark.parametrize("view_bytes, key", [(150e6, "camera.resolution"),
+                                             (50e6, "render.lsg.light_rays")])
+def test_a_refusal_names_the_key_that_would_help(view_bytes, key):
+    """Over budget, the refusal names the largest estimate's key, except where the view
+    paths and the scene alone exceed the budget: then no pass setting would help, and it
+    names theirs."""
+    from clscatter.errors import ClscatterError
+    from clscatter.methods.base import Estimate
+    from clscatter.pipeline import budget
+
+    est = [Estimate("view_paths", "camera.resolution", view_bytes),
+           Estimate("scene", "objects", 1e6), Estimate("lsg", "render.lsg.light_rays", 500e6)]
+    with pytest.raises(ClscatterError, match=rf"^{key}: .*lower {key}$"):
+        budget.check_budget(est, 100e6, "--max-memory")

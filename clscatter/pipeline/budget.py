@@ -149,10 +149,14 @@ def fit_memory(scene, req, budget: float, source: str) -> list[str]:
 
 def check_budget(estimates: list[Estimate], budget: float, source: str) -> None:
     """Refuse (ClscatterError, one line) when the peak exceeds ``budget``, or a stage's work
-    exceeds :data:`REFUSE_WORK`; the message names the key to lower and the estimate."""
+    exceeds :data:`REFUSE_WORK`; the message names the key to lower and the estimate: the
+    largest of the view paths and the scene where they alone exceed the budget (no pass
+    setting would help), else the largest estimate."""
     peak = peak_bytes(estimates)
     if peak > budget:
-        worst = max(estimates, key=lambda e: e.bytes)
+        kept = estimates[:2]
+        alone = sum(e.bytes for e in kept) > budget
+        worst = max(kept if alone else estimates, key=lambda e: e.bytes)
         raise ClscatterError(
             f"{worst.key}: this render needs about {human_bytes(peak)} ({worst.stage}: "
             f"{human_bytes(worst.bytes)}), more than the {human_bytes(budget)} allowed "
