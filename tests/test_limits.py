@@ -151,3 +151,27 @@ def test_a_refusal_names_the_key_that_would_help(view_bytes, key):
            Estimate("scene", "objects", 1e6), Estimate("lsg", "render.lsg.light_rays", 500e6)]
     with pytest.raises(ClscatterError, match=rf"^{key}: .*lower {key}$"):
         budget.check_budget(est, 100e6, "--max-memory")
+
+
+def test_lsg_refused_for_its_view_segments_names_the_resolution():
+    """Where even LSG's least chunk does not fit beside its view segments, its estimate is
+    of that least chunk and the refusal names ``camera.resolution``: fewer lighting rays
+    would not help."""
+    from clscatter.errors import ClscatterError
+    from clscatter.methods.lsg import MIN_CHUNK_BYTES
+    from clscatter.pipeline import budget
+    from clscatter.pipeline.check import check
+    from clscatter.scene import load_scene
+
+    scene = load_scene("builtin:caustic_sphere", [])
+    req = check(scene, "lsg")
+    kept = sum(e.bytes for e in req.estimates[:2])
+    rays = scene.render.params.get("lsg", {}).get("light_rays", 200_000)
+    chunk = min(2.0 ** 30, rays * 3 * 560)
+    views = req.estimates[2].bytes - chunk
+    assert views > 10 * MIN_CHUNK_BYTES and req.estimates[2].key == "render.lsg.light_rays"
+    limit = kept + 0.5 * views
+    assert budget.fit_memory(scene, req, limit, "--max-memory") == []
+    assert req.estimates[2].bytes == pytest.approx(views + MIN_CHUNK_BYTES)
+    with pytest.raises(ClscatterError, match=r"^camera.resolution: .*lower camera.resolution$"):
+        budget.check_budget(req.estimates, limit, "--max-memory")

@@ -123,26 +123,32 @@ def fit_memory(scene, req, budget: float, source: str) -> list[str]:
     """Where the peak of ``req`` (a checked request: ``passes``, ``estimates``) exceeds
     ``budget``, give every pass whose estimate does not fit beside the view paths and the
     scene the parameters with which it does (``Method.fit_memory``: smaller parts of the
-    same work), and estimate again. Returns a note per pass changed; a pass that cannot
-    shrink is left as it is (:func:`check_budget` then refuses the render)."""
+    same work, down to the least parts it has), and estimate again. Returns a note per
+    pass that then fits; where one does not, :func:`check_budget` refuses the render with
+    the estimate of its least parts."""
     if peak_bytes(req.estimates) <= budget:
         return []
     room = budget - sum(e.bytes for e in req.estimates[:2])
     notes = []
+    changed = False
     for i, p in enumerate(req.passes):
         cls = get_method(p.method)
         params = configure(p.method, p.table(scene))
         if sum(e.bytes for e in cls.estimate(scene, params)) <= room:
             continue
         more = cls.fit_memory(scene, params, room)
-        if more:
-            req.passes[i] = replace(p, params={**p.params, **more})
+        if not more:
+            continue
+        req.passes[i] = replace(p, params={**p.params, **more})
+        after = cls.estimate(scene, configure(p.method, req.passes[i].table(scene)))
+        changed = True
+        if sum(e.bytes for e in after) <= room:
             notes.append(f"{p.method}: " + ", ".join(
                 f"render.{p.method}.{k} = {human_bytes(v) if k.endswith('bytes') else v}"
                 for k, v in more.items())
                 + f" to fit the {human_bytes(budget)} allowed ({source}): the same work in "
                 "smaller parts")
-    if notes:
+    if changed:
         req.estimates = estimate(scene, req.passes, {})
     return notes
 

@@ -301,19 +301,23 @@ class LineSpaceGathering(Method):
         chunk = min(float(params["max_bytes"]), rays * 3 * BYTES_PER_SEGMENT)
         per_view = 80 + {"lights": BYTES_PER_VIEW,
                          "screen": BYTES_PER_SCREEN_VIEW}.get(params["queries"], 0)
-        return [Estimate("lsg", "render.lsg.light_rays", chunk + views * per_view,
+        # the memory's key: the rays' chunk, or the view segments where they weigh more
+        key = "render.lsg.light_rays" if chunk >= views * per_view else "camera.resolution"
+        return [Estimate("lsg", key, chunk + views * per_view,
                          rays * 3 * params["passes"] * PAIRS_PER_SEGMENT + views * 200,
-                         "pair tests (order of magnitude)")]
+                         "pair tests (order of magnitude)", work_key="render.lsg.light_rays")]
 
     @classmethod
     def fit_memory(cls, scene, params, room):
         """A smaller ``max_bytes``: the lighting rays of a pass are gathered in more chunks
         (the same rays and radius: the same image up to the order of its sums), down to
-        :data:`MIN_CHUNK_BYTES`."""
+        :data:`MIN_CHUNK_BYTES` (where even that does not fit, the view segments are what
+        is left: the estimate's key then says so)."""
         (est,) = cls.estimate(scene, params)
         chunk = min(float(params["max_bytes"]), float(params["light_rays"]) * 3 * BYTES_PER_SEGMENT)
-        fits = int(room - (est.bytes - chunk))
-        return {"max_bytes": fits} if fits >= MIN_CHUNK_BYTES else {}
+        if chunk <= MIN_CHUNK_BYTES:
+            return {}
+        return {"max_bytes": max(int(room - (est.bytes - chunk)), MIN_CHUNK_BYTES)}
 
     #: optional ``f(passes_done, radius, mean values per view segment)`` called after every
     #: pass (:meth:`_mean_values`; tests and benchmarks: the error after each pass from one
