@@ -38,8 +38,10 @@ PAIRS_PER_SEGMENT = 1000
 #: no more than a chunk of max_bytes holds, at least PILOT_MIN)
 PILOT_MAX = 1 << 18
 PILOT_MIN = 2000
+#: lighting segments a ray in the memory estimate (an upper bound: glass splits rays)
+SEGMENTS_PER_RAY = 3
 #: least max_bytes that fitting a pass into a memory budget sets: a chunk of the pilot's
-#: least rays (~3 segments a ray in the estimate)
+#: least rays
 MIN_CHUNK_BYTES = 4 << 20
 #: view segments the pilot gathers at most (every k-th: it needs medians, not an image)
 PILOT_VIEWS = 16384
@@ -69,6 +71,13 @@ SAMPLES_SHARE_RADIUS = 0.5
 #: the automatic radius is at least the median pixel footprint of the lit view segments
 #: over this: no blur is smaller than a sixteenth of a pixel
 RADIUS_FLOOR = 16
+
+
+def _chunk_bytes(params: dict) -> float:
+    """The estimated working set of one chunk of a pass's lighting rays: all of them, or
+    ``max_bytes`` where that is less."""
+    return min(float(params["max_bytes"]),
+               float(params["light_rays"]) * SEGMENTS_PER_RAY * BYTES_PER_SEGMENT)
 
 
 def _group_weights(gathered, groups: int, spp: int) -> dict[int, float]:
@@ -291,14 +300,14 @@ class LineSpaceGathering(Method):
 
     @classmethod
     def estimate(cls, scene, params):
-        """Working set: one chunk of lighting segments (bounded by ``max_bytes``; ~3
-        segments per ray at BYTES_PER_SEGMENT each) plus 80 bytes per view segment, and
+        """Working set: one chunk of lighting segments (bounded by ``max_bytes``;
+        :data:`SEGMENTS_PER_RAY` a ray at BYTES_PER_SEGMENT each) plus 80 bytes per view segment, and
         BYTES_PER_VIEW more for the tree over them with ``queries = "lights"``
         (BYTES_PER_SCREEN_VIEW for the screen cells with ``"screen"``); work: the segments
         traced over all passes times :data:`PAIRS_PER_SEGMENT`."""
         views = 2.0 * camera_samples(scene)
         rays = float(params["light_rays"])
-        chunk = min(float(params["max_bytes"]), rays * 3 * BYTES_PER_SEGMENT)
+        chunk = _chunk_bytes(params)
         per_view = 80 + {"lights": BYTES_PER_VIEW,
                          "screen": BYTES_PER_SCREEN_VIEW}.get(params["queries"], 0)
         # the memory's key: the rays' chunk, or the view segments where they weigh more
@@ -314,7 +323,7 @@ class LineSpaceGathering(Method):
         :data:`MIN_CHUNK_BYTES` (where even that does not fit, the view segments are what
         is left: the estimate's key then says so)."""
         (est,) = cls.estimate(scene, params)
-        chunk = min(float(params["max_bytes"]), float(params["light_rays"]) * 3 * BYTES_PER_SEGMENT)
+        chunk = _chunk_bytes(params)
         if chunk <= MIN_CHUNK_BYTES:
             return {}
         return {"max_bytes": max(int(room - (est.bytes - chunk)), MIN_CHUNK_BYTES)}
@@ -472,7 +481,7 @@ class LineSpaceGathering(Method):
         medians only, so it gathers at most about :data:`PILOT_VIEWS` view segments (every
         k-th of them)."""
         n_rays = self._rays
-        fits = int(self.params["max_bytes"] // (3 * BYTES_PER_SEGMENT))
+        fits = int(self.params["max_bytes"] // (SEGMENTS_PER_RAY * BYTES_PER_SEGMENT))
         pilot = int(min(n_rays, max(PILOT_MIN, min(n_rays // 8, fits)), PILOT_MAX))
         if prog is not None and prog.budgeted:
             pilot = min(pilot, PILOT_BUDGETED)
