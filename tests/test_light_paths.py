@@ -122,3 +122,22 @@ def test_chunks_reproduce_the_full_trace(engine, interleaved):
             assert np.abs(phi - 1 / 8).max() < 0.03
         else:
             assert rays.max() - rays.min() + 1 == len(rays) and bins <= 4
+
+
+def test_interleaved_chunks_come_in_odd_counts(engine):
+    """An even count of interleaved chunks would make each a wedge of directions: it is
+    refused, and ``interleaved_parts`` gives the odd count that holds at most about the
+    asked rays a chunk."""
+    from clscatter.transport.light_paths import interleaved_parts
+
+    assert [interleaved_parts(r, 100) for r in (50, 100, 101, 200, 250, 301, 400)] == \
+        [1, 1, 3, 3, 3, 5, 5]
+    d = {"camera": CAM, "medium": {"sigma_s": 0.1, "sigma_a": 0.0},
+         "lights": [{"type": "point", "position": [0.0, 0.0, 0.0], "intensity": 1.0}]}
+    ps = _prep(engine, d)
+    try:
+        with pytest.raises(ValueError, match="odd"):
+            trace_light_paths(ps, 1000, show_progress=False, chunk=(0, 4), interleaved=True)
+        assert len(trace_light_paths(ps, 1000, show_progress=False, chunk=(0, 4)).segments)
+    finally:
+        ps.release()

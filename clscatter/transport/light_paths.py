@@ -23,6 +23,7 @@ first hit is a mirror or dielectric.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -79,6 +80,13 @@ def chunk_rays(counts: np.ndarray, k: int, n: int, interleaved: bool = False) ->
     return int(sum(int(c) * (k + 1) // n - int(c) * k // n for c in counts))
 
 
+def interleaved_parts(rays: int, most: int) -> int:
+    """How many interleaved chunks :func:`trace_light_paths` splits ``rays`` into so that
+    none holds more than about ``most``: an odd number (see there), 1 when all fit."""
+    parts = max(1, math.ceil(rays / max(int(most), 1)))
+    return parts + (parts % 2 == 0 and parts > 1)
+
+
 def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = None,
                       show_progress: bool = True, rays_per_launch: int = 1 << 16,
                       chunk: tuple[int, int] | None = None, pieces: bool = False,
@@ -93,7 +101,8 @@ def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = No
     contiguous run is a band of the first coordinate, and an interleaved chunk spreads
     over all of a light's directions (or its rectangle) like the whole set only for odd
     ``n`` (an even stride fixes the index's low bits, so the radical inverse stays in a
-    band: a wedge of directions).
+    band: a wedge of directions), so an even ``n`` is refused (:func:`interleaved_parts`
+    gives an odd one).
     ``pieces=True`` returns, instead of the medium segments, the
     :data:`~clscatter.device.structs.RAY_PIECE` on which every branch ends (diffuse or black
     surface, or leaving the scene box) with the flux arriving there, with or without a
@@ -106,6 +115,9 @@ def trace_light_paths(ps: PreparedScene, num_rays: int, stats: Stats | None = No
     material index + 1; 0 for the pieces in the medium) and carrying the flux at its
     start (the interior extinction up to it included), with or without a medium.
     """
+    if interleaved and chunk is not None and chunk[1] > 1 and chunk[1] % 2 == 0:
+        raise ValueError(f"interleaved chunks of an even count ({chunk[1]}) are wedges of "
+                         "directions: use an odd count (interleaved_parts)")
     stats = stats or Stats()
     eng = ps.engine
     counts = ray_counts(ps, num_rays, targeted)

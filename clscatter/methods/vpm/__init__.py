@@ -10,7 +10,7 @@ from ...device.launch import timed_launches
 from ...io.stats import Stats, Timer, progress
 from ...transport import primitives as prim
 from ...transport.context import PassContext
-from ...transport.light_paths import chunk_rays, trace_light_paths
+from ...transport.light_paths import chunk_rays, interleaved_parts, trace_light_paths
 from ...transport.prepared import PreparedScene
 from .. import register
 from ..base import Estimate, Method, Param, PassResult, camera_samples
@@ -362,8 +362,7 @@ class VolumetricPhotonMapping(Method):
         build the photon map (host arrays)."""
         eng = ps.engine
         rays = self.rays()
-        parts = math.ceil(rays / RAYS_PER_PART)
-        parts += parts > 1 and parts % 2 == 0        # an odd stride: see trace_light_paths
+        parts = interleaved_parts(rays, RAYS_PER_PART)
         total = self.params["photons"]
         base_seed = (ps.scene.render.seed * 1000003 + 7 + 7919 * self.params["light_seed"])
         kept: list[np.ndarray] = []
